@@ -1,0 +1,100 @@
+"""The public registration API."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solvers import RegistrationResult, WeightedTLSProblem, solve_registration
+from solvers._validation import resolve_rng
+
+__all__ = ["register", "as_points"]
+
+log = logging.getLogger(__name__)
+
+Solver = Literal["gnc", "sdp"]
+
+
+def as_points(value: Any, name: str) -> Any:
+    """Return ``value`` as an (N, 3) array when it is an ``open3d.geometry.PointCloud``.
+
+    Other inputs pass through unchanged (validated by the problem type).
+    """
+    cls = type(value)
+    if cls.__name__ == "PointCloud" and cls.__module__.startswith("open3d"):
+        return np.asarray(value.points, dtype=np.float64)
+    return value
+
+
+def register(
+    source: Any,
+    target: Any,
+    *,
+    noise_bound: float | NDArray[np.float64],
+    weights: NDArray[np.float64] | None = None,
+    solver: Solver = "gnc",
+    certify: bool = False,
+    rng: np.random.Generator | int | None = None,
+    prune: Literal["auto", "always", "never"] = "auto",
+    cbar2: float = 1.0,
+) -> RegistrationResult:
+    """Robustly register corresponding point sets with the weighted TLS cost.
+
+    Parameters
+    ----------
+    source, target : (N, 3) array_like or open3d.geometry.PointCloud
+        Corresponding points: row ``k`` of ``source`` matches row ``k`` of ``target``.
+    noise_bound : float or (N,) array_like
+        Inlier noise bound ``beta`` (units of the points); e.g. ``5.54 * sigma`` for isotropic
+        Gaussian noise of standard deviation ``sigma``.
+    weights : (N,) array_like, optional
+        Non-negative correspondence weights (default 1).
+    solver : {"gnc", "sdp"}
+        ``"gnc"``: GNC-TLS, preceded by max-clique pruning when it pays. ``"sdp"``: the
+        Black-Rangarajan SDP relaxation's own rounded pose, with its certificate.
+    certify : bool
+        Attach a duality-gap certificate to the returned pose (``solver="gnc"``).
+    rng : numpy.random.Generator, int or None
+        Randomness for the solvers that use it (seeded runs are reproducible).
+    prune : {"auto", "always", "never"}
+        Whether to prune with the pairwise-consistency max clique before GNC.
+    cbar2 : float
+        TLS truncation on normalised squared residuals (default 1).
+
+    Returns
+    -------
+    RegistrationResult
+        With ``T_target_source`` mapping source points into the target frame. Check
+        ``success``/``status``: a failed or degenerate solve is reported, not raised.
+
+    Raises
+    ------
+    ValueError, TypeError
+        On malformed input (shapes, NaN/inf, negative weights, non-positive noise bound).
+    """
+    problem = WeightedTLSProblem(
+        as_points(source, "source"),
+        as_points(target, "target"),
+        noise_bound=noise_bound,
+        weights=weights,
+        cbar2=cbar2,
+    )
+    resolve_rng(rng)
+    if solver not in ("gnc", "sdp"):
+        raise ValueError(f"`solver` must be 'gnc' or 'sdp', got {solver!r}.")
+    if prune not in ("auto", "always", "never"):
+        raise ValueError(f"`prune` must be 'auto', 'always' or 'never', got {prune!r}.")
+    method = {"auto": "auto", "always": "pruned", "never": "gnc"}[prune]
+    if solver == "sdp":
+        from solvers.certify import solve_sdp  # cvxpy: imported on demand
+
+        return solve_sdp(problem)
+    result = solve_registration(problem, method=method)  # type: ignore[arg-type]
+    if certify:
+        from solvers.certify import certify_result
+
+        result = certify_result(problem, result)
+    return result

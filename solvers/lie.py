@@ -1,0 +1,165 @@
+"""SO(3) and SE(3) helpers on 3x3 rotation matrices and 4x4 homogeneous transforms.
+
+Conventions: ``T_a_b`` maps points expressed in frame ``b`` into frame ``a``; points are
+``(N, 3)`` rows, so ``transform_points(T_a_b, p_b) = p_b @ R.T + t``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "hat",
+    "vee",
+    "so3_exp",
+    "so3_log",
+    "se3_exp",
+    "se3_log",
+    "make_transform",
+    "invert_transform",
+    "transform_points",
+    "project_to_so3",
+    "rotation_angle_deg",
+    "rotation_error_deg",
+    "translation_error",
+    "random_rotation",
+]
+
+_SMALL = 1e-10
+
+
+def hat(omega: ArrayLike) -> NDArray[np.float64]:
+    """Skew-symmetric matrix ``[omega]_x`` of a 3-vector, shape (3, 3)."""
+    w = np.asarray(omega, dtype=np.float64).reshape(3)
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def vee(omega_hat: ArrayLike) -> NDArray[np.float64]:
+    """Inverse of :func:`hat` (reads the skew part), shape (3,)."""
+    m = np.asarray(omega_hat, dtype=np.float64)
+    return 0.5 * np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
+
+
+def so3_exp(omega: ArrayLike) -> NDArray[np.float64]:
+    """Rotation matrix of the rotation vector ``omega`` (radians), Rodrigues' formula."""
+    w = np.asarray(omega, dtype=np.float64).reshape(3)
+    theta2 = float(w @ w)
+    K = hat(w)
+    if theta2 < _SMALL:
+        # Taylor expansion keeps accuracy near the identity.
+        return np.eye(3) + K + 0.5 * K @ K
+    theta = np.sqrt(theta2)
+    return np.eye(3) + (np.sin(theta) / theta) * K + ((1 - np.cos(theta)) / theta2) * K @ K
+
+
+def so3_log(R: ArrayLike) -> NDArray[np.float64]:
+    """Rotation vector (radians) of a rotation matrix; the inverse of :func:`so3_exp`."""
+    R = np.asarray(R, dtype=np.float64)
+    cos_t = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = float(np.arccos(cos_t))
+    if theta < 1e-6:
+        # theta / sin(theta) ~ 1 + theta^2 / 6 near zero.
+        return vee(R - R.T) * (1.0 + theta**2 / 6.0)
+    if np.pi - theta < 1e-4:
+        # Near pi the skew part vanishes: read the axis from the symmetric part.
+        B = (R + np.eye(3)) / 2.0
+        k = int(np.argmax(np.diag(B)))
+        axis = B[:, k] / np.sqrt(max(B[k, k], _SMALL))
+        axis /= np.linalg.norm(axis)
+        # Fix the sign using the (small) skew part, if any.
+        s = vee(R - R.T)
+        if s @ axis < 0:
+            axis = -axis
+        return axis * theta
+    return vee(R - R.T) * (theta / np.sin(theta))
+
+
+def _left_jacobian(omega: NDArray[np.float64]) -> NDArray[np.float64]:
+    theta2 = float(omega @ omega)
+    K = hat(omega)
+    if theta2 < _SMALL:
+        return np.eye(3) + 0.5 * K + K @ K / 6.0
+    theta = np.sqrt(theta2)
+    return (
+        np.eye(3)
+        + ((1 - np.cos(theta)) / theta2) * K
+        + ((theta - np.sin(theta)) / (theta2 * theta)) * K @ K
+    )
+
+
+def se3_exp(xi: ArrayLike) -> NDArray[np.float64]:
+    """4x4 transform of a twist ``xi = [rho, omega]`` (translation part first)."""
+    xi = np.asarray(xi, dtype=np.float64).reshape(6)
+    rho, omega = xi[:3], xi[3:]
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(omega)
+    T[:3, 3] = _left_jacobian(omega) @ rho
+    return T
+
+
+def se3_log(T: ArrayLike) -> NDArray[np.float64]:
+    """Twist ``[rho, omega]`` of a 4x4 transform; the inverse of :func:`se3_exp`."""
+    T = np.asarray(T, dtype=np.float64)
+    omega = so3_log(T[:3, :3])
+    rho = np.linalg.solve(_left_jacobian(omega), T[:3, 3])
+    return np.concatenate([rho, omega])
+
+
+def make_transform(rotation: ArrayLike, translation: ArrayLike) -> NDArray[np.float64]:
+    """Assemble a 4x4 homogeneous transform from ``R`` (3, 3) and ``t`` (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(rotation, dtype=np.float64)
+    T[:3, 3] = np.asarray(translation, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert_transform(T: ArrayLike) -> NDArray[np.float64]:
+    """Inverse of a rigid 4x4 transform (``T_b_a`` from ``T_a_b``)."""
+    T = np.asarray(T, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    return make_transform(R.T, -R.T @ t)
+
+
+def transform_points(T: ArrayLike, points: ArrayLike) -> NDArray[np.float64]:
+    """Apply ``T`` (4, 4) to ``points`` (N, 3)."""
+    T = np.asarray(T, dtype=np.float64)
+    return np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+
+
+def project_to_so3(M: ArrayLike) -> NDArray[np.float64]:
+    """Closest rotation matrix to ``M`` (3, 3) in the Frobenius norm (SVD, det corrected)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=np.float64))
+    D = np.ones(3)
+    D[2] = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    return (U * D) @ Vt
+
+
+def rotation_angle_deg(R: ArrayLike) -> float:
+    """Geodesic angle of ``R`` from the identity, in degrees."""
+    R = np.asarray(R, dtype=np.float64)
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def rotation_error_deg(R_est: ArrayLike, R_gt: ArrayLike) -> float:
+    """Geodesic rotation error ``arccos((tr(R_gt^T R_est) - 1) / 2)`` in degrees."""
+    return rotation_angle_deg(np.asarray(R_gt, dtype=np.float64).T @ np.asarray(R_est))
+
+
+def translation_error(t_est: ArrayLike, t_gt: ArrayLike) -> float:
+    """Euclidean translation error (same units as the inputs)."""
+    return float(np.linalg.norm(np.asarray(t_est, dtype=np.float64) - np.asarray(t_gt)))
+
+
+def random_rotation(rng: np.random.Generator) -> NDArray[np.float64]:
+    """A rotation drawn uniformly from SO(3) (Haar measure)."""
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )

@@ -1,0 +1,140 @@
+"""The weighted truncated-least-squares (TLS) registration problem."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from solvers._validation import as_float_array, check_per_item, check_points
+
+__all__ = ["WeightedTLSProblem"]
+
+
+@dataclass(frozen=True, eq=False)
+class WeightedTLSProblem:
+    r"""Weighted TLS registration of corresponding point sets.
+
+    The cost of a pose ``(R, t)`` is
+
+    .. math:: f(R, t) = \sum_k w_k \min(\|b_k - R a_k - t\|^2 / \beta_k^2,\ \bar c^2)
+
+    with ``a_k = source[k]``, ``b_k = target[k]``.
+
+    Parameters
+    ----------
+    source : (N, 3) array_like
+        Points ``a_k`` in the source frame.
+    target : (N, 3) array_like
+        Points ``b_k`` in the target frame; row ``k`` corresponds to ``source[k]``.
+    weights : (N,) array_like or None, optional
+        Non-negative weights ``w_k``; default 1.
+    noise_bound : float or (N,) array_like
+        Positive noise bounds ``beta_k`` (same units as the points).
+    cbar2 : float, optional
+        Truncation threshold ``cbar^2`` on normalised squared residuals; default 1.
+
+    Raises
+    ------
+    ValueError
+        Wrong shapes, mismatched lengths, fewer than 3 correspondences, NaN/inf,
+        negative weights or non-positive noise bounds / ``cbar2``.
+    TypeError
+        Non-numeric input.
+    """
+
+    source: NDArray[np.float64]
+    target: NDArray[np.float64]
+    noise_bound: NDArray[np.float64] = field(default=None)  # type: ignore[assignment]
+    weights: NDArray[np.float64] = field(default=None)  # type: ignore[assignment]
+    cbar2: float = 1.0
+
+    def __init__(
+        self,
+        source: ArrayLike,
+        target: ArrayLike,
+        *,
+        noise_bound: ArrayLike,
+        weights: ArrayLike | None = None,
+        cbar2: float = 1.0,
+    ) -> None:
+        src = check_points(source, "source")
+        dst = check_points(target, "target")
+        if src.shape[0] != dst.shape[0]:
+            raise ValueError(
+                "Expected `source` and `target` to have the same number of rows, got "
+                f"{src.shape[0]} and {dst.shape[0]}."
+            )
+        n = src.shape[0]
+        if n < 3:
+            raise ValueError(f"Expected at least 3 correspondences, got {n}.")
+        if noise_bound is None:
+            raise ValueError("`noise_bound` is required (a positive scalar or an (N,) array).")
+        beta = check_per_item(noise_bound, "noise_bound", n, positive=True, allow_scalar=True)
+        w = (
+            np.ones(n)
+            if weights is None
+            else check_per_item(weights, "weights", n, positive=False, allow_scalar=True)
+        )
+        c2 = as_float_array(cbar2, "cbar2")
+        if c2.ndim != 0 or not np.isfinite(c2) or c2 <= 0:
+            raise ValueError(f"`cbar2` must be a positive finite scalar, got {cbar2!r}.")
+        for arr in (src, dst, beta, w):
+            arr.setflags(write=False)
+        object.__setattr__(self, "source", src)
+        object.__setattr__(self, "target", dst)
+        object.__setattr__(self, "noise_bound", beta)
+        object.__setattr__(self, "weights", w)
+        object.__setattr__(self, "cbar2", float(c2))
+
+    @property
+    def n(self) -> int:
+        """Number of correspondences."""
+        return int(self.source.shape[0])
+
+    @property
+    def scalar_noise_bound(self) -> bool:
+        """True when every correspondence has the same noise bound."""
+        return bool(np.all(self.noise_bound == self.noise_bound[0]))
+
+    def residuals_sq(self, rotation: ArrayLike, translation: ArrayLike) -> NDArray[np.float64]:
+        """Normalised squared residuals ``||b_k - R a_k - t||^2 / beta_k^2``, shape (N,)."""
+        R = np.asarray(rotation, dtype=np.float64)
+        t = np.asarray(translation, dtype=np.float64).reshape(3)
+        d = self.target - self.source @ R.T - t
+        return np.einsum("ij,ij->i", d, d) / self.noise_bound**2
+
+    def cost(self, rotation: ArrayLike, translation: ArrayLike) -> float:
+        """TLS cost of the pose ``(R, t)``."""
+        r2 = self.residuals_sq(rotation, translation)
+        return float(self.weights @ np.minimum(r2, self.cbar2))
+
+    def inliers(self, rotation: ArrayLike, translation: ArrayLike) -> NDArray[np.bool_]:
+        """Correspondences whose normalised squared residual is at most ``cbar2``."""
+        return self.residuals_sq(rotation, translation) <= self.cbar2
+
+    def subset(self, mask: ArrayLike) -> WeightedTLSProblem:
+        """The problem restricted to the correspondences selected by ``mask`` (bool or index)."""
+        idx = np.asarray(mask)
+        return WeightedTLSProblem(
+            self.source[idx],
+            self.target[idx],
+            noise_bound=self.noise_bound[idx],
+            weights=self.weights[idx],
+            cbar2=self.cbar2,
+        )
+
+    def __repr__(self) -> str:
+        return f"WeightedTLSProblem(n={self.n}, cbar2={self.cbar2:g})"
+
+    def __reduce__(self) -> tuple[Any, ...]:  # pickling (e.g. to a Dask worker)
+        return (
+            _rebuild,
+            (self.source, self.target, self.noise_bound, self.weights, self.cbar2),
+        )
+
+
+def _rebuild(src: Any, dst: Any, beta: Any, w: Any, c2: float) -> WeightedTLSProblem:
+    return WeightedTLSProblem(src, dst, noise_bound=beta, weights=w, cbar2=c2)

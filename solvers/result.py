@@ -1,0 +1,131 @@
+"""Result and status types shared by every solver."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from solvers.certificate import Certificate
+
+__all__ = ["SolverStatus", "RegistrationResult"]
+
+
+class SolverStatus(str, Enum):
+    """Closed vocabulary of solver outcomes.
+
+    Only ``CONVERGED`` counts as a success.
+    """
+
+    CONVERGED = "converged"
+    """The solver met its stopping rule; the pose is its estimate."""
+    MAX_ITERATIONS = "max_iterations"
+    """The iteration limit was hit before the stopping rule."""
+    DEGENERATE = "degenerate"
+    """The inliers do not fix a pose (collinear or coincident points)."""
+    INSUFFICIENT_INLIERS = "insufficient_inliers"
+    """Fewer than 3 consistent correspondences survived."""
+    NUMERICAL_ERROR = "numerical_error"
+    """A numerical failure (non-finite values, failed decomposition)."""
+    SOLVER_ERROR = "solver_error"
+    """A backend (e.g. an SDP solver) failed or reported an inaccurate solve."""
+
+    @property
+    def success(self) -> bool:
+        return self is SolverStatus.CONVERGED
+
+
+@dataclass(frozen=True, eq=False)
+class RegistrationResult:
+    """Outcome of a robust registration.
+
+    Attributes
+    ----------
+    T_target_source : (4, 4) ndarray
+        Homogeneous transform mapping source points into the target frame.
+    rotation : (3, 3) ndarray
+        Rotation block of ``T_target_source``.
+    translation : (3,) ndarray
+        Translation of ``T_target_source``, in the units of the points.
+    inliers : (N,) ndarray of bool
+        Correspondences with normalised squared residual ``<= cbar2`` at the returned pose.
+    cost : float
+        Weighted TLS cost of the returned pose.
+    iterations : int
+        Solver iterations (GNC outer iterations, or the backend's count).
+    solve_time : float
+        Wall-clock time in seconds.
+    success : bool
+        True only when ``status`` is ``CONVERGED``.
+    status : SolverStatus
+        Outcome from the closed vocabulary.
+    message : str
+        Human-readable explanation of the status.
+    certificate : Certificate or None
+        Optimality certificate, when certification was requested.
+    solver : str
+        Name of the method that produced the pose.
+    info : dict
+        Solver-specific diagnostics (e.g. the max-clique size).
+    """
+
+    T_target_source: NDArray[np.float64]
+    inliers: NDArray[np.bool_]
+    cost: float
+    iterations: int
+    solve_time: float
+    status: SolverStatus
+    message: str
+    certificate: Certificate | None = None
+    solver: str = ""
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def rotation(self) -> NDArray[np.float64]:
+        return self.T_target_source[:3, :3]
+
+    @property
+    def translation(self) -> NDArray[np.float64]:
+        return self.T_target_source[:3, 3]
+
+    @property
+    def success(self) -> bool:
+        return self.status.success
+
+    @property
+    def num_inliers(self) -> int:
+        return int(np.count_nonzero(self.inliers))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dictionary of the result."""
+        out: dict[str, Any] = {
+            "T_target_source": self.T_target_source.tolist(),
+            "rotation": self.rotation.tolist(),
+            "translation": self.translation.tolist(),
+            "num_inliers": self.num_inliers,
+            "inliers": np.flatnonzero(self.inliers).tolist(),
+            "cost": self.cost,
+            "iterations": self.iterations,
+            "solve_time": self.solve_time,
+            "success": self.success,
+            "status": self.status.value,
+            "message": self.message,
+            "solver": self.solver,
+            "certificate": None if self.certificate is None else self.certificate.to_dict(),
+            "info": {k: _jsonable(v) for k, v in self.info.items()},
+        }
+        return out
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, (np.floating, np.integer, np.bool_)):
+        return v.item()
+    if isinstance(v, Enum):
+        return v.value
+    return v
