@@ -117,33 +117,121 @@ def gnc_tls(a, b, prior_w, inv_beta2, cbar2, max_iter, mu_factor, cost_tol):  # 
     return R, t, gw, it, converged, True
 
 
-@njit(cache=True)
-def consistency_edges(a, b, beta, cbar):  # pragma: no cover - compiled
-    """Pairs (i < j) whose translation-invariant lengths agree: |‖a_ij‖ - ‖b_ij‖| <= c(β_i + β_j).
+@njit(cache=True, fastmath=True)
+def consistency_matrix(a, b, beta, cbar):  # pragma: no cover - compiled
+    """Dense symmetric adjacency (uint8) of the pairwise-consistency graph.
 
-    Returns a (E, 2) int array of edges.
+    ``i ~ j`` when |‖a_j - a_i‖ - ‖b_j - b_i‖| <= cbar (β_i + β_j); the diagonal is 0.
+    Branch-free inner loop so it vectorises.
     """
     n = a.shape[0]
-    cap = 1024
-    edges = np.empty((cap, 2), dtype=np.int64)
-    m = 0
+    adj = np.zeros((n, n), dtype=np.uint8)
     for i in range(n):
         for j in range(i + 1, n):
-            da = 0.0
-            db = 0.0
-            for d in range(3):
-                x = a[j, d] - a[i, d]
-                y = b[j, d] - b[i, d]
-                da += x * x
-                db += y * y
-            bound = cbar * (beta[i] + beta[j])
-            if abs(np.sqrt(da) - np.sqrt(db)) <= bound:
-                if m == cap:
-                    cap *= 2
-                    grown = np.empty((cap, 2), dtype=np.int64)
-                    grown[:m] = edges[:m]
-                    edges = grown
-                edges[m, 0] = i
-                edges[m, 1] = j
-                m += 1
-    return edges[:m]
+            x0 = a[j, 0] - a[i, 0]
+            x1 = a[j, 1] - a[i, 1]
+            x2 = a[j, 2] - a[i, 2]
+            y0 = b[j, 0] - b[i, 0]
+            y1 = b[j, 1] - b[i, 1]
+            y2 = b[j, 2] - b[i, 2]
+            da = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+            db = np.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
+            adj[i, j] = abs(da - db) <= cbar * (beta[i] + beta[j])
+    for i in range(n):
+        for j in range(i + 1, n):
+            adj[j, i] = adj[i, j]
+    return adj
+
+
+@njit(cache=True)
+def greedy_clique(adj, order):  # pragma: no cover - compiled
+    """A clique grown greedily along ``order`` (a lower bound on the maximum clique)."""
+    n = order.shape[0]
+    members = np.empty(n, dtype=np.int64)
+    m = 0
+    for v in order:
+        ok = True
+        for k in range(m):
+            if adj[v, members[k]] == 0:
+                ok = False
+                break
+        if ok:
+            members[m] = v
+            m += 1
+    return members[:m]
+
+
+@njit(cache=True)
+def peel_to_core(adj, k):  # pragma: no cover - compiled
+    """Vertices of the k-core (repeatedly drop vertices of degree < k)."""
+    n = adj.shape[0]
+    alive = np.ones(n, dtype=np.bool_)
+    deg = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        s = 0
+        for j in range(n):
+            s += adj[i, j]
+        deg[i] = s
+    stack = np.empty(n, dtype=np.int64)
+    top = 0
+    for i in range(n):
+        if deg[i] < k:
+            alive[i] = False
+            stack[top] = i
+            top += 1
+    while top > 0:
+        top -= 1
+        v = stack[top]
+        for u in range(n):
+            if adj[v, u] and alive[u]:
+                deg[u] -= 1
+                if deg[u] < k:
+                    alive[u] = False
+                    stack[top] = u
+                    top += 1
+    return np.flatnonzero(alive)
+
+
+@njit(cache=True)
+def scalar_tls(v, beta, w, cbar2):  # pragma: no cover - compiled
+    """Exact scalar TLS by sweeping sorted interval endpoints; returns (x, cost, found).
+
+    ``found`` is False when no piece beats "all outliers" (then any x is optimal).
+    """
+    n = v.shape[0]
+    cbar = np.sqrt(cbar2)
+    ends = np.empty(2 * n)
+    for k in range(n):
+        ends[k] = v[k] - beta[k] * cbar
+        ends[n + k] = v[k] + beta[k] * cbar
+    order = np.argsort(ends, kind="mergesort")
+    total_w = 0.0
+    for k in range(n):
+        total_w += w[k]
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    aw = 0.0
+    best_x = 0.0
+    best_cost = total_w * cbar2
+    found = False
+    for m in range(2 * n - 1):
+        e = order[m]
+        k = e if e < n else e - n
+        sign = 1.0 if e < n else -1.0
+        p = w[k] / (beta[k] * beta[k])
+        s0 += sign * p
+        s1 += sign * p * v[k]
+        s2 += sign * p * v[k] * v[k]
+        aw += sign * w[k]
+        lo = ends[e]
+        hi = ends[order[m + 1]]
+        if s0 <= 1e-300 or hi < lo:
+            continue
+        x = min(max(s1 / s0, lo), hi)
+        cost = s0 * x * x - 2.0 * s1 * x + s2 + (total_w - aw) * cbar2
+        if cost < best_cost:
+            best_cost = cost
+            best_x = x
+            found = True
+    return best_x, best_cost, found

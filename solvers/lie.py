@@ -57,22 +57,23 @@ def so3_log(R: ArrayLike) -> NDArray[np.float64]:
     """Rotation vector (radians) of a rotation matrix; the inverse of :func:`so3_exp`."""
     R = np.asarray(R, dtype=np.float64)
     cos_t = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    theta = float(np.arccos(cos_t))
+    # atan2 stays accurate near 0 and pi, where arccos alone loses digits.
+    theta = float(np.arctan2(0.5 * np.linalg.norm(vee(R - R.T)), cos_t))
     if theta < 1e-6:
-        # theta / sin(theta) ~ 1 + theta^2 / 6 near zero.
-        return vee(R - R.T) * (1.0 + theta**2 / 6.0)
+        # vee(R - R^T) = 2 sin(theta) axis; theta / sin(theta) ~ 1 + theta^2 / 6 near zero.
+        return 0.5 * vee(R - R.T) * (1.0 + theta**2 / 6.0)
     if np.pi - theta < 1e-4:
         # Near pi the skew part vanishes: read the axis from the symmetric part.
-        B = (R + np.eye(3)) / 2.0
+        # (R + R^T)/2 = cos(theta) I + (1 - cos(theta)) k k^T gives k k^T exactly.
+        B = (0.5 * (R + R.T) - cos_t * np.eye(3)) / (1.0 - cos_t)
         k = int(np.argmax(np.diag(B)))
-        axis = B[:, k] / np.sqrt(max(B[k, k], _SMALL))
-        axis /= np.linalg.norm(axis)
+        axis = B[:, k] / np.linalg.norm(B[:, k])
         # Fix the sign using the (small) skew part, if any.
         s = vee(R - R.T)
         if s @ axis < 0:
             axis = -axis
         return axis * theta
-    return vee(R - R.T) * (theta / np.sin(theta))
+    return 0.5 * vee(R - R.T) * (theta / np.sin(theta))
 
 
 def _left_jacobian(omega: NDArray[np.float64]) -> NDArray[np.float64]:

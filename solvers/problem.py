@@ -104,11 +104,23 @@ class WeightedTLSProblem:
         R = np.asarray(rotation, dtype=np.float64)
         t = np.asarray(translation, dtype=np.float64).reshape(3)
         d = self.target - self.source @ R.T - t
-        return np.einsum("ij,ij->i", d, d) / self.noise_bound**2
+        d *= d
+        return d.sum(axis=1) / self._beta2
+
+    @property
+    def _beta2(self) -> NDArray[np.float64]:
+        beta2 = self.__dict__.get("_beta2_cache")
+        if beta2 is None:
+            beta2 = self.noise_bound**2
+            self.__dict__["_beta2_cache"] = beta2
+        return beta2
 
     def cost(self, rotation: ArrayLike, translation: ArrayLike) -> float:
         """TLS cost of the pose ``(R, t)``."""
-        r2 = self.residuals_sq(rotation, translation)
+        return self.cost_from_residuals(self.residuals_sq(rotation, translation))
+
+    def cost_from_residuals(self, r2: NDArray[np.float64]) -> float:
+        """TLS cost given the normalised squared residuals ``r2`` (N,)."""
         return float(self.weights @ np.minimum(r2, self.cbar2))
 
     def inliers(self, rotation: ArrayLike, translation: ArrayLike) -> NDArray[np.bool_]:

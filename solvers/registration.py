@@ -63,10 +63,11 @@ class PruningParams:
     Attributes
     ----------
     max_correspondences : int
-        Above this many correspondences the O(N^2) graph is not built and GNC runs alone.
+        Above this many correspondences the dense O(N^2) graph (N^2 bytes) is not built
+        and GNC runs alone.
     """
 
-    max_correspondences: int = 20_000
+    max_correspondences: int = 5_000
 
 
 def degeneracy(
@@ -112,7 +113,8 @@ def _finish(
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         R, t = np.eye(3), np.zeros(3)
         status, message = SolverStatus.NUMERICAL_ERROR, "non-finite pose estimate"
-    inliers = problem.inliers(R, t)
+    r2 = problem.residuals_sq(R, t)
+    inliers = r2 <= problem.cbar2
     if status is SolverStatus.CONVERGED:
         why = degeneracy(problem.source, problem.weights * inliers, float(problem.noise_bound.min()))
         if why is not None:
@@ -122,7 +124,7 @@ def _finish(
     return RegistrationResult(
         T_target_source=make_transform(R, t),
         inliers=inliers,
-        cost=problem.cost(R, t),
+        cost=problem.cost_from_residuals(r2),
         iterations=int(iterations),
         solve_time=time.perf_counter() - t0,
         status=status,

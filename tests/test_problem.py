@@ -1,0 +1,105 @@
+"""Validation of the weighted TLS problem and its cost."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from solvers import WeightedTLSProblem
+from solvers.lie import random_rotation
+
+
+def _pts(n=10, seed=0):
+    return np.random.default_rng(seed).normal(size=(n, 3))
+
+
+def test_cost_matches_definition(rng):
+    a, b = _pts(12, 1), _pts(12, 2)
+    w = rng.uniform(0, 2, 12)
+    beta = rng.uniform(0.1, 1.0, 12)
+    p = WeightedTLSProblem(a, b, noise_bound=beta, weights=w, cbar2=2.0)
+    R, t = random_rotation(rng), rng.normal(size=3)
+    expected = sum(
+        w[k] * min(np.sum((b[k] - R @ a[k] - t) ** 2) / beta[k] ** 2, 2.0) for k in range(12)
+    )
+    assert p.cost(R, t) == pytest.approx(expected, rel=1e-12)
+    assert np.array_equal(p.inliers(R, t), p.residuals_sq(R, t) <= 2.0)
+
+
+def test_defaults_and_immutability():
+    p = WeightedTLSProblem(_pts(), _pts(seed=1), noise_bound=0.1)
+    assert np.all(p.weights == 1.0) and p.cbar2 == 1.0
+    assert p.noise_bound.shape == (10,)
+    with pytest.raises(ValueError):
+        p.source[0, 0] = 5.0  # read-only arrays
+    with pytest.raises(AttributeError):
+        p.cbar2 = 3.0  # type: ignore[misc]
+
+
+def test_subset_keeps_per_item_data():
+    p = WeightedTLSProblem(_pts(), _pts(seed=1), noise_bound=np.arange(1, 11) / 10.0,
+                           weights=np.arange(10.0))
+    s = p.subset(np.array([1, 3, 5]))
+    assert s.n == 3
+    np.testing.assert_array_equal(s.weights, [1.0, 3.0, 5.0])
+    np.testing.assert_allclose(s.noise_bound, [0.2, 0.4, 0.6])
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"source": np.zeros((3, 20))}, r"Expected `source` to have shape \(N, 3\), got \(3, 20\)"),
+        ({"target": np.zeros(30)}, r"Expected `target` to have shape \(N, 3\), got \(30,\)"),
+        ({"target": np.zeros((9, 3))}, r"same number of rows, got 10 and 9"),
+        ({"source": np.zeros((2, 3)), "target": np.zeros((2, 3))}, r"at least 3 correspondences"),
+        ({"source": np.zeros((0, 3)), "target": np.zeros((0, 3))}, r"at least 1 points"),
+        ({"noise_bound": 0.0}, r"`noise_bound` must be strictly positive"),
+        ({"noise_bound": -1.0}, r"`noise_bound` must be strictly positive"),
+        ({"noise_bound": np.ones(9)}, r"`noise_bound` to have a scalar or shape \(10,\)"),
+        ({"noise_bound": np.nan}, r"`noise_bound` contains NaN"),
+        ({"weights": -np.ones(10)}, r"`weights` must be non-negative"),
+        ({"weights": np.ones((10, 1))}, r"`weights` to have a scalar or shape \(10,\)"),
+        ({"weights": np.full(10, np.inf)}, r"`weights` contains NaN or inf"),
+        ({"cbar2": 0.0}, r"`cbar2` must be a positive"),
+        ({"cbar2": [1.0, 2.0]}, r"`cbar2` must be a positive"),
+    ],
+)
+def test_bad_input_raises_value_error(kwargs, match):
+    args = {"source": _pts(), "target": _pts(seed=1), "noise_bound": 0.1}
+    args.update(kwargs)
+    src, dst = args.pop("source"), args.pop("target")
+    with pytest.raises(ValueError, match=match):
+        WeightedTLSProblem(src, dst, **args)
+
+
+def test_nan_points_raise():
+    a = _pts()
+    a[3, 1] = np.nan
+    with pytest.raises(ValueError, match=r"`source` contains NaN or inf values in 1 row"):
+        WeightedTLSProblem(a, _pts(seed=1), noise_bound=0.1)
+    b = _pts()
+    b[0, 0] = np.inf
+    with pytest.raises(ValueError, match=r"`target` contains NaN or inf"):
+        WeightedTLSProblem(_pts(), b, noise_bound=0.1)
+
+
+@pytest.mark.parametrize(
+    "bad", [[["a", "b", "c"]] * 4, np.array([[1, 2, 3]] * 4, dtype=object), [[1j, 2, 3]] * 4, "xyz"]
+)
+def test_non_numeric_raises_type_error(bad):
+    with pytest.raises(TypeError, match="`source`"):
+        WeightedTLSProblem(bad, _pts(4), noise_bound=0.1)
+
+
+def test_missing_noise_bound_is_an_error():
+    with pytest.raises(ValueError, match="`noise_bound` is required"):
+        WeightedTLSProblem(_pts(), _pts(seed=1), noise_bound=None)  # type: ignore[arg-type]
+
+
+def test_pickle_roundtrip():
+    import pickle
+
+    p = WeightedTLSProblem(_pts(), _pts(seed=1), noise_bound=0.1, weights=np.arange(10.0))
+    q = pickle.loads(pickle.dumps(p))
+    np.testing.assert_array_equal(q.weights, p.weights)
+    np.testing.assert_array_equal(q.source, p.source)

@@ -1,0 +1,141 @@
+"""Ground-truth recovery, degeneracy reporting and the pruning building blocks."""
+
+from __future__ import annotations
+
+import itertools
+
+import networkx as nx
+import numpy as np
+import pytest
+
+import certpose
+from solvers import GNCParams, SolverStatus, WeightedTLSProblem, solve_gnc
+from solvers.lie import rotation_error_deg
+from solvers.pruning import consistency_graph, max_clique, scalar_tls
+from tests.conftest import make_instance
+
+
+def _ok(res, R, t):
+    return rotation_error_deg(res.rotation, R) < 5 and np.linalg.norm(res.translation - t) < 0.05
+
+
+@pytest.mark.parametrize("ratio", [0.0, 0.3, 0.6])
+def test_gnc_alone_recovers_pose(rng, ratio):
+    for _ in range(5):
+        a, b, R, t, inl = make_instance(rng, 100, ratio)
+        res = solve_gnc(WeightedTLSProblem(a, b, noise_bound=0.0554))
+        assert res.success, res.message
+        assert _ok(res, R, t)
+        assert res.status is SolverStatus.CONVERGED
+        # Every true inlier is within the bound (noise 0.01 << 0.0554).
+        assert np.all(res.inliers[inl])
+
+
+@pytest.mark.parametrize(("n", "ratio"), [(100, 0.0), (100, 0.9), (100, 0.95), (1000, 0.99)])
+def test_register_recovers_pose_with_extreme_outliers(rng, n, ratio):
+    for _ in range(3):
+        a, b, R, t, inl = make_instance(rng, n, ratio)
+        res = certpose.register(a, b, noise_bound=0.0554)
+        assert res.success, res.message
+        assert _ok(res, R, t)
+        assert res.T_target_source.shape == (4, 4)
+        np.testing.assert_allclose(res.T_target_source[:3, :3], res.rotation)
+        assert res.info["max_clique_size"] >= inl.sum()
+        assert res.cost == pytest.approx(
+            WeightedTLSProblem(a, b, noise_bound=0.0554).cost(res.rotation, res.translation)
+        )
+
+
+def test_weights_select_among_conflicting_hypotheses(rng):
+    # Two equally sized consistent sets; the weights decide which pose wins.
+    a, b1, R1, t1, _ = make_instance(rng, 20, 0.0)
+    a2, b2, R2, t2, _ = make_instance(rng, 20, 0.0)
+    src, dst = np.vstack([a, a2]), np.vstack([b1, b2])
+    w = np.r_[np.full(20, 1.0), np.full(20, 3.0)]
+    res = certpose.register(src, dst, noise_bound=0.0554, weights=w)
+    assert _ok(res, R2, t2)
+    res = certpose.register(src, dst, noise_bound=0.0554, weights=w[::-1].copy(), prune="never")
+    assert _ok(res, R1, t1)
+
+
+def test_collinear_inliers_are_reported_degenerate(rng):
+    s = np.linspace(-1, 1, 30)[:, None]
+    a = s * np.array([1.0, 2.0, 0.5])
+    b = a + np.array([0.1, 0.2, 0.3])
+    res = certpose.register(a, b, noise_bound=0.01)
+    assert not res.success
+    assert res.status is SolverStatus.DEGENERATE
+    assert "collinear" in res.message
+
+
+def test_coincident_points_are_reported(rng):
+    a = np.tile([1.0, 2.0, 3.0], (10, 1))
+    res = certpose.register(a, a + 1.0, noise_bound=0.01)
+    assert res.status is SolverStatus.DEGENERATE
+    assert "coincident" in res.message
+
+
+def test_zero_weights_leave_too_few_correspondences(rng):
+    a, b, *_ = make_instance(rng, 10, 0.0)
+    res = certpose.register(a, b, noise_bound=0.05, weights=np.r_[1.0, 1.0, np.zeros(8)])
+    assert not res.success
+    assert res.status is SolverStatus.INSUFFICIENT_INLIERS
+
+
+def test_iteration_limit_is_reported(rng):
+    a, b, *_ = make_instance(rng, 100, 0.5)
+    res = solve_gnc(WeightedTLSProblem(a, b, noise_bound=0.0554), params=GNCParams(max_iterations=2))
+    assert res.status is SolverStatus.MAX_ITERATIONS
+    assert not res.success
+    assert "iteration limit" in res.message
+
+
+def test_bad_parameters():
+    with pytest.raises(ValueError, match="mu_factor"):
+        GNCParams(mu_factor=1.0)
+    with pytest.raises(ValueError, match="`solver`"):
+        certpose.register(np.eye(3), np.eye(3), noise_bound=0.1, solver="nope")  # type: ignore
+
+
+def test_register_accepts_open3d_point_clouds(rng):
+    import open3d as o3d
+
+    a, b, R, t, _ = make_instance(rng, 50, 0.2)
+    pa = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(a))
+    pb = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(b))
+    assert _ok(certpose.register(pa, pb, noise_bound=0.0554), R, t)
+
+
+def test_consistency_graph_matches_definition(rng):
+    a, b, *_ = make_instance(rng, 25, 0.5)
+    beta = rng.uniform(0.03, 0.08, 25)
+    adj = consistency_graph(a, b, beta)
+    for i, j in itertools.combinations(range(25), 2):
+        d = abs(np.linalg.norm(a[i] - a[j]) - np.linalg.norm(b[i] - b[j]))
+        assert adj[i, j] == adj[j, i] == (d <= beta[i] + beta[j])
+    assert np.all(np.diag(adj) == 0)
+
+
+@pytest.mark.parametrize("density", [0.1, 0.3, 0.6, 0.9])
+def test_max_clique_is_maximum_on_random_graphs(density):
+    rng = np.random.default_rng(int(density * 100))
+    for _ in range(10):
+        n = int(rng.integers(5, 40))
+        upper = np.triu(rng.uniform(size=(n, n)) < density, 1)
+        adj = (upper | upper.T).astype(np.uint8)
+        clique = max_clique(adj)
+        sub = adj[np.ix_(clique, clique)]
+        assert sub.sum() == len(clique) * (len(clique) - 1)  # it is a clique
+        g = nx.from_numpy_array(adj)
+        assert len(clique) == max(len(c) for c in nx.find_cliques(g))
+
+
+def test_scalar_tls_is_exact_against_a_fine_grid(rng):
+    for _ in range(100):
+        n = int(rng.integers(1, 10))
+        v, beta, w = rng.normal(size=n), rng.uniform(0.05, 0.5, n), rng.uniform(0, 2, n)
+        x, c = scalar_tls(v, beta, w)
+        xs = np.linspace(-6, 6, 120_001)
+        grid = (w * np.minimum((xs[:, None] - v) ** 2 / beta**2, 1.0)).sum(axis=1)
+        assert c <= grid.min() + 1e-9
+        assert c == pytest.approx((w * np.minimum((x - v) ** 2 / beta**2, 1.0)).sum(), abs=1e-9)
