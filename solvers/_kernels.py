@@ -118,28 +118,28 @@ def gnc_tls(a, b, prior_w, inv_beta2, cbar2, max_iter, mu_factor, cost_tol):  # 
 
 
 @njit(cache=True, fastmath=True)
-def consistency_matrix(a, b, beta, cbar):  # pragma: no cover - compiled
+def consistency_matrix(at, bt, beta, cbar):  # pragma: no cover - compiled
     """Dense symmetric adjacency (uint8) of the pairwise-consistency graph.
 
+    ``at``/``bt`` are the points transposed, (3, N) contiguous, so the inner loop vectorises.
     ``i ~ j`` when |‖a_j - a_i‖ - ‖b_j - b_i‖| <= cbar (β_i + β_j); the diagonal is 0.
-    Branch-free inner loop so it vectorises.
     """
-    n = a.shape[0]
+    n = at.shape[1]
+    ax, ay, az = at[0], at[1], at[2]
+    bx, by, bz = bt[0], bt[1], bt[2]
     adj = np.zeros((n, n), dtype=np.uint8)
     for i in range(n):
-        for j in range(i + 1, n):
-            x0 = a[j, 0] - a[i, 0]
-            x1 = a[j, 1] - a[i, 1]
-            x2 = a[j, 2] - a[i, 2]
-            y0 = b[j, 0] - b[i, 0]
-            y1 = b[j, 1] - b[i, 1]
-            y2 = b[j, 2] - b[i, 2]
-            da = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
-            db = np.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
-            adj[i, j] = abs(da - db) <= cbar * (beta[i] + beta[j])
-    for i in range(n):
-        for j in range(i + 1, n):
-            adj[j, i] = adj[i, j]
+        row = adj[i]
+        for j in range(n):
+            x0 = ax[j] - ax[i]
+            x1 = ay[j] - ay[i]
+            x2 = az[j] - az[i]
+            y0 = bx[j] - bx[i]
+            y1 = by[j] - by[i]
+            y2 = bz[j] - bz[i]
+            d = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2) - np.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
+            row[j] = abs(d) <= cbar * (beta[i] + beta[j])
+        row[i] = 0
     return adj
 
 

@@ -27,10 +27,10 @@ def consistency_graph(
     """
     from solvers import _kernels  # numba: imported on first solve
 
-    a = np.ascontiguousarray(source, dtype=np.float64)
-    b = np.ascontiguousarray(target, dtype=np.float64)
-    beta = np.ascontiguousarray(np.broadcast_to(noise_bound, (a.shape[0],)), dtype=np.float64)
-    return _kernels.consistency_matrix(a, b, beta, float(cbar))
+    at = np.ascontiguousarray(np.asarray(source, dtype=np.float64).T)
+    bt = np.ascontiguousarray(np.asarray(target, dtype=np.float64).T)
+    beta = np.ascontiguousarray(np.broadcast_to(noise_bound, (at.shape[1],)), dtype=np.float64)
+    return _kernels.consistency_matrix(at, bt, beta, float(cbar))
 
 
 def max_clique(adjacency: ArrayLike) -> NDArray[np.int64]:
