@@ -16,7 +16,7 @@ with any backbone.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -91,13 +91,17 @@ class FPFHBackbone:
     1. open3d's 33-bin FPFH (three 11-bin angle histograms) with neighbours within ``radius``
        (at most ``max_nn``), on normals estimated within ``normal_radius`` and oriented towards
        ``viewpoint`` (or given by the caller);
-    2. each 11-bin histogram is normalised to sum 1 and square-rooted (Hellinger map), then
-       *centred* by subtracting its own mean bin value. FPFH bins are non-negative, so raw
-       histograms of unrelated points still have large positive inner products; after centring
-       the inner product of two descriptors is the correlation of their (square-rooted)
-       histograms: about 1 for the same local shape, near 0 for unrelated shapes. The centring
-       is per point and data-independent, so object and scene descriptors stay comparable;
-    3. with ``color_weight = w > 0`` and colours given, the unit geometric part is scaled by
+    2. each 11-bin histogram is normalised to sum 1 and square-rooted (Hellinger map);
+    3. *centring*: FPFH bins are non-negative, so raw histograms of unrelated points still have
+       large positive inner products (about 0.7 on YCB-Video). With ``center`` set (a fixed
+       33-vector, normally the mean square-rooted histogram of the scene, see
+       :meth:`fit_center`; :func:`~certpose.scene.build_scene_field` fits it by default and
+       returns the fitted backbone as ``SceneField.backbone``), that vector is subtracted:
+       unrelated points then have inner products near 0 (measured -0.06 +- 0.5 on YCB-Video
+       frame 0000/000001) while matching points keep a positive one. Without ``center``, each
+       histogram's own mean bin value is subtracted (data-independent but weaker: the common
+       shape of all histograms remains). Object and scene must use the *same* backbone;
+    4. with ``color_weight = w > 0`` and colours given, the unit geometric part is scaled by
        ``sqrt(1 - w)`` and joined with ``sqrt(w) * (2 c - 1) / sqrt(3)`` (centred RGB), then the
        row is L2-normalised again; without colours the colour block is zero.
 
@@ -114,7 +118,10 @@ class FPFHBackbone:
     viewpoint : array_like, shape (3,), or None
         Estimated normals are flipped towards this point (the camera centre when the points are
         in the camera frame: default the origin). ``None`` orients them consistently along a
-        tangent-plane graph instead (for model clouds that have no camera).
+        tangent-plane graph, pointing away from the centroid on the whole (for model clouds
+        that have no camera).
+    center : array_like, shape (33,), or None
+        Reference square-rooted histogram subtracted before normalisation (see above).
     """
 
     radius: float = 0.025
@@ -122,6 +129,7 @@ class FPFHBackbone:
     normal_radius: float | None = None
     color_weight: float = 0.0
     viewpoint: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
+    center: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.radius) and self.radius > 0):
@@ -137,11 +145,84 @@ class FPFHBackbone:
             if vp.shape != (3,) or not np.all(np.isfinite(vp)):
                 raise ValueError(f"Expected `viewpoint` to have shape (3,), got {vp.shape}.")
             object.__setattr__(self, "viewpoint", tuple(float(x) for x in vp))
+        if self.center is not None:
+            c = np.asarray(self.center, dtype=np.float64)
+            n_bins = _FPFH_BLOCKS * _FPFH_BINS
+            if c.shape != (n_bins,) or not np.all(np.isfinite(c)):
+                raise ValueError(f"Expected `center` to have shape ({n_bins},), got {c.shape}.")
+            object.__setattr__(self, "center", tuple(float(x) for x in c))
 
     @property
     def dim(self) -> int:
         """Descriptor dimension: 33, plus 3 with colour."""
         return _FPFH_BLOCKS * _FPFH_BINS + (3 if self.color_weight > 0 else 0)
+
+    def histograms(self, points: ArrayLike, *, normals: ArrayLike | None = None) -> NDArray[np.float64]:
+        """Square-rooted, normalised FPFH histograms, shape ``(N, 33)`` (steps 1-2 above)."""
+        import open3d as o3d
+
+        p = check_points(points, "points", min_points=5)
+        n = p.shape[0]
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+        if normals is None:
+            nr = self.normal_radius if self.normal_radius is not None else self.radius / 2
+            pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=nr, max_nn=30))
+            if self.viewpoint is None:
+                pcd.orient_normals_consistent_tangent_plane(10)
+                nm = np.asarray(pcd.normals)
+                # The propagation fixes the orientation up to one global sign: point outwards.
+                if np.sum(nm * (p - p.mean(axis=0))) < 0:
+                    pcd.normals = o3d.utility.Vector3dVector(-nm)
+            else:
+                pcd.orient_normals_towards_camera_location(np.asarray(self.viewpoint))
+        else:
+            nm = check_points(normals, "normals")
+            if nm.shape != p.shape:
+                raise ValueError(f"Expected `normals` to have shape {p.shape}, got {nm.shape}.")
+            pcd.normals = o3d.utility.Vector3dVector(normalize_rows(nm))
+        fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=self.radius, max_nn=int(self.max_nn))
+        )
+        h = np.asarray(fpfh.data, dtype=np.float64).T.reshape(n, _FPFH_BLOCKS, _FPFH_BINS)
+        total = h.sum(axis=2, keepdims=True)
+        # Isolated points get an all-zero histogram: they stay zero (similar to nothing).
+        h = np.sqrt(np.divide(h, total, out=np.zeros_like(h), where=total > 0))
+        return h.reshape(n, -1)
+
+    def fit_center(self, histograms: ArrayLike) -> FPFHBackbone:
+        """A copy whose ``center`` is the mean of ``histograms`` (from :meth:`histograms`)."""
+        h = check_descriptors(histograms, "histograms")
+        if h.shape[1] != _FPFH_BLOCKS * _FPFH_BINS or h.shape[0] == 0:
+            raise ValueError(f"Expected `histograms` to have shape (N, 33) with N >= 1, got {h.shape}.")
+        valid = h.any(axis=1)
+        mean = h[valid].mean(axis=0) if valid.any() else np.zeros(h.shape[1])
+        return replace(self, center=tuple(float(x) for x in mean))
+
+    def finish(self, histograms: ArrayLike, *, colors: ArrayLike | None = None) -> NDArray[np.float64]:
+        """Descriptors from :meth:`histograms` output (steps 3-4 above), shape ``(N, dim)``."""
+        h = check_descriptors(histograms, "histograms")
+        n = h.shape[0]
+        empty = ~h.any(axis=1)
+        if self.center is None:
+            h = (h.reshape(n, _FPFH_BLOCKS, _FPFH_BINS) - h.reshape(n, _FPFH_BLOCKS, _FPFH_BINS).mean(
+                axis=2, keepdims=True
+            )).reshape(n, -1)
+        else:
+            h = h - np.asarray(self.center)
+        h[empty] = 0.0
+        geo = normalize_rows(h)
+        if self.color_weight <= 0:
+            return geo
+        block = np.zeros((n, 3))
+        if colors is not None:
+            c = as_float_array(colors, "colors")
+            if c.shape != (n, 3):
+                raise ValueError(f"Expected `colors` to have shape ({n}, 3), got {c.shape}.")
+            if not np.all(np.isfinite(c)):
+                raise ValueError("`colors` contains NaN or inf values.")
+            block = (2.0 * np.clip(c, 0.0, 1.0) - 1.0) / np.sqrt(3.0)
+        w = self.color_weight
+        return normalize_rows(np.hstack([np.sqrt(1.0 - w) * geo, np.sqrt(w) * block]))
 
     def describe(
         self,
@@ -159,46 +240,9 @@ class FPFHBackbone:
         colors : array_like, shape (N, 3), optional
             RGB in ``[0, 1]``; used when ``color_weight > 0``.
         normals : array_like, shape (N, 3), optional
-            Unit normals; estimated when omitted.
+            Normals; estimated when omitted.
         """
-        import open3d as o3d
-
-        p = check_points(points, "points", min_points=5)
-        n = p.shape[0]
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
-        if normals is None:
-            nr = self.normal_radius if self.normal_radius is not None else self.radius / 2
-            pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=nr, max_nn=30))
-            if self.viewpoint is None:
-                pcd.orient_normals_consistent_tangent_plane(10)
-            else:
-                pcd.orient_normals_towards_camera_location(np.asarray(self.viewpoint))
-        else:
-            nm = check_points(normals, "normals")
-            if nm.shape != p.shape:
-                raise ValueError(f"Expected `normals` to have shape {p.shape}, got {nm.shape}.")
-            pcd.normals = o3d.utility.Vector3dVector(normalize_rows(nm))
-        fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=self.radius, max_nn=int(self.max_nn))
-        )
-        h = np.asarray(fpfh.data, dtype=np.float64).T.reshape(n, _FPFH_BLOCKS, _FPFH_BINS)
-        total = h.sum(axis=2, keepdims=True)
-        # Isolated points get an all-zero histogram: keep them zero (no similarity to anything).
-        h = np.sqrt(np.divide(h, total, out=np.zeros_like(h), where=total > 0))
-        h -= h.mean(axis=2, keepdims=True)
-        geo = normalize_rows(h.reshape(n, -1))
-        if self.color_weight <= 0:
-            return geo
-        block = np.zeros((n, 3))
-        if colors is not None:
-            c = as_float_array(colors, "colors")
-            if c.shape != (n, 3):
-                raise ValueError(f"Expected `colors` to have shape ({n}, 3), got {c.shape}.")
-            if not np.all(np.isfinite(c)):
-                raise ValueError("`colors` contains NaN or inf values.")
-            block = (2.0 * np.clip(c, 0.0, 1.0) - 1.0) / np.sqrt(3.0)
-        w = self.color_weight
-        return normalize_rows(np.hstack([np.sqrt(1.0 - w) * geo, np.sqrt(w) * block]))
+        return self.finish(self.histograms(points, normals=normals), colors=colors)
 
 
 class ArrayBackbone:

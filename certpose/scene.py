@@ -22,16 +22,16 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from certpose.features import ArrayBackbone, check_descriptors, resolve_backbone
+from certpose.features import ArrayBackbone, FPFHBackbone, check_descriptors, resolve_backbone
 from certpose.rgbd import RGBDFrame, check_mask, normalize_rows
 from solvers._validation import as_float_array, check_points
-from solvers.lie import invert_transform, transform_points
+from solvers.lie import invert_transform
 
 __all__ = [
     "UNOBSERVED",
@@ -68,6 +68,9 @@ class SceneField:
         Unit descriptors of occupied voxels, zero elsewhere.
     state : ndarray of int8, shape (X, Y, Z)
         ``UNOBSERVED`` (0), ``EMPTY`` (1) or ``OCCUPIED`` (2).
+    backbone : FeatureBackbone, optional
+        The backbone that produced the descriptors (possibly fitted to this scene, see
+        :func:`build_scene_field`); object descriptors must come from the same one.
     """
 
     voxel_size: float
@@ -75,6 +78,7 @@ class SceneField:
     shape: tuple[int, int, int]
     descriptors: NDArray[np.floating]
     state: NDArray[np.int8]
+    backbone: Any = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         vs = float(self.voxel_size)
@@ -291,10 +295,17 @@ def _per_frame_backbones(backbone_or_descriptors: Any, n: int) -> list[Any]:
     return [backbone] * n
 
 
-def _group(keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
-    """Unique rows of ``keys``, the inverse map and the counts."""
-    uniq, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    return uniq, inverse.reshape(-1), counts
+def _group(
+    keys: NDArray[np.int64], shape: NDArray[np.int64]
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Unique rows of ``keys`` (non-negative, below ``shape``), the inverse map and the counts.
+
+    Rows are encoded as flat indices first: a 1-D ``np.unique`` is much faster than ``axis=0``.
+    """
+    flat = np.ravel_multi_index(keys.T, tuple(int(s) for s in shape))
+    uniq, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    rows = np.stack(np.unravel_index(uniq, tuple(int(s) for s in shape)), axis=1).astype(np.int64)
+    return rows, inverse.reshape(-1), counts
 
 
 def _sum_rows(inverse: NDArray[np.int64], values: NDArray[np.float64], m: int) -> NDArray[np.float64]:
@@ -314,6 +325,7 @@ def build_scene_field(
     free_space_margin: float | None = None,
     dtype: type = np.float32,
     max_voxels: int = 20_000_000,
+    fit_backbone: bool = True,
 ) -> SceneField:
     """Fuse posed RGB-D frames into a :class:`SceneField` (world frame).
 
@@ -343,6 +355,10 @@ def build_scene_field(
         Storage type of the descriptors (float32 halves memory).
     max_voxels : int, optional
         Refuse larger grids (crop with ``bounds``/``roi_mask`` or use larger voxels).
+    fit_backbone : bool, optional
+        With an :class:`~certpose.features.FPFHBackbone` that has no ``center`` yet, centre the
+        descriptors on this scene's mean histogram (see its docstring). The backbone actually
+        used is returned as ``SceneField.backbone``: describe the object with it.
 
     Returns
     -------
@@ -363,7 +379,8 @@ def build_scene_field(
     clouds = []  # per frame: camera points, world points, pixels
     for f in frames:
         p_cam, px = f.backproject(mask=False)
-        clouds.append((p_cam, transform_points(f.T_world_camera, p_cam), px))
+        R, t = f.T_world_camera[:3, :3], f.T_world_camera[:3, 3]
+        clouds.append((p_cam, p_cam @ R.T + t, px))
 
     if bounds is None:
         sel = []
@@ -386,18 +403,34 @@ def build_scene_field(
     shape_arr = np.asarray(shape)
 
     # --- occupied voxels: mean descriptor of their points, fused over frames
+    per_frame = [
+        _frame_voxels(f, b, p_cam, p_w, px, origin, shape_arr, voxel_size)
+        for f, b, (p_cam, p_w, px) in zip(frames, backbones, clouds, strict=True)
+    ]
+    shared = backbones[0]
+    if (
+        fit_backbone
+        and isinstance(shared, FPFHBackbone)
+        and shared.center is None
+        and all(b is shared for b in backbones)
+    ):
+        hists = [shared.histograms(v.points) for v in per_frame]
+        grid_hists = np.concatenate([h[v.keep] for h, v in zip(hists, per_frame, strict=True)])
+        shared = shared.fit_center(grid_hists)
+        backbones = [shared] * len(frames)
+        descs = [shared.finish(h, colors=v.colors) for h, v in zip(hists, per_frame, strict=True)]
+    else:
+        descs = [v.describe(b) for v, b in zip(per_frame, backbones, strict=True)]
     keys_all, sums_all, counts_all = [], [], []
-    for f, backbone, (p_cam, p_w, px) in zip(frames, backbones, clouds, strict=True):
-        keys, desc, weight = _frame_voxel_descriptors(
-            f, backbone, p_cam, p_w, px, origin, shape_arr, voxel_size
-        )
-        keys_all.append(keys)
-        sums_all.append(desc * weight[:, None])
-        counts_all.append(weight)
+    for v, desc in zip(per_frame, descs, strict=True):
+        desc = check_descriptors(desc, "descriptors", v.keep.shape[0])[v.keep]
+        keys_all.append(v.keys[v.keep])
+        sums_all.append(desc * v.counts[v.keep, None])
+        counts_all.append(v.counts[v.keep])
     keys = np.concatenate(keys_all)
     if keys.shape[0] == 0:
         raise ValueError("No observed point falls inside the grid bounds.")
-    uniq, inverse, _ = _group(keys)
+    uniq, inverse, _ = _group(keys, shape_arr)
     sums = _sum_rows(inverse, np.concatenate(sums_all), uniq.shape[0])
     weight = np.bincount(inverse, weights=np.concatenate(counts_all), minlength=uniq.shape[0])
     fused = normalize_rows(sums / weight[:, None]) if sums.shape[1] else sums
@@ -417,9 +450,9 @@ def build_scene_field(
             empty[flat] |= _in_front_of_surface(f, centres, free_space_margin)
     state.reshape(-1)[empty] = EMPTY
     state[uniq[:, 0], uniq[:, 1], uniq[:, 2]] = OCCUPIED  # a measured point wins over free space
-    field = SceneField(voxel_size, origin, shape, descriptors, state)
-    log.debug("scene field %s: %s", shape, field.counts())
-    return field
+    scene = SceneField(voxel_size, origin, shape, descriptors, state, backbone=backbones[0])
+    log.debug("scene field %s: %s", shape, scene.counts())
+    return scene
 
 
 def _in_front_of_surface(frame: RGBDFrame, centres: NDArray[np.float64], margin: float) -> NDArray[np.bool_]:
@@ -443,7 +476,24 @@ def _in_front_of_surface(frame: RGBDFrame, centres: NDArray[np.float64], margin:
     return out
 
 
-def _frame_voxel_descriptors(
+@dataclass
+class _FrameVoxels:
+    """One frame's points averaged per voxel (``keep``: inside the grid, not just the context)."""
+
+    keys: NDArray[np.int64]
+    keep: NDArray[np.bool_]
+    counts: NDArray[np.float64]
+    points: NDArray[np.float64] | None = None  # camera frame, for point backbones
+    colors: NDArray[np.float64] | None = None
+    descriptors: NDArray[np.float64] | None = None  # for image backbones
+
+    def describe(self, backbone: Any) -> NDArray[np.float64]:
+        if self.descriptors is not None:
+            return self.descriptors
+        return backbone.describe(self.points, colors=self.colors)
+
+
+def _frame_voxels(
     frame: RGBDFrame,
     backbone: Any,
     p_cam: NDArray[np.float64],
@@ -452,10 +502,9 @@ def _frame_voxel_descriptors(
     origin: NDArray[np.float64],
     shape: NDArray[np.int64],
     voxel_size: float,
-) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
-    """Per-voxel mean descriptors of one frame: ``(keys (V, 3), descriptors (V, d), counts (V,))``."""
+) -> _FrameVoxels:
+    """Group one frame's points by voxel (means of points, colours or per-pixel descriptors)."""
     keys = np.floor((p_world - origin) / voxel_size).astype(np.int64)
-    in_grid = np.all((keys >= 0) & (keys < shape), axis=1)
     image_backbone = hasattr(backbone, "describe_image") and getattr(backbone, "per_pixel", True)
     if image_backbone:
         image = np.asarray(backbone.describe_image(frame.color, frame.shape))
@@ -463,18 +512,24 @@ def _frame_voxel_descriptors(
             raise ValueError(
                 f"Expected per-pixel descriptors of shape {(*frame.shape, 'd')}, got {image.shape}."
             )
+        in_grid = np.all((keys >= 0) & (keys < shape), axis=1)
+        if not in_grid.any():
+            return _FrameVoxels(np.zeros((0, 3), np.int64), np.zeros(0, bool), np.zeros(0),
+                                descriptors=np.zeros((0, image.shape[2])))
         desc = check_descriptors(image[pixels[in_grid, 0], pixels[in_grid, 1]], "descriptors")
-        uniq, inverse, counts = _group(keys[in_grid])
+        uniq, inverse, counts = _group(keys[in_grid], shape)
         sums = _sum_rows(inverse, desc, uniq.shape[0])
-        return uniq, sums / counts[:, None], counts.astype(np.float64)
-    # Point backbone: describe voxel-averaged points, with context around the grid.
+        return _FrameVoxels(uniq, np.ones(uniq.shape[0], bool), counts.astype(np.float64),
+                            descriptors=sums / counts[:, None])
+    # Point backbone: describe voxel-averaged points, with the backbone's support radius of
+    # context around the grid so border voxels see their whole neighbourhood.
     pad = int(np.ceil(float(getattr(backbone, "radius", 0.0)) / voxel_size))
     near = np.all((keys >= -pad) & (keys < shape + pad), axis=1)
-    uniq, inverse, counts = _group(keys[near])
+    uniq, inverse, counts = _group(keys[near] + pad, shape + 2 * pad)
+    uniq -= pad
     m = uniq.shape[0]
     mean_cam = _sum_rows(inverse, p_cam[near], m) / counts[:, None]
     colors = frame.colors_at(pixels[near])
     mean_col = None if colors is None else np.clip(_sum_rows(inverse, colors, m) / counts[:, None], 0, 1)
-    desc = check_descriptors(backbone.describe(mean_cam, colors=mean_col), "descriptors", m)
     keep = np.all((uniq >= 0) & (uniq < shape), axis=1)
-    return uniq[keep], desc[keep], counts[keep].astype(np.float64)
+    return _FrameVoxels(uniq, keep, counts.astype(np.float64), points=mean_cam, colors=mean_col)
