@@ -95,8 +95,8 @@ class FPFHBackbone:
     3. *centring*: FPFH bins are non-negative, so raw histograms of unrelated points still have
        large positive inner products (about 0.7 on YCB-Video). With ``center`` set (a fixed
        33-vector, normally the mean square-rooted histogram of the scene, see
-       :meth:`fit_center`; :func:`~certpose.scene.build_scene_field` fits it by default and
-       returns the fitted backbone as ``SceneField.backbone``), that vector is subtracted:
+       :meth:`fit_center`; ``build_scene_field(..., fit_backbone=True)`` fits it and returns the
+       fitted backbone as ``SceneField.backbone``), that vector is subtracted:
        unrelated points then have inner products near 0 (measured -0.06 +- 0.5 on YCB-Video
        frame 0000/000001) while matching points keep a positive one. Without ``center``, each
        histogram's own mean bin value is subtracted (data-independent but weaker: the common

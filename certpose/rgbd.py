@@ -466,9 +466,10 @@ class StructuredPointCloud:
         """An ``open3d.geometry.PointCloud`` with the points (and colours); descriptors are dropped."""
         import open3d as o3d
 
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
+        # open3d refuses read-only buffers: hand it copies.
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(self.points)))
         if self.colors is not None:
-            pcd.colors = o3d.utility.Vector3dVector(self.colors)
+            pcd.colors = o3d.utility.Vector3dVector(np.array(self.colors))
         return pcd
 
     @classmethod
