@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from certpose.rgbd import CameraIntrinsics, RGBDFrame, load_rgbd
+from solvers.lie import make_transform, project_to_so3
 
 __all__ = ["YCBVFrame", "load_ycbv_frame", "load_model_points", "load_class_names"]
 
@@ -39,7 +40,7 @@ class YCBVFrame:
     class_indexes : list of int
         Their 1-based class indices (the values used in ``label``).
     poses : dict of str to ndarray (4, 4)
-        ``T_camera_object`` of each annotated object.
+        ``T_camera_object`` of each annotated object (rotation projected onto SO(3)).
     name : str
         ``"<scene>/<frame>"``.
     """
@@ -146,8 +147,9 @@ def load_ycbv_frame(root: str | Path, frame: str = "0000/000001") -> YCBVFrame:
         if not 1 <= idx <= len(names_all):
             raise ValueError(f"Class index {idx} in {meta_path} is outside classes.txt (1..{len(names_all)}).")
         name = names_all[idx - 1]
-        T = np.eye(4)
-        T[:3, :] = poses_arr[:, :, k]
+        # Stored rotations are orthonormal to ~1e-6 only: snap them onto SO(3) so that strict
+        # rigid-transform checks downstream accept them (changes entries by ~1e-6).
+        T = make_transform(project_to_so3(poses_arr[:, :3, k]), poses_arr[:, 3, k])
         names.append(name)
         poses[name] = T
     return YCBVFrame(rgbd, label.astype(np.int64), names, indexes, poses, str(frame))

@@ -1,0 +1,167 @@
+"""Feature backbones: FPFH(+colour), user arrays, the optional DINO backbone."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from certpose.features import (
+    ArrayBackbone,
+    DinoBackbone,
+    FeatureBackbone,
+    FPFHBackbone,
+    describe_frame,
+)
+from certpose.rgbd import CameraIntrinsics, RGBDFrame
+from solvers.lie import make_transform, so3_exp
+
+
+def _plane(n, rng):
+    p = np.zeros((n, 3))
+    p[:, :2] = rng.uniform(-0.1, 0.1, size=(n, 2))
+    return p
+
+
+def _sphere(n, rng, radius=0.03):
+    p = rng.normal(size=(n, 3))
+    return radius * p / np.linalg.norm(p, axis=1, keepdims=True)
+
+
+def _sphere_normals(p):
+    return p / np.linalg.norm(p, axis=1, keepdims=True)
+
+
+def test_fpfh_rows_are_unit_and_rigidly_invariant():
+    rng = np.random.default_rng(0)
+    p = _sphere(1500, rng)
+    n = _sphere_normals(p)
+    bb = FPFHBackbone(radius=0.02)
+    assert isinstance(bb, FeatureBackbone)
+    d = bb.describe(p, normals=n)
+    assert d.shape == (1500, 33)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
+    T = make_transform(so3_exp([0.4, -1.0, 0.7]), [0.3, -0.2, 1.0])
+    d_moved = bb.describe(p @ T[:3, :3].T + T[:3, 3], normals=n @ T[:3, :3].T)
+    np.testing.assert_allclose(d_moved, d, atol=1e-6)
+
+
+def test_fpfh_similarity_separates_shapes_and_centring_helps():
+    rng = np.random.default_rng(1)
+    plane, sphere = _plane(2000, rng), _sphere(2000, rng, radius=0.02)
+    bb = FPFHBackbone(radius=0.015, viewpoint=(0.0, 0.0, 1.0))
+    hp = bb.histograms(plane)
+    hs = bb.histograms(sphere, normals=_sphere_normals(sphere))
+    for backbone, gap in ((bb, 0.05), (bb.fit_center(np.vstack([hp, hs])), 0.5)):
+        dp, ds = backbone.finish(hp), backbone.finish(hs)
+        same = min((dp @ dp.T).mean(), (ds @ ds.T).mean())
+        cross = (dp @ ds.T).mean()
+        assert same > cross + gap
+    # Centred on the mean of both shapes, unrelated points are far from similar.
+    fitted = bb.fit_center(np.vstack([hp, hs]))
+    assert (fitted.finish(hp) @ fitted.finish(hs).T).mean() < 0.0
+    assert (bb.finish(hp) @ bb.finish(hs).T).mean() > (fitted.finish(hp) @ fitted.finish(hs).T).mean()
+
+
+def test_fpfh_colour_block():
+    rng = np.random.default_rng(2)
+    p = _plane(500, rng)
+    red = np.tile([1.0, 0.0, 0.0], (500, 1))
+    blue = np.tile([0.0, 0.0, 1.0], (500, 1))
+    bb = FPFHBackbone(radius=0.02, color_weight=0.5, viewpoint=(0.0, 0.0, 1.0))
+    assert bb.dim == 36
+    dr, db = bb.describe(p, colors=red), bb.describe(p, colors=blue)
+    np.testing.assert_allclose(np.linalg.norm(dr, axis=1), 1.0)
+    np.testing.assert_allclose(dr[:, :33], db[:, :33])  # same geometry
+    assert (dr * dr).sum(1).mean() > (dr * db).sum(1).mean() + 0.3
+    # Without colours the colour block is zero.
+    np.testing.assert_array_equal(bb.describe(p)[:, 33:], 0.0)
+
+
+def test_fpfh_bad_input():
+    with pytest.raises(ValueError, match="at least 5"):
+        FPFHBackbone().describe(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match=r"Expected `points` to have shape \(N, 3\)"):
+        FPFHBackbone().describe(np.zeros((10, 2)))
+    bad = np.zeros((10, 3))
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        FPFHBackbone().describe(bad)
+    with pytest.raises(ValueError, match="color_weight"):
+        FPFHBackbone(color_weight=1.0)
+    with pytest.raises(ValueError, match=r"Expected `center` to have shape \(33,\)"):
+        FPFHBackbone(center=(0.0, 1.0))
+
+
+def test_array_backbone():
+    rng = np.random.default_rng(3)
+    desc = rng.normal(size=(6, 4))
+    bb = ArrayBackbone(desc)
+    out = bb.describe(rng.normal(size=(6, 3)))
+    np.testing.assert_allclose(out, desc / np.linalg.norm(desc, axis=1, keepdims=True))
+    with pytest.raises(ValueError, match="Expected 6 points"):
+        bb.describe(np.zeros((5, 3)))
+    nan = desc.copy()
+    nan[2, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN or inf values in 1 row"):
+        ArrayBackbone(nan)
+    with pytest.raises(ValueError, match=r"\(N, d\) or \(H, W, d\)"):
+        ArrayBackbone(np.zeros(5))
+
+
+def test_describe_frame_with_per_pixel_descriptors():
+    cam = CameraIntrinsics(10.0, 10.0, 2.0, 1.5, 5, 4)
+    depth = np.ones((4, 5))
+    depth[0, 0] = 0.0
+    mask = np.zeros((4, 5), bool)
+    mask[:2, :] = True
+    T = make_transform(so3_exp([0.0, 0.2, 0.0]), [0.0, 1.0, 0.0])
+    frame = RGBDFrame(np.zeros((4, 5, 3), np.uint8), depth, cam, T, mask)
+    image = np.zeros((4, 5, 3))
+    image[..., 0] = np.arange(5)[None, :] + 1.0  # depends on the column only
+    image[..., 1] = 1.0
+    cloud = describe_frame(frame, image)
+    assert len(cloud) == 9  # 10 masked pixels, one without depth
+    pts_world, px = frame.backproject(world=True)
+    np.testing.assert_allclose(cloud.points, pts_world)
+    expected = np.stack([px[:, 1] + 1.0, np.ones(9), np.zeros(9)], 1)
+    np.testing.assert_allclose(cloud.descriptors, expected / np.linalg.norm(expected, axis=1, keepdims=True))
+    with pytest.raises(ValueError, match=r"shape \(4, 5, 3\) to match the image"):
+        describe_frame(frame, np.ones((4, 6, 3)))
+
+
+def test_describe_frame_fpfh_on_synthetic_object_view():
+    from certpose.synthetic import make_mug_scene
+
+    view = make_mug_scene(rng=0, width=320, height=240, n_model_points=10).render_object_views(1)[0]
+    cloud = describe_frame(view, FPFHBackbone(), voxel_size=0.005)
+    assert cloud.dim == 33 and len(cloud) > 100
+    np.testing.assert_allclose(np.linalg.norm(cloud.descriptors, axis=1), 1.0)
+    # World frame = object frame: the points hug the mug (radius 4 cm, plus the handle).
+    assert np.hypot(cloud.points[:, 0], cloud.points[:, 1]).max() < 0.07
+
+
+def test_dino_backbone_needs_local_weights_and_torch(tmp_path):
+    with pytest.raises(FileNotFoundError, match="dino.pt"):
+        DinoBackbone(tmp_path / "dino.pt")
+    weights = tmp_path / "dino.pt"
+    weights.write_bytes(b"")
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        with pytest.raises(ImportError, match="PyTorch"):
+            DinoBackbone(weights)
+
+
+def test_dino_backbone_with_real_weights():
+    path = os.environ.get("CERTPOSE_DINO_WEIGHTS")
+    if not path or not Path(path).is_file():
+        pytest.skip("set CERTPOSE_DINO_WEIGHTS to a TorchScript DINO file to run this test")
+    pytest.importorskip("torch")
+    bb = DinoBackbone(path)
+    image = np.random.default_rng(0).integers(0, 255, size=(120, 160, 3), dtype=np.uint8)
+    out = bb.describe_image(image)
+    assert out.shape[:2] == (120, 160)
+    np.testing.assert_allclose(np.linalg.norm(out, axis=-1), 1.0, rtol=1e-5)
