@@ -354,9 +354,8 @@ class DinoBackbone:
 
     @property
     def dim(self) -> int:
-        if self._dim is None:
-            raise RuntimeError("The descriptor dimension is known after the first image.")
-        return self._dim
+        """Descriptor dimension (0 until the first image has been described)."""
+        return 0 if self._dim is None else self._dim
 
     def describe(self, points: ArrayLike, *, colors: Any = None, normals: Any = None) -> NDArray[np.float64]:
         raise ValueError("DinoBackbone describes images, not bare points; use describe_frame.")

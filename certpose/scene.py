@@ -99,16 +99,23 @@ class SceneField:
             desc = desc.astype(np.float64)
         if desc.ndim != 4 or desc.shape[:3] != shape:
             raise ValueError(f"Expected `descriptors` to have shape {(*shape, 'd')}, got {desc.shape}.")
-        if not np.all(np.isfinite(desc)):
-            raise ValueError("`descriptors` contains NaN or inf values.")
         state = np.asarray(self.state)
         if state.shape != shape:
             raise ValueError(f"Expected `state` to have shape {shape}, got {state.shape}.")
-        if not np.isin(state, (UNOBSERVED, EMPTY, OCCUPIED)).all():
+        if not np.issubdtype(state.dtype, np.integer):
+            raise TypeError(f"`state` must have an integer dtype, got {state.dtype}.")
+        if not np.all((state >= UNOBSERVED) & (state <= OCCUPIED)):
             raise ValueError("`state` holds values other than UNOBSERVED (0), EMPTY (1), OCCUPIED (2).")
         state = state.astype(np.int8, copy=False)
-        if desc.shape[3] and np.any(desc[state != OCCUPIED]):
+        occupied = desc[state == OCCUPIED]
+        # NaN and inf are non-zero: once every non-zero entry is known to sit in an occupied
+        # voxel, finiteness only needs checking there (cheap on large, mostly empty grids).
+        if np.count_nonzero(desc) != np.count_nonzero(occupied):
             raise ValueError("`descriptors` must be zero at voxels that are not OCCUPIED.")
+        if not np.all(np.isfinite(occupied)):
+            raise ValueError("`descriptors` contains NaN or inf values.")
+        # Read-only views: the field is immutable without copying (or freezing) the caller's arrays.
+        desc, state = desc.view(), state.view()
         desc.setflags(write=False)
         state.setflags(write=False)
         object.__setattr__(self, "descriptors", desc)
@@ -442,40 +449,52 @@ def build_scene_field(
     descriptors[uniq[:, 0], uniq[:, 1], uniq[:, 2]] = fused
     state = np.full(shape, UNOBSERVED, dtype=np.int8)
 
-    # --- free space: project every voxel centre into every frame (chunked, vectorised)
-    empty = np.zeros(n_vox, dtype=bool)
-    chunk = 1 << 21
-    for start in range(0, n_vox, chunk):
-        flat = np.arange(start, min(start + chunk, n_vox))
-        ijk = np.stack(np.unravel_index(flat, shape), axis=1)
-        centres = origin + (ijk + 0.5) * voxel_size
-        for f in frames:
-            empty[flat] |= _in_front_of_surface(f, centres, free_space_margin)
-    state.reshape(-1)[empty] = EMPTY
+    # --- free space: project every voxel centre into every frame (vectorised)
+    empty = np.zeros(shape, dtype=bool)
+    for f in frames:
+        empty |= _in_front_of_surface(f, origin, shape, voxel_size, free_space_margin)
+    state[empty] = EMPTY
     state[uniq[:, 0], uniq[:, 1], uniq[:, 2]] = OCCUPIED  # a measured point wins over free space
     scene = SceneField(voxel_size, origin, shape, descriptors, state, backbone=backbones[0])
     log.debug("scene field %s: %s", shape, scene.counts())
     return scene
 
 
-def _in_front_of_surface(frame: RGBDFrame, centres: NDArray[np.float64], margin: float) -> NDArray[np.bool_]:
-    """Whether each world point lies in front of the frame's measured surface by more than ``margin``."""
+def _in_front_of_surface(
+    frame: RGBDFrame,
+    origin: NDArray[np.float64],
+    shape: tuple[int, int, int],
+    voxel_size: float,
+    margin: float,
+) -> NDArray[np.bool_]:
+    """Whether each voxel centre lies in front of the frame's measured surface by more than ``margin``.
+
+    Each centre is projected to its nearest pixel and compared with that pixel's depth. Camera
+    coordinates are affine in the voxel index, so they are summed from per-axis terms
+    (broadcast over the grid) instead of transforming millions of centres.
+    """
     T = invert_transform(frame.T_world_camera)
-    p = centres @ T[:3, :3].T + T[:3, 3]
-    z = p[:, 2]
+    R, t = T[:3, :3], T[:3, 3]
+    axes = [origin[a] + (np.arange(shape[a]) + 0.5) * voxel_size for a in range(3)]
     K = frame.intrinsics
-    out = np.zeros(z.shape[0], dtype=bool)
-    front = z > 1e-9
-    if not front.any():
-        return out
-    zf = z[front]
-    u = np.rint(K.fx * p[front, 0] / zf + K.cx)
-    v = np.rint(K.fy * p[front, 1] / zf + K.cy)
-    inside = (u >= 0) & (u < K.width) & (v >= 0) & (v < K.height)
-    measured = np.zeros(zf.shape[0])
-    measured[inside] = frame.depth[v[inside].astype(np.int64), u[inside].astype(np.int64)]
-    # Invalid depth (0) says nothing about free space.
-    out[front] = inside & (measured > 0) & (zf < measured - margin)
+    depth = frame.depth.reshape(-1)
+    out = np.zeros(shape, dtype=bool)
+    step = max(1, (1 << 21) // (shape[1] * shape[2]))  # bound the temporaries (~2M voxels)
+    for i0 in range(0, shape[0], step):
+        xs = axes[0][i0 : i0 + step]
+        cam = [
+            R[r, 0] * xs[:, None, None] + R[r, 1] * axes[1][None, :, None] + (R[r, 2] * axes[2] + t[r])[None, None, :]
+            for r in range(3)
+        ]
+        z = cam[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.rint(K.fx * cam[0] / z + K.cx)
+            v = np.rint(K.fy * cam[1] / z + K.cy)
+        inside = (z > 1e-9) & (u >= 0) & (u < K.width) & (v >= 0) & (v < K.height)
+        measured = np.zeros(z.shape)
+        measured[inside] = depth[v[inside].astype(np.int64) * K.width + u[inside].astype(np.int64)]
+        # Invalid depth (0) says nothing about free space.
+        out[i0 : i0 + step] = inside & (measured > 0) & (z < measured - margin)
     return out
 
 
