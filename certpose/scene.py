@@ -219,7 +219,7 @@ class SceneField:
         return np.flatnonzero(self.state.ravel() == OCCUPIED)
 
     def occupied_centers(self) -> NDArray[np.float64]:
-        """World coordinates of the occupied voxel centres, shape ``(M,)``, in :meth:`occupied_index` order."""
+        """World coordinates of the occupied voxel centres, shape ``(M, 3)``, in :meth:`occupied_index` order."""
         ijk = np.stack(np.unravel_index(self.occupied_index(), self.shape), axis=1)
         return self.grid_to_world(ijk)
 
@@ -424,7 +424,10 @@ def build_scene_field(
         and shared.center is None
         and all(b is shared for b in backbones)
     ):
-        hists = [shared.histograms(v.points) for v in per_frame]
+        hists = [
+            shared.histograms(v.points) if v.points is not None else np.zeros((0, 33))
+            for v in per_frame
+        ]
         grid_hists = np.concatenate([h[v.keep] for h, v in zip(hists, per_frame, strict=True)])
         shared = shared.fit_center(grid_hists)
         backbones = [shared] * len(frames)
@@ -554,4 +557,7 @@ def _frame_voxels(
     colors = frame.colors_at(pixels[near])
     mean_col = None if colors is None else np.clip(_sum_rows(inverse, colors, m) / counts[:, None], 0, 1)
     keep = np.all((uniq >= 0) & (uniq < shape), axis=1)
+    if not keep.any():  # this frame does not see the grid
+        return _FrameVoxels(np.zeros((0, 3), np.int64), np.zeros(0, bool), np.zeros(0),
+                            descriptors=np.zeros((0, int(getattr(backbone, "dim", 0)))))
     return _FrameVoxels(uniq, keep, counts.astype(np.float64), points=mean_cam, colors=mean_col)

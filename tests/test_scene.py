@@ -268,3 +268,15 @@ def test_array_backbone_rejects_nan():
     bad[2, 1] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         ArrayBackbone(bad)
+
+
+@pytest.mark.parametrize("fit", [False, True])
+def test_a_frame_that_misses_the_grid_adds_nothing(fit):
+    far = _wall_frame(make_transform(np.eye(3), [0.0, 0.0, 5.0]))  # its wall is at z = 6
+    kwargs = dict(voxel_size=VOXEL, bounds=BOUNDS, free_space_margin=0.15, fit_backbone=fit)
+    backbone = FPFHBackbone(radius=0.25)
+    one = build_scene_field(_wall_frame(), backbone, **kwargs)
+    both = build_scene_field([_wall_frame(), far], backbone, **kwargs)
+    np.testing.assert_array_equal(both.state, one.state)
+    np.testing.assert_allclose(both.descriptors, one.descriptors, atol=1e-6)
+    assert one.counts()["occupied"] == 16 * 12
