@@ -211,7 +211,7 @@ def backproject(
     return points, np.stack([v, u], axis=1).astype(np.int64)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class RGBDFrame:
     """A posed RGB-D image.
 
@@ -377,7 +377,7 @@ def _read_image(path: str | Path, what: str) -> NDArray[Any]:
         raise OSError(f"Cannot read the {what} image {path}: {exc}") from exc
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class StructuredPointCloud:
     """Points with a descriptor (and optionally a colour) each.
 

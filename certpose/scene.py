@@ -52,7 +52,7 @@ OCCUPIED = 2
 _CORNERS = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=np.int64)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SceneField:
     """A voxel grid of descriptors with the states ``UNOBSERVED``, ``EMPTY``, ``OCCUPIED``.
 

@@ -182,7 +182,7 @@ def _sample_surface(mesh: Any, n: int, rng: np.random.Generator) -> NDArray[np.f
     return (1 - s)[:, None] * a[tri] + (s * (1 - r2))[:, None] * b[tri] + (s * r2)[:, None] * c[tri]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SyntheticScene:
     """A rendered mug scene with its ground truth.
 
@@ -207,7 +207,6 @@ class SyntheticScene:
     object_mask: NDArray[np.bool_]
     model_points: NDArray[np.float64]
     T_table_camera: NDArray[np.float64] = field(repr=False)
-    _render_seed: int = field(default=0, repr=False)
 
     def model_mesh(self) -> Any:
         """The mug as an open3d ``TriangleMesh`` in the object frame."""

@@ -25,7 +25,7 @@ __all__ = ["YCBVFrame", "load_ycbv_frame", "load_model_points", "load_class_name
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class YCBVFrame:
     """One YCB-Video frame with its labels and ground-truth poses.
 
