@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -12,8 +11,7 @@ from certpose.features import ArrayBackbone, FPFHBackbone
 from certpose.rgbd import CameraIntrinsics, RGBDFrame
 from certpose.scene import EMPTY, OCCUPIED, UNOBSERVED, SceneField, build_scene_field
 from solvers.lie import make_transform
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from tests.conftest import require_data
 
 # A 64x48 camera looking at a wall at z = 1 m: the wall spans |x| < 0.7875, |y| < 0.5875.
 CAM = CameraIntrinsics(fx=40.0, fy=40.0, cx=31.5, cy=23.5, width=64, height=48)
@@ -236,12 +234,8 @@ def test_fpfh_scene_on_synthetic_mug():
 
 
 def _ycbv_root() -> Path:
-    root = DATA / "ycbv"
-    if not (root / "0000" / "000001-meta.mat").is_file():
-        if os.environ.get("CI"):
-            pytest.fail(f"YCB-Video data missing at {root} (required when CI is set)")
-        pytest.skip(f"YCB-Video data not found at {root}")
-    return root
+    require_data("ycbv", "0000", "000001-meta.mat")
+    return require_data("ycbv")
 
 
 def test_real_frame_ground_truth_respects_free_space():

@@ -2,26 +2,21 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from certpose.ycbv import load_class_names, load_model_points, load_ycbv_frame
+from tests.conftest import require_data
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 OBJECTS = ["009_gelatin_box", "025_mug", "061_foam_brick"]
 
 
 @pytest.fixture(scope="module")
 def root() -> Path:
-    root = DATA / "ycbv"
-    if not (root / "0000" / "000001-meta.mat").is_file():
-        if os.environ.get("CI"):
-            pytest.fail(f"YCB-Video data missing at {root} (required when CI is set)")
-        pytest.skip(f"YCB-Video data not found at {root}")
-    return root
+    require_data("ycbv", "0000", "000001-meta.mat")
+    return require_data("ycbv")
 
 
 @pytest.fixture(scope="module")
