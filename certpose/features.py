@@ -358,6 +358,7 @@ class DinoBackbone:
         return 0 if self._dim is None else self._dim
 
     def describe(self, points: ArrayLike, *, colors: Any = None, normals: Any = None) -> NDArray[np.float64]:
+        """Not available: DINO needs the image (use :func:`describe_frame`)."""
         raise ValueError("DinoBackbone describes images, not bare points; use describe_frame.")
 
     def describe_image(self, color: NDArray[np.uint8] | None, shape: tuple[int, int] | None = None) -> NDArray[np.float64]:
@@ -377,6 +378,11 @@ class DinoBackbone:
         with torch.no_grad():
             out = self._model(((x - mean) / std).to(self._device))
             gh, gw = hp // self.patch_size, wp // self.patch_size
+            if out.ndim == 2:
+                raise ValueError(
+                    f"The DINO model returned global features of shape {tuple(out.shape)}; export a "
+                    "module that returns the patch tokens (1, h*w[+1], d) or a map (1, d, h, w)."
+                )
             if out.ndim == 3:
                 out = out[:, -gh * gw :, :].reshape(1, gh, gw, -1).permute(0, 3, 1, 2)
             feat = F.interpolate(out.float(), size=(h, w), mode="bilinear", align_corners=False)
@@ -430,6 +436,9 @@ def describe_frame(
         Express the result in the world frame (``frame.T_world_camera``), else the camera frame.
     """
     backbone = resolve_backbone(backbone)
+    if isinstance(backbone, FPFHBackbone) and backbone.viewpoint != (0.0, 0.0, 0.0):
+        # The points are described in the camera frame: orient normals towards the camera.
+        backbone = replace(backbone, viewpoint=(0.0, 0.0, 0.0))
     points, pixels = frame.backproject(mask=mask, world=False)
     colors = frame.colors_at(pixels)
     if hasattr(backbone, "describe_image") and getattr(backbone, "per_pixel", True):

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -299,6 +299,9 @@ def _per_frame_backbones(backbone_or_descriptors: Any, n: int) -> list[Any]:
     ):
         return [ArrayBackbone(x) for x in backbone_or_descriptors]
     backbone = resolve_backbone(backbone_or_descriptors)
+    if isinstance(backbone, FPFHBackbone) and backbone.viewpoint != (0.0, 0.0, 0.0):
+        # Scene points are described in their camera frame: orient normals towards the camera.
+        backbone = replace(backbone, viewpoint=(0.0, 0.0, 0.0))
     return [backbone] * n
 
 
@@ -344,7 +347,7 @@ def build_scene_field(
     backbone_or_descriptors : FeatureBackbone, array, list of arrays or None
         ``None``: default :class:`~certpose.features.FPFHBackbone`. A point backbone describes,
         per frame, the camera-frame points averaged per voxel (with the backbone's ``radius`` of
-        context around the grid). An image backbone or per-pixel descriptor array ``(H, W, d)``
+        context around the grid; FPFH normals are oriented towards the camera). An image backbone or per-pixel descriptor array ``(H, W, d)``
         (a list: one per frame) gives each pixel a descriptor, averaged per voxel.
     voxel_size : float, optional
         Voxel side in metres (default 5 mm).

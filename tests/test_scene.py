@@ -222,6 +222,11 @@ def test_fpfh_scene_on_synthetic_mug():
     assert scene.backbone.center is None
     norms = np.linalg.norm(scene.occupied_descriptors(), axis=1)
     np.testing.assert_allclose(norms[norms > 0], 1.0, rtol=1e-5)
+    # Scene normals always face the camera, whatever the backbone's viewpoint setting.
+    other = build_scene_field(
+        syn.frame, FPFHBackbone(viewpoint=None), voxel_size=0.005, roi_mask=syn.object_mask, margin=0.04
+    )
+    np.testing.assert_allclose(other.descriptors, scene.descriptors, atol=1e-6)
     fitted = build_scene_field(
         syn.frame, FPFHBackbone(), voxel_size=0.005, roi_mask=syn.object_mask, margin=0.04, fit_backbone=True
     )
