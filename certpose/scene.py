@@ -331,7 +331,7 @@ def build_scene_field(
     voxel_size: float = 0.005,
     bounds: tuple[ArrayLike, ArrayLike] | None = None,
     roi_mask: ArrayLike | Sequence[ArrayLike | None] | None = None,
-    margin: float = 0.03,
+    margin: float = 0.05,
     free_space_margin: float | None = None,
     dtype: type = np.float32,
     max_voxels: int = 20_000_000,
@@ -357,7 +357,9 @@ def build_scene_field(
     roi_mask : array_like of bool (H, W), or a sequence (one per frame, None allowed), optional
         Region of interest used for the default bounds (e.g. an object mask).
     margin : float, optional
-        Growth of the default bounds, metres.
+        Growth of the default bounds, metres (default 5 cm). Outside the grid everything is
+        UNOBSERVED, so the margin bounds how far a pose hypothesis can move off the observed
+        surface and still see the free space it violates.
     free_space_margin : float, optional
         A voxel is EMPTY when its centre lies in front of the measured depth by more than this
         (default ``2 * voxel_size``), so surface noise does not carve free space.
