@@ -34,6 +34,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+# Larger depths are taken for raw sensor units (millimetres and the like), not metres.
+MAX_DEPTH = 100.0
+
 
 def normalize_rows(x: NDArray[np.floating], *, eps: float = 1e-12) -> NDArray[np.float64]:
     """L2-normalise the rows of ``x`` (shape ``(N, d)``); all-zero rows stay zero."""
@@ -248,6 +251,11 @@ class RGBDFrame:
             )
         if not (depth > 0).any():
             raise ValueError("`depth` is zero everywhere: the frame has no valid measurement.")
+        if depth.max() > MAX_DEPTH:
+            raise ValueError(
+                f"`depth` reaches {depth.max():g} m (> {MAX_DEPTH:g} m): it looks like raw sensor "
+                "units; divide by the depth scale (e.g. 1000 for millimetres) to get metres."
+            )
         depth.setflags(write=False)
         object.__setattr__(self, "depth", depth)
         if self.color is not None:

@@ -111,6 +111,8 @@ def test_frame_validation():
         RGBDFrame(_color(), nan_depth, K_SMALL)
     with pytest.raises(ValueError, match="negative"):
         RGBDFrame(_color(), -depth, K_SMALL)
+    with pytest.raises(ValueError, match="raw sensor units"):
+        RGBDFrame(_color(), depth * 1500.0, K_SMALL)
     with pytest.raises(TypeError, match="uint8"):
         RGBDFrame(_color().astype(float), depth, K_SMALL)
     with pytest.raises(ValueError, match="`mask` is empty"):
