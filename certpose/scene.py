@@ -20,9 +20,11 @@ them as ``z_null`` (inner product 0).
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -233,6 +235,39 @@ class SceneField:
         occ = self.occupied_index()
         lookup[occ] = np.arange(occ.size)
         return lookup
+
+    def save(self, path: str | Path) -> None:
+        """Write the field to a compressed ``.npz`` file (an FPFH backbone's settings included)."""
+        extra = {}
+        if isinstance(self.backbone, FPFHBackbone):
+            extra["fpfh"] = np.array(json.dumps(asdict(self.backbone)))
+        np.savez_compressed(
+            Path(path),
+            voxel_size=self.voxel_size,
+            origin=self.origin,
+            descriptors=self.descriptors,
+            state=self.state,
+            **extra,
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> SceneField:
+        """Read a field written by :meth:`save`."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"The scene field file {path} does not exist.")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                backbone = None
+                if "fpfh" in data:
+                    backbone = FPFHBackbone(**json.loads(str(data["fpfh"])))
+                state = data["state"]
+                return cls(
+                    float(data["voxel_size"]), data["origin"], state.shape, data["descriptors"], state,
+                    backbone=backbone,
+                )
+        except (OSError, KeyError, ValueError) as exc:
+            raise ValueError(f"Cannot read a scene field from {path}: {exc}") from exc
 
     def to_open3d(self) -> Any:
         """Occupied voxel centres as an ``open3d.geometry.PointCloud`` (for viewing)."""

@@ -279,3 +279,22 @@ def test_a_frame_that_misses_the_grid_adds_nothing(fit):
     np.testing.assert_array_equal(both.state, one.state)
     np.testing.assert_allclose(both.descriptors, one.descriptors, atol=1e-6)
     assert one.counts()["occupied"] == 16 * 12
+
+
+def test_save_and_load_round_trip(tmp_path):
+    scene = build_scene_field(
+        _wall_frame(), FPFHBackbone(radius=0.25), voxel_size=VOXEL, bounds=BOUNDS, fit_backbone=True
+    )
+    path = tmp_path / "scene.npz"
+    scene.save(path)
+    back = SceneField.load(path)
+    np.testing.assert_array_equal(back.state, scene.state)
+    np.testing.assert_array_equal(back.descriptors, scene.descriptors)
+    np.testing.assert_array_equal(back.origin, scene.origin)
+    assert back.voxel_size == scene.voxel_size and back.shape == scene.shape
+    assert back.backbone == scene.backbone  # fitted centre included
+    with pytest.raises(FileNotFoundError, match="missing.npz"):
+        SceneField.load(tmp_path / "missing.npz")
+    (tmp_path / "bad.npz").write_bytes(b"garbage")
+    with pytest.raises(ValueError, match="bad.npz"):
+        SceneField.load(tmp_path / "bad.npz")
