@@ -303,7 +303,8 @@ def make_mug_scene(
     to_cam /= np.linalg.norm(to_cam)
     gap, depth_box = 0.04, 0.03
     handle_top = position[2] + HANDLE_RING_RADIUS + HANDLE_TUBE_RADIUS
-    rise = (gap + depth_box / 2) * np.tan(elevation) * 1.0
+    # The camera looks down: a ray grazing the handle's top is higher by this at the box's front.
+    rise = (gap + depth_box / 2) * np.tan(elevation)
     box_height = handle_top + rise + 0.01
     for box_width in np.arange(0.05, 0.20, 0.005):
         occ = o3d.geometry.TriangleMesh.create_box(depth_box, box_width, box_height)
