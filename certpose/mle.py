@@ -216,11 +216,14 @@ def _rows_of(points: NDArray[np.float64], subset: NDArray[np.float64]) -> NDArra
     return cKDTree(points).query(subset)[1].astype(np.int64)
 
 
-def solve_eq2(eq2: Eq2Problem, *, certify: bool = True) -> RegistrationResult:
+def solve_eq2(
+    eq2: Eq2Problem, *, certify: bool = True, time_limit: float | None = None
+) -> RegistrationResult:
     """Solve eq. (2) with max-clique pruning + GNC-TLS; attach a certificate when possible.
 
     The certificate comes from ``solvers.certify.certify_result``; if that module is missing
     the result is returned with ``certificate=None`` and ``info["certificate_message"]`` says why.
+    ``time_limit`` (seconds) is passed to the certifier.
     """
     from dataclasses import replace
 
@@ -236,7 +239,7 @@ def solve_eq2(eq2: Eq2Problem, *, certify: bool = True) -> RegistrationResult:
         log.info("eq. (2) not certified: %s", msg)
         return replace(result, info={**result.info, "certificate_message": msg})
     try:
-        certified = certify_result(eq2.problem, result)
+        certified = certify_result(eq2.problem, result, time_limit=time_limit)
     except Exception as exc:  # a failing backend must not lose the pose
         msg = f"certification failed: {type(exc).__name__}: {exc}"
         log.warning("eq. (2): %s", msg)
@@ -425,6 +428,8 @@ class MLEParams:
         Construction of eq. (2).
     certify : bool
         Certify the eq. (2) solution (when a certifier is installed).
+    certify_time_limit : float or None
+        Seconds allowed to the certifier.
     num_rotations : int
         Rotations of the batched coarse search on eq. (1) (0 disables it).
     offsets : tuple of float
@@ -448,6 +453,7 @@ class MLEParams:
 
     eq2: Eq2Params = field(default_factory=Eq2Params)
     certify: bool = True
+    certify_time_limit: float | None = 5.0
     num_rotations: int = 1024
     offsets: tuple[float, ...] = (-0.15, 0.0, 0.15)
     coarse_points: int = 128
@@ -593,7 +599,7 @@ def estimate_mle(
                                 likelihood_params=lparams, rng=gen)
         timings["eq2_build"] = time.perf_counter() - t
         t = time.perf_counter()
-        eq2_result = solve_eq2(eq2, certify=params.certify)
+        eq2_result = solve_eq2(eq2, certify=params.certify, time_limit=params.certify_time_limit)
         timings["eq2_solve"] = time.perf_counter() - t
         T_eq2 = eq2_result.T_target_source
         eq2_ll = float(full(T_eq2))
