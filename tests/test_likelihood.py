@@ -1,0 +1,189 @@
+"""Eq. (1): the batched numba likelihood against a slow reference loop, and input checks."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from certpose.classifier import ClassifierStatus, ObjectClassification
+from certpose.likelihood import LikelihoodParams, PoseLikelihood, log_likelihood
+from certpose.objects import ObjectModel
+from certpose.scene import EMPTY, OCCUPIED, UNOBSERVED, SceneField
+from solvers.lie import make_transform, random_rotation
+
+
+def _unit_rows(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
+    x = rng.normal(size=(n, d))
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def _world(seed: int = 0, shape: tuple[int, int, int] = (12, 10, 9), d: int = 7):
+    """A random hand-built scene, classifier and object (states mixed everywhere)."""
+    rng = np.random.default_rng(seed)
+    state = rng.choice([UNOBSERVED, EMPTY, OCCUPIED], size=shape, p=[0.3, 0.3, 0.4]).astype(np.int8)
+    desc = np.zeros((*shape, d))
+    occ = state == OCCUPIED
+    desc[occ] = _unit_rows(rng, int(occ.sum()), d)
+    scene = SceneField(0.01, np.array([-0.06, -0.05, 0.2]), shape, desc, state)
+    log_p = np.where(rng.random(shape) < 0.5, math.log(0.9), -5.0)
+    cls = ObjectClassification(log_p, occ & (log_p > -1), -5.0, "test", ClassifierStatus.OK, "")
+    obj = ObjectModel(rng.normal(scale=0.03, size=(60, 3)), _unit_rows(rng, 60, d))
+    return rng, scene, cls, obj
+
+
+def _reference(scene, cls, obj, T, params: LikelihoodParams) -> float:
+    """Eq. (1) point by point, corner by corner, in plain Python."""
+    total = 0.0
+    for p, z in zip(obj.points, obj.descriptors, strict=True):
+        q = T[:3, :3] @ p + T[:3, 3]
+        g = (q - scene.origin) / scene.voxel_size - 0.5  # voxel centres at integers
+        i0 = np.floor(g).astype(int)
+        f = g - i0
+        term = 0.0
+        for dx in (0, 1):
+            for dy in (0, 1):
+                for dz in (0, 1):
+                    w = ((f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1])
+                         * (f[2] if dz else 1 - f[2]))
+                    ijk = i0 + (dx, dy, dz)
+                    inside = all(0 <= ijk[a] < scene.shape[a] for a in range(3))
+                    s = scene.state[tuple(ijk)] if inside else UNOBSERVED
+                    if s == OCCUPIED:
+                        v = cls.log_p[tuple(ijk)] + params.beta * float(scene.descriptors[tuple(ijk)] @ z)
+                    elif s == EMPTY:
+                        v = params.c_empty
+                    else:
+                        v = params.log_p_unobserved
+                    term += w * v
+        total += term
+    return total
+
+
+def _random_poses(rng, n, centre, spread):
+    return np.stack([make_transform(random_rotation(rng), centre + rng.uniform(-spread, spread, 3))
+                     for _ in range(n)])
+
+
+def test_batch_equals_slow_reference_loop():
+    rng, scene, cls, obj = _world(0)
+    params = LikelihoodParams(beta=1.7, c_empty=-8.0, log_p_unobserved=math.log(0.2))
+    lik = PoseLikelihood(scene, cls, obj, params=params)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    # 40 poses: enough for the threaded kernel (>= 16) and partly outside the grid.
+    poses = _random_poses(rng, 40, centre, 0.06)
+    fast = lik(poses)
+    slow = np.array([_reference(scene, cls, obj, T, params) for T in poses])
+    np.testing.assert_allclose(fast, slow, rtol=1e-5, atol=1e-4)
+    # The single-thread path and the single-pose call agree too.
+    np.testing.assert_allclose(lik(poses[:3]), slow[:3], rtol=1e-5, atol=1e-4)
+    assert lik(poses[5]) == pytest.approx(slow[5], rel=1e-5, abs=1e-4)
+
+
+def test_point_terms_sum_to_eq1_and_keep_model_order():
+    rng, scene, cls, obj = _world(1)
+    lik = PoseLikelihood(scene, cls, obj)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    T = _random_poses(rng, 1, centre, 0.01)[0]
+    terms = lik.point_terms(T)
+    assert terms.shape == (len(obj),)
+    assert terms.sum() == pytest.approx(lik(T), rel=1e-9, abs=1e-9)
+    # Each term is that of the one-point object (the kernel reorders points internally).
+    for i in (0, 17, 59):
+        one = ObjectModel(obj.points[[i, i, i]], obj.descriptors[[i, i, i]])
+        assert PoseLikelihood(scene, cls, one)(T) / 3 == pytest.approx(terms[i], rel=1e-5, abs=1e-6)
+
+
+def test_similarity_part_matches_scene_interpolation():
+    """beta * sum_i f_scn(q_i)^T z_i, with f_scn from SceneField.interpolate (z_null = 0)."""
+    rng, scene, cls, obj = _world(2)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    poses = _random_poses(rng, 5, centre, 0.03)
+    with_sim = PoseLikelihood(scene, cls, obj, params=LikelihoodParams(beta=2.0))(poses)
+    without = PoseLikelihood(scene, cls, obj, params=LikelihoodParams(beta=0.0))(poses)
+    for T, a, b in zip(poses, with_sim, without, strict=True):
+        q = obj.points @ T[:3, :3].T + T[:3, 3]
+        sim = np.einsum("ij,ij->", scene.interpolate(q), obj.descriptors)
+        assert a - b == pytest.approx(2.0 * sim, rel=1e-5, abs=1e-4)
+
+
+def test_unobserved_and_empty_space_values():
+    _, scene, cls, obj = _world(3)
+    params = LikelihoodParams(c_empty=-7.0, log_p_unobserved=-2.0)
+    lik = PoseLikelihood(scene, cls, obj, params=params)
+    far = make_transform(np.eye(3), [10.0, 10.0, 10.0])
+    assert lik(far) == pytest.approx(len(obj) * -2.0)
+    # A scene that is all observed free space: every point pays c_empty.
+    state = np.full(scene.shape, EMPTY, dtype=np.int8)
+    empty_scene = SceneField(scene.voxel_size, scene.origin, scene.shape,
+                             np.zeros_like(scene.descriptors), state)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    tiny = ObjectModel(np.array([[0.0, 0, 0], [0.001, 0, 0], [0, 0.001, 0]]), obj.descriptors[:3])
+    v = PoseLikelihood(empty_scene, cls, tiny, params=params)(make_transform(np.eye(3), centre))
+    assert v == pytest.approx(3 * -7.0)
+
+
+def test_free_space_erosion_only_removes_penalties():
+    rng, scene, cls, obj = _world(4)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    poses = _random_poses(rng, 20, centre, 0.03)
+    exact = PoseLikelihood(scene, cls, obj)(poses)
+    eroded = PoseLikelihood(scene, cls, obj, params=LikelihoodParams(free_space_erosion=1))(poses)
+    # Turning empty voxels (c_empty) into unobserved ones (log 0.1 > c_empty) never lowers eq. (1).
+    assert np.all(eroded >= exact - 1e-9)
+    assert np.any(eroded > exact + 1e-6)
+
+
+def test_function_form_and_shapes():
+    rng, scene, cls, obj = _world(5)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    poses = _random_poses(rng, 4, centre, 0.02)
+    out = log_likelihood(scene, cls, obj, poses)
+    assert out.shape == (4,)
+    assert isinstance(log_likelihood(scene, cls, obj, poses[0]), float)
+
+
+def test_bad_input_errors():
+    rng, scene, cls, obj = _world(6)
+    lik = PoseLikelihood(scene, cls, obj)
+    with pytest.raises(ValueError, match=r"\(4, 4\) or \(B, 4, 4\)"):
+        lik(np.eye(3))
+    bad = np.eye(4)
+    bad[0, 3] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        lik(bad)
+    other = ObjectModel(obj.points, _unit_rows(rng, len(obj), 5))
+    with pytest.raises(ValueError, match="Descriptor dimensions differ"):
+        PoseLikelihood(scene, cls, other)
+    wrong = ObjectClassification(np.zeros((2, 2, 2)), np.zeros((2, 2, 2), bool), -5.0, "t",
+                                 ClassifierStatus.OK, "")
+    with pytest.raises(ValueError, match="grid shape"):
+        PoseLikelihood(scene, wrong, obj)
+    nan_log_p = cls.log_p.copy()
+    nan_log_p[scene.state == OCCUPIED] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        PoseLikelihood(scene, ObjectClassification(nan_log_p, cls.positive, -5.0, "t",
+                                                   ClassifierStatus.OK, ""), obj)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [({"beta": -1.0}, "beta"), ({"c_empty": 0.0}, "c_empty"), ({"log_p_unobserved": 0.5}, "log_p"),
+     ({"beta": float("nan")}, "finite"), ({"free_space_erosion": -1}, "erosion")],
+)
+def test_params_validation(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        LikelihoodParams(**kwargs)
+
+
+def test_object_model_rejects_nan_and_unnormalised_descriptors():
+    pts = np.random.default_rng(0).normal(size=(5, 3))
+    d = np.eye(5)
+    d[2, 2] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        ObjectModel(pts, d)
+    with pytest.raises(ValueError, match="L2-normalised"):
+        ObjectModel(pts, 2 * np.eye(5))
+    with pytest.raises(ValueError, match=r"shape \(5, d\)"):
+        ObjectModel(pts, np.eye(4))
