@@ -383,8 +383,11 @@ def certify_rotation(
     if why:
         return _invalid(np.nan, why, tol, label, t0)
     upper = problem.cost(R)
-    # The bound holds whatever candidate built the dual; build it from a locally refined one.
-    bound = _rotation_bound(problem, refine_rotation(problem, R), method=method, tol=tol, max_iter=max_iter,
+    # The bound holds whatever candidate built the dual; a dual certificate exists only at the
+    # optimum, so build it from the better of the locally refined candidate and GNC's estimate.
+    Rr, Rg = refine_rotation(problem, R), rotation_gnc(problem)
+    Rd = Rr if problem.cost(Rr) <= problem.cost(Rg) else Rg
+    bound = _rotation_bound(problem, Rd, method=method, tol=tol, max_iter=max_iter,
                             time_limit=time_limit, dense_max=dense_max, eps=eps)
     return _finish_certificate(upper, bound, tol=tol, problem=label, t0=t0, n=problem.n)
 
@@ -630,7 +633,8 @@ def certify_result(
         dmax = dense_max or 10
         # The candidate optimised the full problem; its rotation is refined locally on the
         # bounded subproblem first (a dual certificate exists only at an optimum).
-        Rr = refine_rotation(bounded, R)
+        Rr, Rg = refine_rotation(bounded, R), rotation_gnc(bounded)
+        Rr = Rr if bounded.cost(Rr) <= bounded.cost(Rg) else Rg
         bound = _rotation_bound(bounded, Rr, dense_max=dmax, **kw)  # type: ignore[arg-type]
         upper = bounded.cost(R)
         Ra = _round_rotation(bound.Z00)

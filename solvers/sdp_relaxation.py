@@ -192,7 +192,7 @@ def solve_relaxation(
     *,
     kind: Kind = "chordal",
     max_iter: int = 200,
-    eps: float = 1e-8,
+    eps: float = 1e-7,
     product_constraints: bool = True,
     verbose: bool = False,
 ) -> RelaxationSolution:
