@@ -1,0 +1,187 @@
+"""Eq. (2): weights, mapping and sparsification; refinement and search on eq. (1)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from certpose.classifier import ClassifierStatus, ObjectClassification
+from certpose.likelihood import LikelihoodParams, PoseLikelihood
+from certpose.mle import (
+    Eq2Params,
+    MLEParams,
+    build_eq2_problem,
+    coarse_search,
+    estimate_mle,
+    global_search,
+    refine_pose,
+    solve_eq2,
+)
+from certpose.objects import ObjectModel
+from certpose.scene import EMPTY, OCCUPIED, SceneField
+from solvers.lie import make_transform, rotation_error_deg, so3_exp
+
+
+def _unit_rows(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
+    x = rng.normal(size=(n, d))
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def _box_object(rng: np.random.Generator, d: int = 6) -> ObjectModel:
+    """Points on the surface of an asymmetric box (4 x 3 x 2 cm) with distinct descriptors."""
+    pts = []
+    size = np.array([0.04, 0.03, 0.02])
+    for axis in range(3):
+        for sign in (-0.5, 0.5):
+            uv = rng.uniform(-0.5, 0.5, size=(40, 3)) * size
+            uv[:, axis] = sign * size[axis]
+            pts.append(uv)
+    p = np.concatenate(pts)
+    return ObjectModel(p, _unit_rows(rng, p.shape[0], d))
+
+
+def _scene_with_object(obj: ObjectModel, T: np.ndarray, vs: float = 0.005):
+    """A scene whose occupied voxels are the transformed object's points (with their
+    descriptors), empty space elsewhere in the box; the classifier marks them positive."""
+    q = obj.points @ T[:3, :3].T + T[:3, 3]
+    origin = q.min(axis=0) - 0.03
+    shape = tuple(int(s) for s in np.ceil((q.max(axis=0) + 0.03 - origin) / vs))
+    state = np.full(shape, EMPTY, dtype=np.int8)
+    desc = np.zeros((*shape, obj.dim))
+    idx = np.floor((q - origin) / vs).astype(int)
+    acc: dict[tuple[int, int, int], list[np.ndarray]] = {}
+    for i, ijk in enumerate(map(tuple, idx)):
+        acc.setdefault(ijk, []).append(obj.descriptors[i])
+    for ijk, ds in acc.items():
+        m = np.mean(ds, axis=0)
+        desc[ijk] = m / np.linalg.norm(m)
+        state[ijk] = OCCUPIED
+    scene = SceneField(vs, origin, shape, desc, state)
+    log_p = np.where(state == OCCUPIED, math.log(0.9), -5.0)
+    cls = ObjectClassification(log_p, state == OCCUPIED, -5.0, "test", ClassifierStatus.OK, "")
+    return scene, cls
+
+
+def test_eq2_weights_are_the_documented_mapping():
+    rng = np.random.default_rng(0)
+    obj = _box_object(rng)
+    T = make_transform(so3_exp([0.3, -0.2, 0.5]), [0.1, 0.0, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    beta = 1.3
+    eq2 = build_eq2_problem(scene, cls, obj, params=Eq2Params(num_object_points=30, top_k=5),
+                            likelihood_params=LikelihoodParams(beta=beta), rng=0)
+    prob = eq2.problem
+    assert prob.n == 30 * 5
+    # Non-negative weights, w = c - c_floor with c_floor = c_min - beta.
+    assert np.all(prob.weights >= 0)
+    assert eq2.c_floor == pytest.approx(-5.0 - beta)
+    np.testing.assert_allclose(prob.weights, eq2.c - eq2.c_floor, rtol=1e-6, atol=1e-6)
+    # c_ij recomputed independently: log p_O(y_j) + beta * f_scn(y_j)^T z_i at voxel centres.
+    occ = np.argwhere(scene.state == OCCUPIED)
+    ijk = occ[eq2.grid_index]
+    c_ref = (cls.log_p[tuple(ijk.T)]
+             + beta * np.einsum("kd,kd->k", scene.descriptors[tuple(ijk.T)],
+                                obj.descriptors[eq2.object_index]))
+    np.testing.assert_allclose(eq2.c, c_ref, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(prob.target, scene.grid_to_world(ijk.astype(float)), atol=1e-12)
+    np.testing.assert_allclose(prob.source, obj.points[eq2.object_index], atol=1e-12)
+    # Top-k: for each object point, no dropped grid point has a larger c than a kept one.
+    all_c = (cls.log_p[tuple(occ.T)][None, :]
+             + beta * obj.descriptors[eq2.object_index[::5]] @ scene.descriptors[tuple(occ.T)].T)
+    kept_min = eq2.c.reshape(30, 5).min(axis=1)
+    for row in range(30):
+        dropped = np.setdiff1d(np.arange(occ.shape[0]), eq2.grid_index[row * 5:(row + 1) * 5])
+        assert all_c[row, dropped].max() <= kept_min[row] + 1e-5
+
+
+def test_eq2_solution_recovers_a_textured_pose_and_reports_certification():
+    rng = np.random.default_rng(1)
+    obj = _box_object(rng, d=16)
+    T = make_transform(so3_exp([0.2, 0.4, -0.3]), [0.02, -0.01, 0.45])
+    scene, cls = _scene_with_object(obj, T)
+    # Distinct descriptors: the top-1 candidate is right for most points.
+    eq2 = build_eq2_problem(scene, cls, obj, params=Eq2Params(num_object_points=40, top_k=2),
+                            rng=0)
+    res = solve_eq2(eq2, certify=False)
+    assert res.success, res.message
+    assert rotation_error_deg(res.rotation, T[:3, :3]) < 5.0
+    assert np.linalg.norm(res.translation - T[:3, 3]) < 0.005
+    assert res.info["certificate_message"] == "not requested"
+
+
+def test_refine_pose_never_worsens_and_climbs_back_to_the_truth():
+    rng = np.random.default_rng(2)
+    obj = _box_object(rng)
+    T = make_transform(so3_exp([0.1, 0.2, 0.3]), [0.0, 0.0, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    lik = PoseLikelihood(scene, cls, obj)
+    start = T @ make_transform(so3_exp([0.03, -0.02, 0.02]), [0.003, -0.002, 0.002])
+    for method in ("L-BFGS-B", "Powell"):
+        T1, v1, nfev = refine_pose(lik, start, scale=0.03, method=method)
+        assert v1 >= lik(start) - 1e-9
+        assert v1 == pytest.approx(lik(T1), abs=1e-6)
+        assert nfev > 1
+        assert np.linalg.norm(T1[:3, 3] - T[:3, 3]) < 0.004
+    with pytest.raises(ValueError, match="scale"):
+        refine_pose(lik, start, scale=0.0)
+    with pytest.raises(ValueError, match="method"):
+        refine_pose(lik, start, scale=0.03, method="CG")
+
+
+def test_estimate_mle_and_coarse_search_on_a_hand_built_scene():
+    rng = np.random.default_rng(3)
+    obj = _box_object(rng)
+    T = make_transform(so3_exp([1.0, -0.5, 2.0]), [0.01, 0.02, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    lik = PoseLikelihood(scene, cls, obj)
+    poses, values = coarse_search(lik, obj, T[:3, 3] + T[:3, :3] @ obj.centroid,
+                                  num_rotations=64, rng=0)
+    assert poses.shape == (64 * 27, 4, 4) and values.shape == (64 * 27,)
+    np.testing.assert_allclose(values[:5], lik(poses[:5]), rtol=1e-9)
+    res = estimate_mle(scene, cls, obj, params=MLEParams(certify=False, num_rotations=512), rng=0)
+    assert res.success, res.message
+    assert res.log_likelihood >= lik(T) - 1.0  # at least as likely as the truth (up to polish)
+    assert np.linalg.norm(res.T_scene_object[:3, 3] - T[:3, 3]) < 0.005
+    assert rotation_error_deg(res.T_scene_object[:3, :3], T[:3, :3]) < 5.0
+    assert math.isfinite(res.eq2_log_likelihood) and res.eq2_result is not None
+    assert res.num_evaluations > 64 * 27
+
+
+def test_estimate_mle_without_object_evidence():
+    rng = np.random.default_rng(4)
+    obj = _box_object(rng)
+    scene, cls = _scene_with_object(obj, np.eye(4) + np.diag([0, 0, 0, 0]))
+    none = ObjectClassification(np.full(cls.log_p.shape, -5.0), np.zeros(cls.log_p.shape, bool),
+                                -5.0, "test", ClassifierStatus.NO_POSITIVES, "nothing")
+    res = estimate_mle(scene, none, obj)
+    assert not res.success and res.status.value == "no_object_evidence"
+
+
+def test_global_search_returns_a_scored_pose():
+    rng = np.random.default_rng(5)
+    obj = _box_object(rng)
+    T = make_transform(np.eye(3), [0.0, 0.0, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    lik = PoseLikelihood(scene, cls, obj)
+    best, value = global_search(lik, T[:3, 3], radius=0.02, budget=256, batch=32, rng=0)
+    assert value == pytest.approx(lik(best), rel=1e-9)
+    # Better than the typical pose of its search space (random rotations and translations).
+    rand = np.stack([make_transform(so3_exp(rng.uniform(-np.pi, np.pi, 3) / np.sqrt(3)),
+                                    T[:3, 3] + rng.uniform(-0.02, 0.02, 3) - obj.centroid)
+                     for _ in range(256)])
+    assert value > np.median(lik(rand))
+
+
+@pytest.mark.parametrize("kwargs", [{"num_object_points": 2}, {"top_k": 0}, {"noise_bound": -1.0}])
+def test_eq2_params_validation(kwargs):
+    with pytest.raises(ValueError):
+        Eq2Params(**kwargs)
+
+
+def test_mle_params_validation():
+    with pytest.raises(ValueError, match="num_rotations"):
+        MLEParams(num_rotations=-1)
+    with pytest.raises(ValueError, match="coarse_points"):
+        MLEParams(coarse_points=2)
