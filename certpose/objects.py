@@ -219,6 +219,33 @@ def _grabcut(frame: RGBDFrame) -> NDArray[np.bool_]:
     return mask
 
 
+def _from_image_backbone(views: Sequence[Any], backbone: Any, vs: float, name: str) -> ObjectModel:
+    """Image backbones (e.g. DINO): per-pixel descriptors of each view, fused per voxel."""
+    from certpose.features import describe_frame
+    from certpose.rgbd import RGBDFrame, StructuredPointCloud
+
+    clouds = []
+    for k, item in enumerate(views):
+        frame, mask = (item if isinstance(item, tuple) else (item, None))
+        if not isinstance(frame, RGBDFrame):
+            raise TypeError(f"`views[{k}]` must be an RGBDFrame, got {type(frame).__name__}.")
+        if mask is None:
+            mask = frame.mask if frame.mask is not None else _grabcut(frame)
+        clouds.append(describe_frame(frame, backbone, mask=np.asarray(mask), world=True))
+    colors = None
+    if all(c.colors is not None for c in clouds):
+        colors = np.concatenate([c.colors for c in clouds])  # type: ignore[misc]
+    fused = StructuredPointCloud(
+        np.concatenate([c.points for c in clouds]),
+        np.concatenate([c.descriptors for c in clouds]),
+        colors,
+    ).voxel_downsample(vs)
+    if len(fused) < 3:
+        raise ValueError(f"Only {len(fused)} voxel(s) of object points; use a smaller `voxel_size`.")
+    desc = check_descriptors(fused.descriptors, "backbone descriptors", len(fused))
+    return ObjectModel(fused.points, desc, fused.colors, None, name)
+
+
 def object_from_views(
     views: Sequence[RGBDFrame | tuple[RGBDFrame, ArrayLike]],
     backbone: Any,
@@ -230,7 +257,9 @@ def object_from_views(
 
     The masked pixels of every view are back-projected into the world frame, which is taken
     as the object frame; normals come from each view (oriented towards its camera). The fused
-    cloud is averaged per voxel and described by ``backbone``.
+    cloud is averaged per voxel and described by ``backbone``. Image backbones (with
+    ``describe_image``, e.g. DINO as in the paper) describe each view's pixels instead, and the
+    descriptors are averaged per voxel.
 
     Parameters
     ----------
@@ -279,6 +308,8 @@ def object_from_views(
         has_color &= col is not None
         all_col.append(col)
     colors = np.concatenate(all_col) if has_color else None
+    if hasattr(backbone, "describe_image") and getattr(backbone, "per_pixel", True):
+        return _from_image_backbone(views, backbone, vs, name)
     # Normals ride along as 3-d "descriptors" so the voxel mean re-normalises them.
     fused = StructuredPointCloud(np.concatenate(all_pts), np.concatenate(all_nrm), colors)
     fused = fused.voxel_downsample(vs)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from certpose.cli import main
-from certpose.features import FPFHBackbone
+from certpose.features import ArrayBackbone, FPFHBackbone
 from certpose.objects import ObjectModel, object_from_points, object_from_views
 from certpose.pipeline import PoseParams, pose_errors, run_demo, run_ycbv
 from certpose.rgbd import CameraIntrinsics, RGBDFrame
@@ -92,6 +92,11 @@ def test_object_from_points_and_views():
     assert np.allclose(view_obj.points[:, 2], 0.0, atol=1e-9)  # the wall is at world z = 0
     with pytest.raises(ValueError, match="empty"):
         object_from_views([(frame, np.zeros((48, 64), bool))], FPFHBackbone(), voxel_size=0.005)
+    # An image backbone (per-pixel descriptors, as DINO): averaged per voxel, unit rows.
+    pix = np.random.default_rng(2).normal(size=(48, 64, 5))
+    img_obj = object_from_views([(frame, mask)], ArrayBackbone(pix), voxel_size=0.005)
+    assert img_obj.dim == 5 and len(img_obj) == len(view_obj)
+    np.testing.assert_allclose(np.linalg.norm(img_obj.descriptors, axis=1), 1.0, atol=1e-9)
     with pytest.raises(ValueError, match="views"):
         object_from_views([], FPFHBackbone(), voxel_size=0.005)
     try:
