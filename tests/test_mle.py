@@ -160,6 +160,7 @@ def test_estimate_mle_without_object_evidence():
 
 
 def test_global_search_returns_a_scored_pose():
+    pytest.importorskip("nevergrad", reason="the global search uses the optional nevergrad extra")
     rng = np.random.default_rng(5)
     obj = _box_object(rng)
     T = make_transform(np.eye(3), [0.0, 0.0, 0.5])
