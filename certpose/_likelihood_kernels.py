@@ -78,7 +78,7 @@ def _pose_total(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offs
     return total
 
 
-@njit(parallel=True, fastmath=True, cache=True)
+@njit(parallel=True, fastmath=True, cache=True, nogil=True)
 def eq1_batch(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
               c_unobs):  # pragma: no cover - compiled
     """Sum of per-point log-localisation terms for each of the ``B`` poses ``T`` (threads over B)."""
@@ -89,7 +89,7 @@ def eq1_batch(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset
     return out
 
 
-@njit(fastmath=True, cache=True)
+@njit(fastmath=True, cache=True, nogil=True)
 def eq1_batch_serial(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta,
                      c_empty, c_unobs):  # pragma: no cover - compiled
     """:func:`eq1_batch` on one thread: small batches do not pay the thread wake-up."""
@@ -100,7 +100,7 @@ def eq1_batch_serial(T, points, zdesc, index, cells, desc, logp, origin, inv_vs,
     return out
 
 
-@njit(fastmath=True, cache=True)
+@njit(fastmath=True, cache=True, nogil=True)
 def eq1_points(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
                c_unobs):  # pragma: no cover - compiled
     """Per-point terms ``(N,)`` for one pose ``T`` (4, 4)."""
