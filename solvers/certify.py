@@ -394,16 +394,18 @@ def certify_rotation(
 
 def _scope_problem(
     problem: WeightedTLSProblem, scope: Scope, survivors: ArrayLike | None
-) -> tuple[BoundedProblem, WeightedTLSProblem | RotationTLSProblem]:
+) -> tuple[BoundedProblem, WeightedTLSProblem | RotationTLSProblem, NDArray[np.int64]]:
+    """The bounded problem and the survivors (all indices for the full scope)."""
     if scope not in ("auto", "full", "pruned", "rotation"):
         raise ValueError(f"`scope` must be 'auto', 'full', 'pruned' or 'rotation', got {scope!r}.")
     if scope == "full":
-        return BoundedProblem.FULL, problem
+        return BoundedProblem.FULL, problem, np.arange(problem.n)
     idx = _survivors(problem) if survivors is None else np.asarray(survivors, dtype=np.int64)
+    if idx.size < 3:
+        idx = np.arange(problem.n)
     if scope == "pruned":
-        return BoundedProblem.PRUNED, problem.subset(idx)
-    sub = problem.subset(idx) if idx.size >= 3 else problem
-    return BoundedProblem.ROTATION_TIM, tim_problem(sub)
+        return BoundedProblem.PRUNED, problem.subset(idx), idx
+    return BoundedProblem.ROTATION_TIM, tim_problem(problem.subset(idx)), idx
 
 
 def certify_pose(
@@ -466,7 +468,7 @@ def certify_pose(
     if t is None:
         raise ValueError("`t` is required for a WeightedTLSProblem.")
     R, t, why = _candidate_error(R, t)
-    label, bounded = _scope_problem(problem, scope, survivors)
+    label, bounded, _ = _scope_problem(problem, scope, survivors)
     if why:
         return _invalid(np.nan, why, tol, label, t0)
     if isinstance(bounded, RotationTLSProblem):
@@ -536,7 +538,7 @@ def solve_sdp(
 
     t0 = time.perf_counter()
     tol = _check_tol(tol)
-    label, bounded = _scope_problem(problem, scope, None)
+    label, bounded, idx = _scope_problem(problem, scope, None)
     info: dict[str, Any] = {"bounded_problem": label.value}
     if isinstance(bounded, RotationTLSProblem):
         dmax = dense_max or 10
@@ -561,7 +563,6 @@ def solve_sdp(
             if sol.accepted and sol.lower > bound.lower:
                 bound = sol
         cert = _finish_certificate(upper, bound, tol=tol, problem=label, t0=t0, n=bounded.n)
-        idx = _survivors(problem)
         t = _vote_translation(problem, R, idx)
         R, t = refine_pose(problem, R, t)
     else:
@@ -598,6 +599,7 @@ def certify_result(
     tol: float = 1e-3,
     scope: Scope = "auto",
     method: Method = "auto",
+    survivors: ArrayLike | None = None,
     max_iter: int | None = None,
     time_limit: float | None = None,
     dense_max: int | None = None,
@@ -617,13 +619,13 @@ def certify_result(
     problem : WeightedTLSProblem
         The problem ``result`` was computed for.
     result : RegistrationResult
-    tol, scope, method, max_iter, time_limit, dense_max, eps
+    tol, scope, method, survivors, max_iter, time_limit, dense_max, eps
         As in :func:`certify_pose`.
     """
     t0 = time.perf_counter()
     tol = _check_tol(tol)
     R, t = result.rotation.copy(), result.translation.copy()
-    label, bounded = _scope_problem(problem, scope, None)
+    label, bounded, idx = _scope_problem(problem, scope, survivors)
     kw = dict(tol=tol, method=method, max_iter=max_iter, time_limit=time_limit, eps=eps)
     R_alt = t_alt = None
     _, _, why = _candidate_error(R, t)
@@ -643,8 +645,7 @@ def certify_result(
             if bounded.cost(Ra) < bounded.cost(Rr):
                 Rr = Ra
         if bounded.cost(Rr) < upper - 1e-9 * max(1.0, upper):
-            R_alt, t_alt, upper = Rr, _vote_translation(problem, Rr, _survivors(problem)), \
-                bounded.cost(Rr)
+            R_alt, t_alt, upper = Rr, _vote_translation(problem, Rr, idx), bounded.cost(Rr)
     else:
         dmax = dense_max or 4
         bound = _joint_bound(bounded, R, t, dense_max=dmax, **kw)  # type: ignore[arg-type]
