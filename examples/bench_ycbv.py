@@ -94,6 +94,7 @@ def main() -> None:
                 "cert_gap": None if cert is None else cert.relative_gap,
                 "eq2_solve_s": res.timings.get("mle.eq2_solve"),
                 "cert_s": res.timings.get("mle.eq2_certify", 0.0),
+                "cert_wait_s": res.timings.get("mle.eq2_certify_wait", 0.0),
             }
             T_eq2 = res.mle.eq2_result.T_target_source if res.mle and res.mle.eq2_result else None
             if T_eq2 is not None:
@@ -122,8 +123,8 @@ def main() -> None:
     def f(x, d=2):
         return "  n/a" if x is None else f"{x:.{d}f}"
 
-    print("\ncolumns: errors (t cm, symmetry axis deg, rotation deg, ADD-S cm); MLE s includes cert s "
-          "(the eq. (2) certifier); winner = hypothesis that won on eq. (1); eq2 ADD-S = error of the "
+    print("\ncolumns: errors (t cm, symmetry axis deg, rotation deg, ADD-S cm); MLE s = wall time of the whole MLE; cert s = time of "
+          "(the eq. (2) certifier, run in a thread beside the eq. (1) search); winner = hypothesis that won on eq. (1); eq2 ADD-S = error of the "
           "eq. (2) minimiser; L = eq. (1) of the MLE pose, of the eq. (2) minimiser, of it refined"
           + ("; of the global search's best; of the ground truth" if args.global_budget else ""))
     print(f"YCB-Video scene 0000, {len(args.frames)} frames x {len(args.objects)} objects "
@@ -142,10 +143,10 @@ def main() -> None:
     ok = [r["t_err_cm"] <= 1 and r["add_s_cm"] <= 1 and (r["axis_err_deg"] is None or r["axis_err_deg"] <= 5)
           for r in rows]
     mle = np.array([r["mle_s"] for r in rows])
-    nocert = np.array([r["mle_s"] - r["cert_s"] for r in rows])
+    nocert = np.array([r["mle_s"] - r["cert_wait_s"] for r in rows])
     print(f"\nwithin all accuracy targets: {sum(ok)}/{len(rows)}; ADD-S <= 1 cm: "
           f"{sum(r['add_s_cm'] <= 1 for r in rows)}/{len(rows)}; MLE time median {np.median(mle):.2f} s, "
-          f"max {mle.max():.2f} s (without the certifier: median {np.median(nocert):.2f} s, max "
+          f"max {mle.max():.2f} s (without waiting for the certifier: median {np.median(nocert):.2f} s, max "
           f"{nocert.max():.2f} s); eq. (2) pose won {sum(r['hypothesis'] == 'eq2' for r in rows)}"
           f"/{len(rows)}")
     if args.json is not None:
