@@ -21,13 +21,24 @@ correspondences, at least ``(k-1)/k`` of them outliers. The problem is solved by
 :func:`solvers.solve_registration` (max-clique pruning + GNC-TLS) and certified by
 ``solvers.certify.certify_result`` when that module exists.
 
-**Refinement on eq. (1).** Eq. (2) is only an approximation of eq. (1) (and for a textureless,
-symmetric object the top-k candidates rarely contain the right voxel), so the eq. (2) pose is one
-hypothesis among others: a batched coarse search of eq. (1) over random rotations, with the
-object centred on the classifier's positive voxels, supplies more. The best hypotheses are
-refined on eq. (1) with scipy's bounded Powell method in the tangent space of SE(3), first on a
-farthest-point subsample of the object, then on the whole object; the pose with the highest
-eq. (1) wins. :class:`MLEResult` records where it came from and how the eq. (2) pose scored.
+**Refinement on eq. (1).** Eq. (2) is only an approximation of eq. (1), and for a textureless,
+symmetric object the descriptor-driven top-k candidates rarely contain the right voxel
+(measured on YCB-Video: 1-9 of 120-800 correspondences are inliers at the true pose; none in
+the synthetic mug scene). So the eq. (2) pose is one hypothesis among others (coarse-to-fine):
+
+1. a batched coarse search of eq. (1) on a farthest-point subsample of the object: random
+   rotations, each with a 3x3x3 grid of translations around the one that puts the
+   camera-facing model points on the classifier's positive voxels; this stage uses a coarser
+   eq. (1) whose free space is eroded next to surfaces (``coarse_erosion``) so that poses a
+   voxel or two off still rank high;
+2. the best distinct hypotheses (and the eq. (2) pose) are refined on that coarse model
+   (BFGS on central differences, batched), ranked on the exact eq. (1) of the whole object,
+   and the best few refined on it; the winner gets a derivative-free Powell polish.
+
+The pose with the highest eq. (1) wins. The eq. (2) certificate is computed in a thread beside
+steps 1-2; if the certifier returns a better eq. (2) pose, that pose is refined as one more
+hypothesis. :class:`MLEResult` records where the winner came from and how the eq. (2) pose
+scored on eq. (1). :func:`global_search` is the long Nevergrad search used to judge both.
 """
 
 from __future__ import annotations
