@@ -1,0 +1,184 @@
+"""``certpose register`` on real files (the bunny) and on malformed files."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from certpose.cli import main
+from certpose.io import load_bunny
+from solvers.lie import random_rotation, rotation_error_deg, transform_points
+from tests.conftest import require_data
+
+SIGMA = 0.01
+BETA = 5.54 * SIGMA
+
+
+@pytest.fixture(scope="module")
+def bunny_problem():
+    """200 bunny correspondences, 30% outliers, with the ground-truth pose."""
+    rng = np.random.default_rng(11)
+    pts = load_bunny(require_data("bunny", "bun_zipper_res3.ply"))
+    src = pts[rng.choice(pts.shape[0], size=200, replace=False)]
+    T = np.eye(4)
+    T[:3, :3] = random_rotation(rng)
+    T[:3, 3] = rng.uniform(-0.5, 0.5, size=3)
+    dst = transform_points(T, src) + SIGMA * rng.normal(size=src.shape)
+    out = rng.choice(200, size=60, replace=False)
+    dst[out] = rng.uniform(-2.0, 2.0, size=(60, 3))
+    weights = np.ones(200)
+    weights[:10] = 0.5
+    return src, dst, T, weights
+
+
+def _write(path, pts: np.ndarray) -> None:
+    suffix = path.suffix
+    if suffix == ".npy":
+        np.save(path, pts)
+    elif suffix == ".csv":
+        np.savetxt(path, pts, delimiter=",", header="x,y,z", comments="", fmt="%.17g")
+    elif suffix == ".ply":
+        import open3d as o3d
+
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        assert o3d.io.write_point_cloud(str(path), cloud)
+    else:
+        raise AssertionError(suffix)
+
+
+def _check_pose(json_path, T_gt: np.ndarray) -> dict:
+    data = json.loads(json_path.read_text())
+    res = data["result"]
+    T = np.array(res["T_target_source"])
+    assert res["success"] and res["status"] == "converged"
+    assert rotation_error_deg(T[:3, :3], T_gt[:3, :3]) < 2.0
+    assert np.linalg.norm(T[:3, 3] - T_gt[:3, 3]) < 0.02
+    return data
+
+
+@pytest.mark.parametrize("src_fmt,dst_fmt", [(".npy", ".csv"), (".ply", ".npy"), (".csv", ".ply")])
+def test_register_bunny_files(tmp_path, bunny_problem, capsys, src_fmt, dst_fmt):
+    src, dst, T_gt, _ = bunny_problem
+    src_path, dst_path = tmp_path / f"src{src_fmt}", tmp_path / f"dst{dst_fmt}"
+    _write(src_path, src)
+    _write(dst_path, dst)
+    out = tmp_path / "result.json"
+    rc = main(["register", str(src_path), str(dst_path), "--noise-bound", str(BETA),
+               "--json", str(out)])
+    assert rc == 0
+    data = _check_pose(out, T_gt)
+    assert data["inputs"]["num_correspondences"] == 200
+    assert data["inputs"]["noise_bound"] == BETA
+    # The 140 inliers are found (a few noisy ones may fall just outside beta; no outlier in).
+    inl = set(data["result"]["inliers"])
+    assert 130 <= len(inl) <= 140
+    stdout = capsys.readouterr().out
+    assert "T_target_source" in stdout and "converged" in stdout
+
+
+def test_register_weights_and_prune_never(tmp_path, bunny_problem):
+    src, dst, T_gt, w = bunny_problem
+    _write(tmp_path / "s.npy", src)
+    _write(tmp_path / "d.npy", dst)
+    np.savetxt(tmp_path / "w.csv", w)
+    out = tmp_path / "r.json"
+    rc = main(["register", str(tmp_path / "s.npy"), str(tmp_path / "d.npy"),
+               "--noise-bound", str(BETA), "--weights", str(tmp_path / "w.csv"),
+               "--prune", "never", "--json", str(out)])
+    assert rc == 0
+    data = _check_pose(out, T_gt)
+    assert data["inputs"]["prune"] == "never"
+    assert data["result"]["solver"] == "gnc"
+    # The cost is the weighted TLS cost: recompute it from the returned pose.
+    T = np.array(data["result"]["T_target_source"])
+    r2 = np.sum((dst - transform_points(T, src)) ** 2, axis=1) / BETA**2
+    assert data["result"]["cost"] == pytest.approx(float(w @ np.minimum(r2, 1.0)), rel=1e-9)
+
+
+def test_register_subprocess(tmp_path, bunny_problem):
+    src, dst, T_gt, _ = bunny_problem
+    _write(tmp_path / "s.ply", src)
+    _write(tmp_path / "d.csv", dst)
+    out = tmp_path / "r.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "certpose.cli", "register", str(tmp_path / "s.ply"),
+         str(tmp_path / "d.csv"), "--noise-bound", str(BETA), "--json", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    _check_pose(out, T_gt)
+    assert "inliers" in proc.stdout
+
+
+def test_register_demo(tmp_path, capsys):
+    out = tmp_path / "demo.json"
+    assert main(["register", "--demo", "--json", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    assert "rotation error" in stdout and "translation error" in stdout and "ms" in stdout
+    data = json.loads(out.read_text())
+    assert data["inputs"]["demo"] and data["inputs"]["outlier_ratio"] == 0.8
+    T = np.array(data["result"]["T_target_source"])
+    T_gt = np.array(data["ground_truth"]["T_target_source"])
+    assert rotation_error_deg(T[:3, :3], T_gt[:3, :3]) == pytest.approx(
+        data["errors"]["rotation_deg"])
+    assert data["errors"]["rotation_deg"] < 5.0 and data["errors"]["translation"] < 0.05
+
+
+def _bad_cases(tmp_path, good: np.ndarray):
+    nan = good.copy()
+    nan[3, 0] = np.nan
+    np.save(tmp_path / "good.npy", good)
+    np.save(tmp_path / "nan.npy", nan)
+    np.save(tmp_path / "short.npy", good[:-5])
+    np.save(tmp_path / "cols.npy", good[:, :2])
+    (tmp_path / "garbage.csv").write_text("this is\nnot a point file\n")
+    (tmp_path / "cols.csv").write_text("1,2\n3,4\n5,6\n")
+    (tmp_path / "empty.csv").write_text("")
+    (tmp_path / "broken.ply").write_text("ply\nnonsense\n")
+    np.save(tmp_path / "w_short.npy", np.ones(3))
+    g = str(tmp_path / "good.npy")
+    return {
+        "missing": ([g, str(tmp_path / "missing.npy")], "does not exist"),
+        "garbage": ([g, str(tmp_path / "garbage.csv")], "garbage.csv"),
+        "wrong columns csv": ([str(tmp_path / "cols.csv"), g], "cols.csv"),
+        "wrong columns npy": ([g, str(tmp_path / "cols.npy")], "shape (N, 3)"),
+        "empty": ([g, str(tmp_path / "empty.csv")], "empty"),
+        "nan": ([str(tmp_path / "nan.npy"), g], "NaN"),
+        "mismatched lengths": ([g, str(tmp_path / "short.npy")], "short.npy"),
+        "broken ply": ([g, str(tmp_path / "broken.ply")], "broken.ply"),
+        "short weights": ([g, g, "--weights", str(tmp_path / "w_short.npy")], "w_short.npy"),
+        "bad noise bound": ([g, g, "--noise-bound", "-1"], "noise_bound"),
+        "no files": ([], "SRC and DST"),
+    }
+
+
+def test_register_malformed_files(tmp_path, capsys):
+    good = np.random.default_rng(0).normal(size=(20, 3))
+    for label, (args, needle) in _bad_cases(tmp_path, good).items():
+        argv = ["register", *args]
+        if "--noise-bound" not in args:
+            argv += ["--noise-bound", "0.05"]
+        rc = main(argv)
+        captured = capsys.readouterr()
+        assert rc != 0, label
+        err = captured.err.strip()
+        assert err.startswith("certpose register: error:"), (label, err)
+        assert "\n" not in err, (label, err)  # one line, no traceback
+        assert needle in err, (label, err)
+
+
+def test_register_malformed_subprocess(tmp_path):
+    (tmp_path / "garbage.csv").write_text("1,2,banana\n")
+    np.save(tmp_path / "good.npy", np.zeros((1, 3)))
+    proc = subprocess.run(
+        [sys.executable, "-m", "certpose.cli", "register", str(tmp_path / "good.npy"),
+         str(tmp_path / "garbage.csv"), "--noise-bound", "0.1"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 1
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "garbage.csv" in lines[0], proc.stderr
