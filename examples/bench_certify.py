@@ -153,6 +153,9 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="3 repetitions, fewer settings")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("bench_certify.png"))
+    ap.add_argument("--rot-reps", type=int, default=None,
+                    help="repetitions of the rotation-subproblem comparison (default: --reps)")
+    ap.add_argument("--rot-k", type=int, nargs="+", default=[20, 50, 100])
     ap.add_argument("--skip", nargs="*", default=[], choices=["reg", "big", "rot"])
     args = ap.parse_args()
     reps = 3 if args.quick else args.reps
@@ -166,7 +169,7 @@ def main() -> None:
     if "big" not in args.skip:
         rows += run_registration(bunny, [1000], ratios, max(3, reps // 2), rng, ["gnc+certify"])
     if "rot" not in args.skip:
-        run_rotation_subproblem(bunny, [20, 50, 100], reps, rng, ratio=0.5)
+        run_rotation_subproblem(bunny, args.rot_k, args.rot_reps or reps, rng, ratio=0.5)
     if rows:
         plot(rows, args.out)
 

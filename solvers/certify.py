@@ -211,10 +211,13 @@ def refine_pose(
 
 
 # ----------------------------------------------------------------------------- bounds
-def _ipm_bound(lift: Lifting, kind: str, max_iter: int, eps: float) -> _Bound:
+def _ipm_bound(
+    lift: Lifting, kind: str, max_iter: int, eps: float, time_limit: float | None = None
+) -> _Bound:
     from solvers.sdp_relaxation import solve_relaxation
 
-    sol = solve_relaxation(lift, kind=kind, max_iter=max_iter, eps=eps)  # type: ignore[arg-type]
+    sol = solve_relaxation(lift, kind=kind, max_iter=max_iter, eps=eps,  # type: ignore[arg-type]
+                           time_limit=time_limit)
     status = _STATUS_TABLE.get(sol.status, CertificateStatus.SOLVER_ERROR)
     if sol.status == "solved" and not sol.accepted:
         status = CertificateStatus.SOLVER_ERROR
@@ -275,9 +278,9 @@ def _rotation_bound(
         drs = _drs_bound(lift, _rotation_vector(R, rp), tol, max_iter or 3000, time_limit)
         if method == "dual" or drs.status is CertificateStatus.GAP_TOO_LARGE or rp.n > dense_max:
             return drs
-        ipm = _ipm_bound(lift, "dense", 200, eps)
+        ipm = _ipm_bound(lift, "dense", 200, eps, time_limit)
         return ipm if ipm.accepted and ipm.lower >= drs.lower else drs
-    return _ipm_bound(lift, method, max_iter or 200, eps)
+    return _ipm_bound(lift, method, max_iter or 200, eps, time_limit)
 
 
 def _joint_bound(
@@ -301,7 +304,7 @@ def _joint_bound(
         theta = np.where(problem.inliers(R, t), 1.0, -1.0)
         x = np.concatenate([y, (theta[:, None] * y[None, :]).ravel()])
         return _drs_bound(lift, x, tol, max_iter or 3000, time_limit)
-    return _ipm_bound(lift, method, max_iter or 200, eps)
+    return _ipm_bound(lift, method, max_iter or 200, eps, time_limit)
 
 
 def _finish_certificate(
@@ -377,7 +380,7 @@ def certify_rotation(
     max_iter : int or None
         Backend iteration limit (Clarabel: 200; Douglas-Rachford: 3000).
     time_limit : float or None
-        Seconds for the Douglas-Rachford search.
+        Seconds for the dual search (and Clarabel's time limit).
     dense_max : int
         Largest ``K`` for the dense interior-point solve under ``"auto"``.
     eps : float
@@ -550,7 +553,7 @@ def solve_sdp(
         dmax = dense_max or 10
         kind = method if method in ("dense", "chordal") else ("dense" if bounded.n <= dmax
                                                               else "chordal")
-        sol = _ipm_bound(rotation_lifting(bounded), kind, max_iter or 200, eps)
+        sol = _ipm_bound(rotation_lifting(bounded), kind, max_iter or 200, eps, time_limit)
         R = _round_rotation(sol.Z00)
         if R is None:
             cert = _finish_certificate(np.nan, sol, tol=tol, problem=label, t0=t0, n=bounded.n)
@@ -576,7 +579,7 @@ def solve_sdp(
         dmax = dense_max or 4
         kind = method if method in ("dense", "chordal") else ("dense" if bounded.n <= dmax
                                                               else "chordal")
-        sol = _ipm_bound(lift, kind, max_iter or 200, eps)
+        sol = _ipm_bound(lift, kind, max_iter or 200, eps, time_limit)
         if sol.Z00 is None:
             cert = _finish_certificate(np.nan, sol, tol=tol, problem=label, t0=t0, n=bounded.n)
             res = _finish(problem, np.eye(3), np.zeros(3), iterations=0, t0=t0,

@@ -194,6 +194,7 @@ def solve_relaxation(
     max_iter: int = 200,
     eps: float = 1e-7,
     product_constraints: bool = True,
+    time_limit: float | None = None,
     verbose: bool = False,
 ) -> RelaxationSolution:
     """Solve a relaxation of ``lift`` with Clarabel through cvxpy and bound it soundly.
@@ -208,6 +209,11 @@ def solve_relaxation(
         Clarabel's iteration limit.
     eps : float
         Clarabel's gap and feasibility tolerances.
+    product_constraints : bool
+        Add ``<A_l, Z_ij> = 0`` on off-diagonal blocks for the homogeneous pose constraints
+        (``theta_k`` times a pose constraint); they make the joint lifting tight.
+    time_limit : float or None
+        Clarabel's time limit in seconds.
     """
     import cvxpy as cp
 
@@ -251,8 +257,9 @@ def solve_relaxation(
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
+            opts = {} if time_limit is None else {"time_limit": float(time_limit)}
             prob.solve(solver=cp.CLARABEL, verbose=verbose, max_iter=int(max_iter),
-                       tol_gap_abs=eps, tol_gap_rel=eps, tol_feas=eps)
+                       tol_gap_abs=eps, tol_gap_rel=eps, tol_feas=eps, **opts)
         raw = str(prob.status)
     except cp.error.SolverError as exc:  # backend failed: report, never raise
         raw, message = "solver_error", f"SDP backend failed: {exc}"
