@@ -665,7 +665,8 @@ def plot_report(report: BenchReport, out_dir: str | Path) -> list[Path]:
             ax.scatter([r["outlier_ratio"] for r in sel],
                        [max(r["relative_gap"], 1e-12) for r in sel], s=12, alpha=0.6,
                        label=f"{solver} (N={n})")
-        ax.set(xlabel="outlier ratio", ylabel="relative duality gap", yscale="log",
+        ax.set(xlabel="outlier ratio", ylabel="relative duality gap (floored at 1e-12)",
+               yscale="log",
                title="tightness of the relaxation")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
