@@ -144,34 +144,60 @@ def consistency_matrix(at, bt, beta, cbar):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def greedy_clique(adj, order):  # pragma: no cover - compiled
-    """A clique grown greedily along ``order`` (a lower bound on the maximum clique)."""
-    n = order.shape[0]
+def multistart_greedy_clique(adj, deg):  # pragma: no cover - compiled
+    """Best of the greedy cliques grown inside each vertex's neighbourhood (by degree order).
+
+    A cheap, strong lower bound on the maximum clique: O(N * d * c) for degree d and clique
+    size c.
+    """
+    n = adj.shape[0]
+    order = np.argsort(-deg, kind="mergesort")
+    best = np.empty(0, dtype=np.int64)
+    in_best = np.zeros(n, dtype=np.bool_)
     members = np.empty(n, dtype=np.int64)
-    m = 0
     for v in order:
-        ok = True
-        for k in range(m):
-            if adj[v, members[k]] == 0:
-                ok = False
-                break
-        if ok:
-            members[m] = v
-            m += 1
-    return members[:m]
+        if deg[v] + 1 <= best.shape[0]:
+            break  # later starts have lower degree: none can beat the best clique
+        if in_best[v]:
+            continue  # its neighbourhood was just explored from inside the best clique
+        members[0] = v
+        m = 1
+        for u in order:
+            if u == v or adj[v, u] == 0:
+                continue
+            ok = True
+            for k in range(1, m):
+                if adj[u, members[k]] == 0:
+                    ok = False
+                    break
+            if ok:
+                members[m] = u
+                m += 1
+        if m > best.shape[0]:
+            best = members[:m].copy()
+            in_best[:] = False
+            in_best[best] = True
+    return best
 
 
 @njit(cache=True)
-def peel_to_core(adj, k):  # pragma: no cover - compiled
-    """Vertices of the k-core (repeatedly drop vertices of degree < k)."""
+def degrees(adj):  # pragma: no cover - compiled
     n = adj.shape[0]
-    alive = np.ones(n, dtype=np.bool_)
     deg = np.zeros(n, dtype=np.int64)
     for i in range(n):
         s = 0
         for j in range(n):
             s += adj[i, j]
         deg[i] = s
+    return deg
+
+
+@njit(cache=True)
+def peel_to_core(adj, deg_in, k):  # pragma: no cover - compiled
+    """Vertices of the k-core (repeatedly drop vertices of degree < k)."""
+    n = adj.shape[0]
+    alive = np.ones(n, dtype=np.bool_)
+    deg = deg_in.copy()
     stack = np.empty(n, dtype=np.int64)
     top = 0
     for i in range(n):

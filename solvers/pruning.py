@@ -33,46 +33,57 @@ def consistency_graph(
     return _kernels.consistency_matrix(at, bt, beta, float(cbar))
 
 
-def max_clique(adjacency: ArrayLike) -> NDArray[np.int64]:
-    """Vertices of one maximum clique of an undirected graph.
+def max_clique(
+    adjacency: ArrayLike, *, exact_max_vertices: int | None = 500
+) -> tuple[NDArray[np.int64], bool]:
+    """One maximum clique of an undirected graph (or a large clique, flagged as inexact).
 
-    A greedy clique ``C`` (size ``L``) bounds the answer from below; any larger clique lies in
-    the ``L``-core, which is usually tiny (or already complete) for registration graphs. Only
-    what is left goes to igraph's exact search, so dense inlier sets cost no exponential work.
+    Multi-start greedy cliques give a strong lower bound ``L``; any larger clique lies in the
+    ``L``-core, which for registration graphs is usually tiny or already complete. What is left
+    goes to igraph's exact search (Cliquer) -- unless it still has more than
+    ``exact_max_vertices`` vertices: dense geometric graphs (e.g. eq. (2) candidate sets) make the
+    exact search exponential, so the greedy clique is returned and flagged as inexact.
 
     Parameters
     ----------
     adjacency : (N, N) array_like
         Symmetric 0/1 adjacency matrix with a zero diagonal.
+    exact_max_vertices : int or None
+        Largest reduced graph handed to the exact search; ``None`` always searches exactly.
 
     Returns
     -------
-    (m,) ndarray of int64
-        Sorted vertex indices of a largest clique (one vertex when there are no edges).
+    clique : (m,) ndarray of int64
+        Sorted vertex indices (one vertex when there are no edges).
+    exact : bool
+        True when the clique is proven maximum.
     """
     from solvers import _kernels
 
     adj = np.ascontiguousarray(adjacency, dtype=np.uint8)
     n = adj.shape[0]
     if n == 0:
-        return np.empty(0, dtype=np.int64)
-    deg = adj.sum(axis=1, dtype=np.int64)
-    order = np.argsort(-deg, kind="stable").astype(np.int64)
-    best = np.sort(_kernels.greedy_clique(adj, order))
-    core = _kernels.peel_to_core(adj, best.size)
+        return np.empty(0, dtype=np.int64), True
+    deg = _kernels.degrees(adj)
+    best = np.sort(_kernels.multistart_greedy_clique(adj, deg))
+    core = _kernels.peel_to_core(adj, deg, best.size)
     if core.size <= best.size:
-        return best
+        return best, True
     sub = adj[np.ix_(core, core)]
     if int(sub.sum(dtype=np.int64)) == core.size * (core.size - 1):
-        return core  # the core is itself a clique
+        return core, True  # the core is itself a clique
+    if exact_max_vertices is not None and core.size > exact_max_vertices:
+        log.info("max clique: %d-vertex core left after pruning exceeds %d; keeping the greedy "
+                 "clique of %d (not proven maximum)", core.size, exact_max_vertices, best.size)
+        return best, False
     import igraph as ig
 
     iu, ju = np.nonzero(np.triu(sub, 1))
     g = ig.Graph(n=core.size, edges=np.column_stack([iu, ju]).tolist(), directed=False)
     clique = g.largest_cliques()[0]
     if len(clique) > best.size:
-        return np.sort(core[np.asarray(clique, dtype=np.int64)])
-    return best
+        return np.sort(core[np.asarray(clique, dtype=np.int64)]), True
+    return best, True
 
 
 def scalar_tls(
@@ -110,11 +121,13 @@ def prune_max_clique(
     target: NDArray[np.float64],
     noise_bound: NDArray[np.float64],
     cbar2: float = 1.0,
-) -> tuple[NDArray[np.int64], int]:
-    """Indices of the maximum consistent set and the number of graph edges."""
+    *,
+    exact_max_vertices: int | None = 500,
+) -> tuple[NDArray[np.int64], int, bool]:
+    """Indices of the maximum consistent set, the number of graph edges, and exactness."""
     adj = consistency_graph(source, target, noise_bound, np.sqrt(cbar2))
-    clique = max_clique(adj)
-    n_edges = int(adj.sum(dtype=np.int64)) // 2
-    log.debug("consistency graph: %d vertices, %d edges, max clique %d",
-              source.shape[0], n_edges, clique.size)
-    return clique, n_edges
+    clique, exact = max_clique(adj, exact_max_vertices=exact_max_vertices)
+    n_edges = int(np.count_nonzero(adj)) // 2
+    log.debug("consistency graph: %d vertices, %d edges, max clique %d (exact: %s)",
+              source.shape[0], n_edges, clique.size, exact)
+    return clique, n_edges, exact

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -65,9 +65,20 @@ class PruningParams:
     max_correspondences : int
         Above this many correspondences the dense O(N^2) graph (N^2 bytes) is not built
         and GNC runs alone.
+    exact_clique_max_vertices : int or None
+        Largest graph (after greedy bounding and core pruning) searched exactly for the maximum
+        clique; beyond it the greedy clique is used and ``info["max_clique_exact"]`` is False.
+        ``None`` always searches exactly (exponential time in the worst case).
     """
 
     max_correspondences: int = 5_000
+    exact_clique_max_vertices: int | None = 500
+
+    def __post_init__(self) -> None:
+        if self.max_correspondences < 3:
+            raise ValueError(
+                f"`max_correspondences` must be >= 3, got {self.max_correspondences}."
+            )
 
 
 def degeneracy(
@@ -178,13 +189,17 @@ def solve_gnc(
 
 
 def solve_pruned(
-    problem: WeightedTLSProblem, *, params: GNCParams | None = None
+    problem: WeightedTLSProblem,
+    *,
+    params: GNCParams | None = None,
+    pruning: PruningParams | None = None,
 ) -> RegistrationResult:
     """Max-clique pruning, GNC on the survivors and exact per-axis translation voting.
 
     The consistency graph ignores weights; correspondences of zero weight are left out of it.
     """
     params = params or GNCParams()
+    pruning = pruning or PruningParams()
     t0 = time.perf_counter()
     active = np.flatnonzero(problem.weights > 0)
     if active.size < 3:
@@ -192,11 +207,13 @@ def solve_pruned(
                        status=SolverStatus.INSUFFICIENT_INLIERS,
                        message=f"only {active.size} correspondence(s) have positive weight",
                        solver="pruned")
-    clique, n_edges = prune_max_clique(
-        problem.source[active], problem.target[active], problem.noise_bound[active], problem.cbar2
+    clique, n_edges, exact = prune_max_clique(
+        problem.source[active], problem.target[active], problem.noise_bound[active],
+        problem.cbar2, exact_max_vertices=pruning.exact_clique_max_vertices,
     )
     survivors = active[clique]
-    info = {"max_clique_size": int(survivors.size), "graph_edges": int(n_edges)}
+    info = {"max_clique_size": int(survivors.size), "graph_edges": int(n_edges),
+            "max_clique_exact": exact}
     if survivors.size < 3:
         return _finish(problem, np.eye(3), np.zeros(3), iterations=0, t0=t0,
                        status=SolverStatus.INSUFFICIENT_INLIERS,
@@ -233,17 +250,31 @@ def solve_registration(
 
     ``method="auto"`` prunes whenever the O(N^2) consistency graph is affordable
     (``N <= pruning.max_correspondences``): pruning costs little next to GNC and is what keeps
-    the estimate right past 80% outliers. Otherwise GNC runs alone.
+    the estimate right past 80% outliers. Otherwise GNC runs alone. The max clique ignores
+    weights, so with uneven weights (or when pruning fails) GNC on all correspondences runs too
+    and the pose of lower TLS cost is returned; ``solve_time`` covers both.
     """
     pruning = pruning or PruningParams()
     if method not in ("auto", "gnc", "pruned"):
         raise ValueError(f"`method` must be 'auto', 'gnc' or 'pruned', got {method!r}.")
     if method == "gnc" or (method == "auto" and problem.n > pruning.max_correspondences):
         return solve_gnc(problem, params=gnc)
-    result = solve_pruned(problem, params=gnc)
-    if method == "auto" and not result.success and result.status is not SolverStatus.DEGENERATE:
-        log.info("pruning failed (%s); falling back to GNC", result.message)
-        fallback = solve_gnc(problem, params=gnc)
-        if fallback.success:
-            return fallback
-    return result
+    result = solve_pruned(problem, params=gnc, pruning=pruning)
+    if method != "auto":
+        return result
+    w = problem.weights
+    uneven = bool(np.ptp(w[w > 0]) > 1e-12 * w.max()) if np.any(w > 0) else False
+    if result.success and not uneven:
+        return result
+    if not result.success and result.status is SolverStatus.DEGENERATE:
+        return result
+    # The max clique ignores weights (and may fail): GNC on everything sees them; keep the
+    # pose with the lower TLS cost.
+    fallback = solve_gnc(problem, params=gnc)
+    if fallback.success and (not result.success or fallback.cost < result.cost):
+        log.info("GNC on all correspondences beat the pruned solve (cost %.6g vs %.6g)",
+                 fallback.cost, result.cost)
+        info = dict(fallback.info, pruned_cost=result.cost, pruned_status=result.status.value)
+        return replace(fallback, info=info,
+                       solve_time=result.solve_time + fallback.solve_time)
+    return replace(result, solve_time=result.solve_time + fallback.solve_time)

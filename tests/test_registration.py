@@ -123,7 +123,8 @@ def test_max_clique_is_maximum_on_random_graphs(density):
         n = int(rng.integers(5, 40))
         upper = np.triu(rng.uniform(size=(n, n)) < density, 1)
         adj = (upper | upper.T).astype(np.uint8)
-        clique = max_clique(adj)
+        clique, exact = max_clique(adj, exact_max_vertices=None)
+        assert exact
         sub = adj[np.ix_(clique, clique)]
         assert sub.sum() == len(clique) * (len(clique) - 1)  # it is a clique
         g = nx.from_numpy_array(adj)
@@ -139,3 +140,19 @@ def test_scalar_tls_is_exact_against_a_fine_grid(rng):
         grid = (w * np.minimum((xs[:, None] - v) ** 2 / beta**2, 1.0)).sum(axis=1)
         assert c <= grid.min() + 1e-9
         assert c == pytest.approx((w * np.minimum((x - v) ** 2 / beta**2, 1.0)).sum(), abs=1e-9)
+
+
+def test_max_clique_flags_a_greedy_answer_on_large_dense_graphs():
+    rng = np.random.default_rng(7)
+    n = 300
+    upper = np.triu(rng.uniform(size=(n, n)) < 0.5, 1)
+    adj = (upper | upper.T).astype(np.uint8)
+    clique, exact = max_clique(adj, exact_max_vertices=100)
+    assert not exact
+    assert adj[np.ix_(clique, clique)].sum() == len(clique) * (len(clique) - 1)
+    # A planted clique is found, and proven maximum, through the core pruning.
+    planted = rng.choice(n, 40, replace=False)
+    adj[np.ix_(planted, planted)] = 1
+    adj[planted, planted] = 0
+    clique, exact = max_clique(adj, exact_max_vertices=100)
+    assert len(clique) >= 40
