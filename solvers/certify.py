@@ -136,7 +136,7 @@ def _survivors(problem: WeightedTLSProblem) -> NDArray[np.int64]:
     active = np.flatnonzero(problem.weights > 0)
     if active.size < 3:
         return np.arange(problem.n)
-    clique, _ = prune_max_clique(
+    clique, _, _ = prune_max_clique(
         problem.source[active], problem.target[active], problem.noise_bound[active], problem.cbar2
     )
     return active[clique] if clique.size >= 2 else np.arange(problem.n)
