@@ -63,6 +63,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+DEFAULT_DUAL_TIME_LIMIT = 120.0
+"""Seconds the dual certificate search may take when no ``time_limit`` is given."""
+
 Scope = Literal["auto", "full", "pruned", "rotation"]
 Method = Literal["auto", "dense", "chordal", "dual"]
 
@@ -238,6 +241,8 @@ def _drs_bound(
 ) -> _Bound:
     from solvers.sdp_dual import dual_certificate
 
+    if time_limit is None:
+        time_limit = DEFAULT_DUAL_TIME_LIMIT
     with _single_thread_blas():
         res = dual_certificate(lift, x, tol=tol, max_iterations=max_iter,
                                time_limit=time_limit, relaxation=1.99)
@@ -380,7 +385,8 @@ def certify_rotation(
     max_iter : int or None
         Backend iteration limit (Clarabel: 200; Douglas-Rachford: 3000).
     time_limit : float or None
-        Seconds for the dual search (and Clarabel's time limit).
+        Seconds for the dual search (default ``DEFAULT_DUAL_TIME_LIMIT`` = 120 s) and Clarabel's
+        time limit (default none).
     dense_max : int
         Largest ``K`` for the dense interior-point solve under ``"auto"``.
     eps : float
