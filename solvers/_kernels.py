@@ -261,3 +261,33 @@ def scalar_tls(v, beta, w, cbar2):  # pragma: no cover - compiled
             best_x = x
             found = True
     return best_x, best_cost, found
+
+
+@njit(cache=True)
+def weighted_spread(p, w):  # pragma: no cover - compiled
+    """Square roots of the weighted covariance eigenvalues of ``p`` (descending), and the count."""
+    n = p.shape[0]
+    sw = 0.0
+    c = np.zeros(3)
+    cnt = 0
+    for k in range(n):
+        if w[k] > 0.0:
+            sw += w[k]
+            cnt += 1
+            for d in range(3):
+                c[d] += w[k] * p[k, d]
+    out = np.zeros(3)
+    if cnt == 0:
+        return out, 0
+    c /= sw
+    cov = np.zeros((3, 3))
+    for k in range(n):
+        if w[k] > 0.0:
+            for i in range(3):
+                di = p[k, i] - c[i]
+                for j in range(3):
+                    cov[i, j] += w[k] * di * (p[k, j] - c[j])
+    ev = np.linalg.eigvalsh(cov / sw)
+    for i in range(3):
+        out[i] = np.sqrt(max(ev[2 - i], 0.0))
+    return out, cnt

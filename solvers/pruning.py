@@ -29,7 +29,10 @@ def consistency_graph(
 
     at = np.ascontiguousarray(np.asarray(source, dtype=np.float64).T)
     bt = np.ascontiguousarray(np.asarray(target, dtype=np.float64).T)
-    beta = np.ascontiguousarray(np.broadcast_to(noise_bound, (at.shape[1],)), dtype=np.float64)
+    beta = np.asarray(noise_bound, dtype=np.float64)
+    if beta.ndim == 0:
+        beta = np.full(at.shape[1], float(beta))
+    beta = np.ascontiguousarray(beta)
     return _kernels.consistency_matrix(at, bt, beta, float(cbar))
 
 
@@ -107,7 +110,8 @@ def scalar_tls(
     n = v.size
     if n == 0:
         raise ValueError("`values` must not be empty.")
-    beta = np.ascontiguousarray(np.broadcast_to(np.asarray(noise_bound, dtype=np.float64), (n,)))
+    beta = np.asarray(noise_bound, dtype=np.float64)
+    beta = np.full(n, float(beta)) if beta.ndim == 0 else np.ascontiguousarray(beta)
     w = np.ones(n) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
     x, cost, found = _kernels.scalar_tls(v, beta, w, float(cbar2))
     if not found:

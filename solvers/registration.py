@@ -90,15 +90,14 @@ def degeneracy(
     line free. Spread is judged against the noise bound, below which it is indistinguishable
     from noise.
     """
-    sel = weights > 0
-    p = points[sel]
-    w = weights[sel]
-    if p.shape[0] < 3:
-        return f"only {p.shape[0]} inlier(s); at least 3 non-collinear points are needed"
-    c = w @ p / w.sum()
-    cov = ((p - c) * w[:, None]).T @ (p - c) / w.sum()
-    ev = np.sqrt(np.clip(np.linalg.eigvalsh(cov), 0.0, None))[::-1]
-    floor = max(noise_bound, 1e-12 * max(1.0, float(np.abs(p).max())))
+    from solvers import _kernels
+
+    ev, count = _kernels.weighted_spread(
+        np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(weights, dtype=np.float64)
+    )
+    if count < 3:
+        return f"only {count} inlier(s); at least 3 non-collinear points are needed"
+    floor = max(noise_bound, 1e-12 * max(1.0, float(np.abs(points).max())))
     if ev[0] <= floor:
         return f"the inliers are coincident (spread {ev[0]:.3g} <= noise bound {floor:.3g})"
     if ev[1] <= floor:
