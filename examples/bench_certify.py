@@ -17,12 +17,12 @@ Usage::
 Measured (2-core machine shared with other jobs, load average 3-4; ``--reps 10``; every
 certificate bounds the rotation subproblem over the TIMs of the max-clique survivors):
 
-* N = 20, outliers 0-80%: 100% certified (both pipelines), median time 0.02-0.26 s.
-* N = 100, outliers 0-90%: 100% certified; median time 9.3 s at 0%, 4.5 s at 20%, 2.0 s at 40%,
-  1.1 s at 60%, 0.15 s at 80%, 0.04 s at 90% (gnc+certify); sdp 10.6/4.8/3.2/1.4/0.3/1.4 s.
-* N = 1000, outliers 95/97/99% (5 reps): 100% certified, median 2.2/0.5/0.09 s.
-* Rotation subproblem given directly (K TIMs, 50% outliers): K = 20: 100% certified, median
-  0.64 s; K = 50: 6.9 s; K = 100: 73 s (2 reps); every pose rotated by 3/10/30 degrees refused.
+* N = 20, outliers 0-80%: 100% certified (both pipelines), median time 0.02-0.32 s.
+* N = 100, outliers 0-90% (gnc+certify): 100% certified; median time 10.6 s at 0%, 5.5 s at
+  20%, 1.8 s at 40%, 0.7 s at 60%, 0.1 s at 80%, 0.02 s at 90%; sdp: 12.6/5.1/2.4/0.9/0.2/0.6 s.
+* N = 1000, outliers 95/97/99% (5 reps): 100% certified, median 1.2/0.3/0.05 s.
+* Rotation subproblem given directly (K TIMs, 50% outliers): 100% certified and every pose
+  rotated by 3/10/30 degrees refused; median 0.40 s (K = 20), 3.8 s (K = 50), 73 s (K = 100).
 """
 
 from __future__ import annotations
