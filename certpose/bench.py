@@ -11,7 +11,8 @@ seconds around each call, including the solver's own conversion of the input arr
 a factor graph, Open3D point clouds, validating the problem...); for certpose's solvers the
 time the result reports itself (``solve_time``) is recorded too (``reported_time_ms``). Each
 solver is run once on a throw-away instance first, so JIT compilation and lazy imports are
-not timed.
+not timed. Within a grid cell, the cell's instances are drawn first and each solver then runs
+on all of them in turn (not interleaved with the others, which slowed every solver down).
 
 Solvers (:data:`SOLVERS`):
 
@@ -477,10 +478,15 @@ def run_benchmark(
         leave=False,
     ) as bar:
         for n, ratio in grid:
-            for trial in range(config.trials):
-                inst = make_instance(shape, n, ratio, noise=config.noise, rng=rng)
-                for name in solvers:
-                    bar.set_postfix_str(f"N={n} outliers={ratio:g} {name}", refresh=False)
+            cell = [
+                make_instance(shape, n, ratio, noise=config.noise, rng=rng)
+                for _ in range(config.trials)
+            ]
+            # One solver at a time over the cell's instances: interleaving solvers measured
+            # slower certpose times (cold caches, Open3D's OpenMP threads still spinning).
+            for name in solvers:
+                bar.set_postfix_str(f"N={n} outliers={ratio:g} {name}", refresh=False)
+                for trial, inst in enumerate(cell):
                     records.append(_run_one(name, inst, n, ratio, trial))
                     bar.update()
     return BenchReport(config, shape_name, records, summarize(records), skipped)
