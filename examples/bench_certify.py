@@ -22,7 +22,7 @@ certificate bounds the rotation subproblem over the TIMs of the max-clique survi
   20%, 1.8 s at 40%, 0.7 s at 60%, 0.1 s at 80%, 0.02 s at 90%; sdp: 12.6/5.1/2.4/0.9/0.2/0.6 s.
 * N = 1000, outliers 95/97/99% (5 reps): 100% certified, median 1.2/0.3/0.05 s.
 * Rotation subproblem given directly (K TIMs, 50% outliers): 100% certified and every pose
-  rotated by 3/10/30 degrees refused; median 0.40 s (K = 20), 3.8 s (K = 50), 73 s (K = 100).
+  rotated by 3/10/30 degrees refused; median 0.40 s (K = 20), 3.8 s (K = 50), 44 s (K = 100).
 """
 
 from __future__ import annotations
