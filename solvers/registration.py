@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from solvers.lie import make_transform
 from solvers.problem import WeightedTLSProblem
-from solvers.pruning import prune_max_clique, scalar_tls
+from solvers.pruning import prune_maximum_cliques, scalar_tls
 from solvers.result import RegistrationResult, SolverStatus
 
 __all__ = [
@@ -69,16 +69,22 @@ class PruningParams:
         Largest graph (after greedy bounding and core pruning) searched exactly for the maximum
         clique; beyond it the greedy clique is used and ``info["max_clique_exact"]`` is False.
         ``None`` always searches exactly (exponential time in the worst case).
+    max_tied_cliques : int
+        When several maximum cliques tie, up to this many are each solved and the pose of
+        lowest TLS cost is kept (with few inliers, a tied clique can be mostly outliers).
     """
 
     max_correspondences: int = 5_000
     exact_clique_max_vertices: int | None = 500
+    max_tied_cliques: int = 16
 
     def __post_init__(self) -> None:
         if self.max_correspondences < 3:
             raise ValueError(
                 f"`max_correspondences` must be >= 3, got {self.max_correspondences}."
             )
+        if self.max_tied_cliques < 1:
+            raise ValueError(f"`max_tied_cliques` must be >= 1, got {self.max_tied_cliques}.")
 
 
 def degeneracy(
@@ -206,33 +212,46 @@ def solve_pruned(
                        status=SolverStatus.INSUFFICIENT_INLIERS,
                        message=f"only {active.size} correspondence(s) have positive weight",
                        solver="pruned")
-    clique, n_edges, exact = prune_max_clique(
+    cliques, n_edges, exact = prune_maximum_cliques(
         problem.source[active], problem.target[active], problem.noise_bound[active],
-        problem.cbar2, exact_max_vertices=pruning.exact_clique_max_vertices,
+        problem.cbar2, limit=pruning.max_tied_cliques,
+        exact_max_vertices=pruning.exact_clique_max_vertices,
     )
-    survivors = active[clique]
-    info = {"max_clique_size": int(survivors.size), "graph_edges": int(n_edges),
-            "max_clique_exact": exact}
-    if survivors.size < 3:
+    size = int(cliques[0].size)
+    info = {"max_clique_size": size, "graph_edges": int(n_edges),
+            "max_clique_exact": exact, "tied_max_cliques": len(cliques)}
+    if size < 3:
         return _finish(problem, np.eye(3), np.zeros(3), iterations=0, t0=t0,
                        status=SolverStatus.INSUFFICIENT_INLIERS,
-                       message=f"the largest consistent set has {survivors.size} correspondence(s)",
+                       message=f"the largest consistent set has {size} correspondence(s)",
                        solver="pruned", info=info)
-    R, t, it, converged, ok = _gnc_core(problem, survivors, params)
-    if not ok:
-        return _finish(problem, np.eye(3), np.zeros(3), iterations=it, t0=t0,
+    # Tied maximum cliques (likely with few inliers): solve each, keep the lowest TLS cost.
+    best: tuple[float, NDArray[np.float64], NDArray[np.float64], int, bool] | None = None
+    for clique in cliques:
+        survivors = active[clique]
+        R, t, it, converged, ok = _gnc_core(problem, survivors, params)
+        if not ok:
+            continue
+        # Exact TLS translation per axis given R, over the survivors (TEASER++'s adaptive voting).
+        resid = problem.target[survivors] - problem.source[survivors] @ R.T
+        beta_s = problem.noise_bound[survivors]
+        w_s = problem.weights[survivors]
+        t_vote = np.array(
+            [scalar_tls(resid[:, d], beta_s, w_s, problem.cbar2)[0] for d in range(3)]
+        )
+        cost, cost_vote = problem.cost(R, t), problem.cost(R, t_vote)
+        if cost_vote < cost:  # keep whichever translation the full TLS cost prefers
+            t, cost = t_vote, cost_vote
+        if best is None or cost < best[0]:
+            best = (cost, R, t, it, converged)
+    if best is None:
+        return _finish(problem, np.eye(3), np.zeros(3), iterations=0, t0=t0,
                        status=SolverStatus.NUMERICAL_ERROR, message="GNC on the survivors failed",
                        solver="pruned", info=info)
-    # Exact TLS translation per axis given R, over the survivors (TEASER++'s adaptive voting).
-    resid = problem.target[survivors] - problem.source[survivors] @ R.T
-    beta_s = problem.noise_bound[survivors]
-    w_s = problem.weights[survivors]
-    t_vote = np.array([scalar_tls(resid[:, d], beta_s, w_s, problem.cbar2)[0] for d in range(3)])
-    # Keep whichever translation the full TLS cost prefers.
-    if problem.cost(R, t_vote) < problem.cost(R, t):
-        t = t_vote
+    _, R, t, it, converged = best
     status = SolverStatus.CONVERGED if converged else SolverStatus.MAX_ITERATIONS
-    msg = (f"max clique kept {survivors.size}/{problem.n}; GNC converged in {it} iterations"
+    tied = f" (best of {len(cliques)} tied)" if len(cliques) > 1 else ""
+    msg = (f"max clique kept {size}/{problem.n}{tied}; GNC converged in {it} iterations"
            if converged else f"GNC on the survivors hit the iteration limit ({params.max_iterations})")
     return _finish(problem, R, t, iterations=it, t0=t0, status=status, message=msg,
                    solver="pruned", info=info)

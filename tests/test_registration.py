@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import certpose
-from solvers import GNCParams, SolverStatus, WeightedTLSProblem, solve_gnc
-from solvers.lie import rotation_error_deg
-from solvers.pruning import consistency_graph, max_clique, scalar_tls
+from solvers import GNCParams, SolverStatus, WeightedTLSProblem, solve_gnc, solve_pruned
+from solvers.lie import random_rotation, rotation_error_deg
+from solvers.pruning import consistency_graph, max_clique, maximum_cliques, scalar_tls
 from tests.conftest import make_instance
 
 
@@ -156,3 +156,32 @@ def test_max_clique_flags_a_greedy_answer_on_large_dense_graphs():
     adj[planted, planted] = 0
     clique, exact = max_clique(adj, exact_max_vertices=100)
     assert len(clique) >= 40
+
+
+def test_maximum_cliques_returns_every_tied_clique():
+    adj = np.zeros((12, 12), dtype=np.uint8)
+    for block in (range(0, 5), range(6, 11)):
+        for i in block:
+            for j in block:
+                adj[i, j] = i != j
+    adj[5, 0] = adj[0, 5] = 1  # a pendant edge does not make a bigger clique
+    cliques, exact = maximum_cliques(adj)
+    assert exact
+    assert sorted(map(tuple, cliques)) == [(0, 1, 2, 3, 4), (6, 7, 8, 9, 10)]
+
+
+def test_a_tied_mirror_image_clique_does_not_win(rng):
+    # Five true inliers and five outliers forming a mirror image of another shape: pairwise
+    # distances agree (a tied maximum clique) but no proper rotation aligns them.
+    a_in = rng.uniform(-0.5, 0.5, (5, 3))
+    R, t = random_rotation(rng), np.array([0.2, -0.1, 0.3])
+    b_in = a_in @ R.T + t
+    a_mir = rng.uniform(-0.5, 0.5, (5, 3)) + 3.0
+    b_mir = (a_mir * np.array([1.0, 1.0, -1.0])) @ random_rotation(rng).T + 10.0
+    a_noise, b_noise = rng.uniform(-0.5, 0.5, (20, 3)), rng.uniform(-5, 5, (20, 3))
+    src = np.vstack([a_mir, a_in, a_noise])  # the mirror set first: no luck from ordering
+    dst = np.vstack([b_mir, b_in, b_noise])
+    res = solve_pruned(WeightedTLSProblem(src, dst, noise_bound=0.01))
+    assert res.info["tied_max_cliques"] >= 2
+    assert _ok(res, R, t)
+    assert np.all(res.inliers[5:10])
