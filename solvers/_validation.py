@@ -91,3 +91,41 @@ def resolve_rng(rng: np.random.Generator | int | None) -> np.random.Generator:
     if rng is None or isinstance(rng, (int, np.integer)):
         return np.random.default_rng(rng)
     raise TypeError(f"`rng` must be a numpy Generator, an int or None, got {type(rng).__name__}.")
+
+
+def check_correspondences(
+    source: Any,
+    target: Any,
+    *,
+    noise_bound: Any,
+    weights: Any,
+    cbar2: Any,
+    min_n: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
+    """Validate a weighted TLS problem's data; returns (source, target, beta, weights, cbar2).
+
+    ``noise_bound`` is a positive scalar or (N,) array, ``weights`` None (all ones), a
+    non-negative scalar or (N,) array, and ``cbar2`` a positive finite scalar.
+    """
+    src = check_points(source, "source")
+    dst = check_points(target, "target")
+    if src.shape[0] != dst.shape[0]:
+        raise ValueError(
+            "Expected `source` and `target` to have the same number of rows, got "
+            f"{src.shape[0]} and {dst.shape[0]}."
+        )
+    n = src.shape[0]
+    if n < min_n:
+        raise ValueError(f"Expected at least {min_n} correspondences, got {n}.")
+    if noise_bound is None:
+        raise ValueError("`noise_bound` is required (a positive scalar or an (N,) array).")
+    beta = check_per_item(noise_bound, "noise_bound", n, positive=True, allow_scalar=True)
+    w = (
+        np.ones(n)
+        if weights is None
+        else check_per_item(weights, "weights", n, positive=False, allow_scalar=True)
+    )
+    c2 = as_float_array(cbar2, "cbar2")
+    if c2.ndim != 0 or not np.isfinite(c2) or c2 <= 0:
+        raise ValueError(f"`cbar2` must be a positive finite scalar, got {cbar2!r}.")
+    return src, dst, beta, w, float(c2)

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from solvers._validation import as_float_array, check_per_item, check_points
+from solvers._validation import check_correspondences
 
 __all__ = ["WeightedTLSProblem"]
 
@@ -60,34 +60,16 @@ class WeightedTLSProblem:
         weights: ArrayLike | None = None,
         cbar2: float = 1.0,
     ) -> None:
-        src = check_points(source, "source")
-        dst = check_points(target, "target")
-        if src.shape[0] != dst.shape[0]:
-            raise ValueError(
-                "Expected `source` and `target` to have the same number of rows, got "
-                f"{src.shape[0]} and {dst.shape[0]}."
-            )
-        n = src.shape[0]
-        if n < 3:
-            raise ValueError(f"Expected at least 3 correspondences, got {n}.")
-        if noise_bound is None:
-            raise ValueError("`noise_bound` is required (a positive scalar or an (N,) array).")
-        beta = check_per_item(noise_bound, "noise_bound", n, positive=True, allow_scalar=True)
-        w = (
-            np.ones(n)
-            if weights is None
-            else check_per_item(weights, "weights", n, positive=False, allow_scalar=True)
+        src, dst, beta, w, c2 = check_correspondences(
+            source, target, noise_bound=noise_bound, weights=weights, cbar2=cbar2, min_n=3
         )
-        c2 = as_float_array(cbar2, "cbar2")
-        if c2.ndim != 0 or not np.isfinite(c2) or c2 <= 0:
-            raise ValueError(f"`cbar2` must be a positive finite scalar, got {cbar2!r}.")
         for arr in (src, dst, beta, w):
             arr.setflags(write=False)
         object.__setattr__(self, "source", src)
         object.__setattr__(self, "target", dst)
         object.__setattr__(self, "noise_bound", beta)
         object.__setattr__(self, "weights", w)
-        object.__setattr__(self, "cbar2", float(c2))
+        object.__setattr__(self, "cbar2", c2)
 
     @property
     def n(self) -> int:

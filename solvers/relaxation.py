@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from solvers._validation import check_per_item, check_points
+from solvers._validation import check_correspondences
 from solvers.problem import WeightedTLSProblem
 
 __all__ = [
@@ -106,23 +106,14 @@ class RotationTLSProblem:
         weights: ArrayLike | None = None,
         cbar2: float = 1.0,
     ) -> None:
-        a = check_points(source, "source")
-        b = check_points(target, "target")
-        if a.shape != b.shape:
-            raise ValueError(
-                f"Expected `source` and `target` to have the same shape, got {a.shape} and {b.shape}."
-            )
-        n = a.shape[0]
-        beta = check_per_item(noise_bound, "noise_bound", n, positive=True, allow_scalar=True)
-        w = np.ones(n) if weights is None else check_per_item(
-            weights, "weights", n, positive=False, allow_scalar=True)
-        if not (np.isfinite(cbar2) and cbar2 > 0):
-            raise ValueError(f"`cbar2` must be a positive finite scalar, got {cbar2!r}.")
+        a, b, beta, w, c2 = check_correspondences(
+            source, target, noise_bound=noise_bound, weights=weights, cbar2=cbar2, min_n=1
+        )
         object.__setattr__(self, "source", a)
         object.__setattr__(self, "target", b)
         object.__setattr__(self, "noise_bound", beta)
         object.__setattr__(self, "weights", w)
-        object.__setattr__(self, "cbar2", float(cbar2))
+        object.__setattr__(self, "cbar2", c2)
 
     @property
     def n(self) -> int:
