@@ -197,6 +197,18 @@ def object_from_points(
     return ObjectModel(p, desc, cloud.colors, normals, name)
 
 
+def _view_and_mask(k: int, item: Any) -> tuple[Any, NDArray[np.bool_]]:
+    """A view ``frame`` or ``(frame, mask)``; the mask defaults to the frame's, then GrabCut."""
+    from certpose.rgbd import RGBDFrame
+
+    frame, mask = item if isinstance(item, tuple) else (item, None)
+    if not isinstance(frame, RGBDFrame):
+        raise TypeError(f"`views[{k}]` must be an RGBDFrame, got {type(frame).__name__}.")
+    if mask is None:
+        mask = frame.mask if frame.mask is not None else _grabcut(frame)
+    return frame, np.asarray(mask)
+
+
 def _grabcut(frame: RGBDFrame) -> NDArray[np.bool_]:
     try:
         import cv2
@@ -222,15 +234,11 @@ def _grabcut(frame: RGBDFrame) -> NDArray[np.bool_]:
 def _from_image_backbone(views: Sequence[Any], backbone: Any, vs: float, name: str) -> ObjectModel:
     """Image backbones (e.g. DINO): per-pixel descriptors of each view, fused per voxel."""
     from certpose.features import describe_frame
-    from certpose.rgbd import RGBDFrame, StructuredPointCloud
+    from certpose.rgbd import StructuredPointCloud
 
     clouds = []
     for k, item in enumerate(views):
-        frame, mask = (item if isinstance(item, tuple) else (item, None))
-        if not isinstance(frame, RGBDFrame):
-            raise TypeError(f"`views[{k}]` must be an RGBDFrame, got {type(frame).__name__}.")
-        if mask is None:
-            mask = frame.mask if frame.mask is not None else _grabcut(frame)
+        frame, mask = _view_and_mask(k, item)
         clouds.append(describe_frame(frame, backbone, mask=np.asarray(mask), world=True))
     colors = None
     if all(c.colors is not None for c in clouds):
@@ -280,7 +288,7 @@ def object_from_views(
     ValueError
         No views, empty masks, or no valid depth inside a mask.
     """
-    from certpose.rgbd import RGBDFrame, StructuredPointCloud
+    from certpose.rgbd import StructuredPointCloud
 
     vs = _check_voxel_size(voxel_size)
     if len(views) == 0:
@@ -288,11 +296,7 @@ def object_from_views(
     all_pts, all_nrm, all_col = [], [], []
     has_color = True
     for k, item in enumerate(views):
-        frame, mask = (item if isinstance(item, tuple) else (item, None))
-        if not isinstance(frame, RGBDFrame):
-            raise TypeError(f"`views[{k}]` must be an RGBDFrame, got {type(frame).__name__}.")
-        if mask is None:
-            mask = frame.mask if frame.mask is not None else _grabcut(frame)
+        frame, mask = _view_and_mask(k, item)
         try:
             pts_c, pix = frame.backproject(mask=np.asarray(mask))
         except ValueError as exc:
