@@ -1,0 +1,115 @@
+"""The identity-frame dual certificate search of the quaternion relaxation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from solvers.certify import refine_rotation, rotation_gnc
+from solvers.lie import random_rotation, so3_exp
+from solvers.relaxation import RotationTLSProblem, rotation_lifting
+from solvers.sdp_dual import (
+    _IdentityFrameProjector,
+    _rotation_initial_dual,
+    rotation_dual_certificate,
+)
+from tests.test_certify import random_rotation_problem, rotation_optimum
+
+
+def _identity_frame(p: RotationTLSProblem, R: np.ndarray):  # noqa: ANN202
+    b = p.target @ R
+    ident = RotationTLSProblem(p.source, b, noise_bound=p.noise_bound, weights=p.weights,
+                               cbar2=p.cbar2)
+    theta = np.where(ident.inliers(np.eye(3)), 1.0, -1.0)
+    beta = p.noise_bound[:, None]
+    a = p.source / beta
+    f = ident.cost(np.eye(3))
+    S = _rotation_initial_dual(rotation_lifting(ident), a, b / beta - a, theta, p.weights,
+                               p.cbar2, f)
+    nb = p.n + 1
+    S = S.transpose(0, 2, 1, 3).reshape(4 * nb, 4 * nb)
+    th = np.concatenate([[1.0], theta])
+    return ident, S, th, f
+
+
+def _dual_structure_residual(ident: RotationTLSProblem, S: np.ndarray, f: float) -> float:
+    """Distance of S from the form C - blkdiag(D) - W, sum D = f I, W skew (identity frame)."""
+    lift = rotation_lifting(ident)
+    nb = lift.K + 1
+    G = (lift.dense_cost() - S).reshape(nb, 4, nb, 4).transpose(0, 2, 1, 3)
+    off = ~np.eye(nb, dtype=bool)
+    sym_off = np.abs(G[off] + np.swapaxes(G[off], 1, 2)).max()
+    diag_sum = np.einsum("kkab->ab", G)
+    return float(max(sym_off, np.abs(diag_sum - f * np.eye(4)).max()))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_initial_dual_point_is_structured_and_stationary(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    p, _ = random_rotation_problem(rng, 12, 4)
+    R = refine_rotation(p, rotation_gnc(p))
+    ident, S, th, f = _identity_frame(p, R)
+    assert _dual_structure_residual(ident, S, f) < 1e-9 * (1 + f)
+    x = np.kron(th, [0.0, 0.0, 0.0, 1.0])
+    # A refined candidate is stationary, so the closed-form point has x in its kernel.
+    assert np.abs(S @ x).max() < 1e-7 * (1 + np.abs(S).max())
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_projection_is_the_orthogonal_projection_onto_the_affine_set(seed: int) -> None:
+    rng = np.random.default_rng(100 + seed)
+    p, _ = random_rotation_problem(rng, 9, 3)
+    R = refine_rotation(p, rotation_gnc(p))
+    ident, S0, th, f = _identity_frame(p, R)
+    proj = _IdentityFrameProjector(S0, th)
+    n = S0.shape[0]
+    x = np.kron(th, [0.0, 0.0, 0.0, 1.0])
+    M1, M2 = (G + G.T for G in rng.normal(size=(2, n, n)))
+    P1, P2 = proj(M1), proj(M2)
+    for P in (P1, P2):
+        assert _dual_structure_residual(ident, P, f) < 1e-9 * (1 + np.abs(P).max())
+        assert np.abs(P @ x - S0 @ x).max() < 1e-9 * (1 + np.abs(P).max())  # D x = 0
+        np.testing.assert_allclose(P, P.T, atol=1e-12)
+    np.testing.assert_allclose(proj(P1), P1, atol=1e-10)  # idempotent
+    # Orthogonal: the residual M - P(M) is normal to every direction inside the set.
+    assert abs(np.sum((M1 - P1) * (P2 - P1))) < 1e-8 * np.linalg.norm(M1) * np.linalg.norm(P2)
+
+
+def test_bound_is_sound_for_any_candidate() -> None:
+    """Random, perturbed and good candidates: the recomputed bound never exceeds the optimum."""
+    rng = np.random.default_rng(21)
+    for i in range(60):
+        k = int(rng.integers(4, 9))
+        p, _ = random_rotation_problem(rng, k, int(rng.integers(0, k - 1)), varied=i % 2 == 0)
+        opt = rotation_optimum(p)
+        R_good = rotation_gnc(p)
+        R = (R_good, random_rotation(rng), so3_exp(rng.normal(scale=0.2, size=3)) @ R_good)[i % 3]
+        res = rotation_dual_certificate(p, R, max_iterations=50)
+        assert res.lower_bound <= opt + 1e-6 * (1 + p.cbar2 * p.weights.sum()), (i, res, opt)
+        assert res.upper_bound == pytest.approx(p.cost(R))
+        if res.converged:
+            assert res.upper_bound - opt <= 1e-3 * (1 + abs(res.upper_bound) + abs(opt))
+
+
+@pytest.mark.parametrize(("k", "ratio"), [(30, 0.0), (30, 0.5), (60, 0.8)])
+def test_weighted_instances_certify_in_few_iterations(k: int, ratio: float) -> None:
+    """Uneven weights and noise bounds: the closed-form start is scaled per term."""
+    rng = np.random.default_rng(k)
+    p, _ = random_rotation_problem(rng, k, int(ratio * k), varied=True)
+    R = rotation_gnc(p)
+    res = rotation_dual_certificate(p, R)
+    assert res.converged, res
+    assert res.iterations <= 30
+    assert res.lower_bound <= res.upper_bound + 1e-9
+
+
+@pytest.mark.parametrize("deg", [3.0, 10.0, 30.0])
+def test_rotated_candidate_is_refused(deg: float) -> None:
+    rng = np.random.default_rng(int(deg) + 1)
+    p, _ = random_rotation_problem(rng, 50, 25, varied=False)
+    R = rotation_gnc(p)
+    axis = rng.normal(size=3)
+    R_bad = so3_exp(np.radians(deg) * axis / np.linalg.norm(axis)) @ R
+    res = rotation_dual_certificate(p, R_bad, max_iterations=100)
+    assert not res.converged
+    assert res.lower_bound <= p.cost(R) + 1e-6 * (1 + p.n)
