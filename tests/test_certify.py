@@ -274,3 +274,24 @@ def test_cli_register_prints_certificate(tmp_path, capsys) -> None:  # type: ign
     out = capsys.readouterr().out.lower()
     assert code == 0
     assert "certif" in out and "gap" in out
+
+
+@pytest.mark.parametrize("kind", ["dense", "chordal"])
+def test_infeasible_relaxation_is_reported_not_raised(kind: str) -> None:
+    """``tr(Z_00) = -1`` has no PSD solution: the backend's verdict reaches the certificate."""
+    import dataclasses
+
+    from solvers.certificate import BoundedProblem
+    from solvers.certify import _finish_certificate, _ipm_bound
+
+    rng = np.random.default_rng(4)
+    p, _ = random_rotation_problem(rng, 5, 1)
+    lift = dataclasses.replace(rotation_lifting(p), eq_rhs=-np.ones(1))
+    sol = solve_relaxation(lift, kind=kind)  # type: ignore[arg-type]
+    assert sol.status == "infeasible" and not sol.accepted, sol
+    bound = _ipm_bound(lift, kind, 200, 1e-7)
+    assert bound.status is CertificateStatus.INFEASIBLE and not bound.accepted
+    cert = _finish_certificate(p.cost(np.eye(3)), bound, tol=1e-3,
+                               problem=BoundedProblem.ROTATION, t0=0.0, n=p.n)
+    assert not cert.certified and cert.status is CertificateStatus.INFEASIBLE
+    assert "no certificate" in cert.message
