@@ -193,6 +193,25 @@ def refine_rotation(
     return R
 
 
+def _dual_candidate(problem: RotationTLSProblem, R: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The best of: ``R`` refined, GNC, and GNC on the norm-consistent terms (all refined).
+
+    A dual certificate exists only at the optimum, so the dual search starts from the best
+    rotation found. Every inlier of every rotation has ``| |b| - |a| | <= beta cbar``, so GNC
+    on those terms alone survives more outliers (measured: K = 20 at 80% outliers, GNC on all
+    terms missed the optimum in 8 of 40 instances).
+    """
+    cands = [refine_rotation(problem, R), rotation_gnc(problem)]
+    gap = np.abs(np.linalg.norm(problem.target, axis=1) - np.linalg.norm(problem.source, axis=1))
+    keep = (gap <= problem.noise_bound * np.sqrt(problem.cbar2)) & (problem.weights > 0)
+    if 2 <= keep.sum() < problem.n:
+        sub = RotationTLSProblem(problem.source[keep], problem.target[keep],
+                                 noise_bound=problem.noise_bound[keep],
+                                 weights=problem.weights[keep], cbar2=problem.cbar2)
+        cands.append(refine_rotation(problem, rotation_gnc(sub)))
+    return min(cands, key=problem.cost)
+
+
 def refine_pose(
     problem: WeightedTLSProblem, R: ArrayLike, t: ArrayLike, *, max_iterations: int = 50
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -275,7 +294,7 @@ def _rotation_bound(
         # Measured: the identity-frame dual search certifies K = 100 in 2-7 iterations
         # (0.1-0.3 s); the interior point remains the fallback for small K.
         start = time.perf_counter()
-        drs = _quaternion_drs_bound(rp, R, tol, max_iter or 2000, time_limit)
+        drs = _quaternion_drs_bound(rp, R, tol, max_iter or 500, time_limit)
         if method == "dual" or drs.status is CertificateStatus.GAP_TOO_LARGE or rp.n > dense_max:
             return drs
         # The fallback shares the caller's time budget rather than getting a fresh one.
@@ -406,7 +425,8 @@ def certify_rotation(
         of a dual certificate for ``R``. ``"auto"``: the dual search, then, if it did not
         converge and ``K <= dense_max``, the dense interior point.
     max_iter : int or None
-        Backend iteration limit (Clarabel: 200; Douglas-Rachford: 3000).
+        Backend iteration limit (Clarabel: 200; Douglas-Rachford: 500, where a certificate of
+        the optimum takes 2-10).
     time_limit : float or None
         Seconds for the dual search (default ``DEFAULT_DUAL_TIME_LIMIT`` = 120 s) and Clarabel's
         time limit (default none).
@@ -423,11 +443,16 @@ def certify_rotation(
     upper = problem.cost(R)
     # The bound holds whatever candidate built the dual; a dual certificate exists only at the
     # optimum, so build it from the better of the locally refined candidate and GNC's estimate.
-    Rr, Rg = refine_rotation(problem, R), rotation_gnc(problem)
-    Rd = Rr if problem.cost(Rr) <= problem.cost(Rg) else Rg
+    Rd = _dual_candidate(problem, R)
     bound = _rotation_bound(problem, Rd, method=method, tol=tol, max_iter=max_iter,
                             time_limit=time_limit, dense_max=dense_max, eps=eps)
-    return _finish_certificate(upper, bound, tol=tol, problem=label, t0=t0, n=problem.n)
+    cert = _finish_certificate(upper, bound, tol=tol, problem=label, t0=t0, n=problem.n)
+    best = problem.cost(Rd)
+    if not cert.certified and bound.accepted and relative_gap(best, bound.lower) <= tol:
+        cert = dataclasses.replace(cert, message=(
+            f"{cert.message}; the candidate is suboptimal: a rotation of cost {best:.6g} (vs "
+            f"{upper:.6g}) is globally optimal within the tolerance"))
+    return cert
 
 
 def _scope_problem(
@@ -673,8 +698,7 @@ def certify_result(
         dmax = dense_max or 10
         # The candidate optimised the full problem; its rotation is refined locally on the
         # bounded subproblem first (a dual certificate exists only at an optimum).
-        Rr, Rg = refine_rotation(bounded, R), rotation_gnc(bounded)
-        Rr = Rr if bounded.cost(Rr) <= bounded.cost(Rg) else Rg
+        Rr = _dual_candidate(bounded, R)
         bound = _rotation_bound(bounded, Rr, dense_max=dmax, **kw)  # type: ignore[arg-type]
         upper = bounded.cost(R)
         Ra = _round_rotation(bound.Z00)

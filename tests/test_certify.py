@@ -180,6 +180,7 @@ def test_wrong_candidate_is_not_certified(deg: float, method: str, k: int) -> No
     bad = certify_rotation(p, R_bad, method=method)
     assert not bad.certified
     assert bad.status is CertificateStatus.GAP_TOO_LARGE  # the bound is tight, the pose is not
+    assert "candidate is suboptimal" in bad.message  # and the user learns a better one exists
     assert bad.lower_bound <= good.upper_bound + 1e-6 * (1 + p.n)
 
 
