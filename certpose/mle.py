@@ -19,7 +19,7 @@ kernel smoothing of eq. (1) restricted to occupied voxels (up to the constant ``
 sample) keeps its ``top_k`` grid points of highest weight: ``K = N k`` weighted
 correspondences, at least ``(k-1)/k`` of them outliers. The problem is solved by
 :func:`solvers.solve_registration` (max-clique pruning + GNC-TLS) and certified by
-``solvers.certify.certify_result`` when that module exists.
+:func:`solvers.certify.certify_result`.
 
 **Refinement on eq. (1).** Eq. (2) is only an approximation of eq. (1), and for a textureless,
 symmetric object the descriptor-driven top-k candidates rarely contain the right voxel
@@ -251,20 +251,16 @@ def solve_eq2(
 def certify_eq2(
     eq2: Eq2Problem, result: RegistrationResult, *, time_limit: float | None = None
 ) -> RegistrationResult:
-    """Certify an eq. (2) solution with ``solvers.certify.certify_result``.
+    """Certify an eq. (2) solution with :func:`solvers.certify.certify_result`.
 
-    If that module is missing, or the certifier fails, ``result`` comes back with
-    ``certificate=None`` and ``info["certificate_message"]`` says why. The certifier may return
+    If the certifier fails, ``result`` comes back with ``certificate=None`` and
+    ``info["certificate_message"]`` says why. The certifier may return
     a better pose than ``result``'s (it then says so in its message).
     """
     from dataclasses import replace
 
-    try:
-        from solvers.certify import certify_result
-    except ImportError as exc:
-        msg = f"no certifier available ({exc})"
-        log.info("eq. (2) not certified: %s", msg)
-        return replace(result, info={**result.info, "certificate_message": msg})
+    from solvers.certify import certify_result
+
     try:
         t0 = time.perf_counter()
         certified = certify_result(eq2.problem, result, time_limit=time_limit)
@@ -457,7 +453,7 @@ class MLEParams:
     eq2 : Eq2Params
         Construction of eq. (2).
     certify : bool
-        Certify the eq. (2) solution (when a certifier is installed).
+        Certify the eq. (2) solution.
     certify_time_limit : float or None
         Seconds allowed to the certifier.
     num_rotations : int
