@@ -90,6 +90,7 @@ class _Bound:
     method: str
     message: str
     Z00: NDArray[np.float64] | None = None
+    rotation: NDArray[np.float64] | None = None  # the dual search's final candidate
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -327,6 +328,7 @@ def _quaternion_drs_bound(
         eigenvalue_ratio=float("nan"),
         method="dual_drs",
         message=f"dual certificate search (identity frame), min eigenvalue {res.min_eig:.3g}",
+        rotation=res.rotation,
     )
 
 
@@ -447,6 +449,8 @@ def certify_rotation(
     bound = _rotation_bound(problem, Rd, method=method, tol=tol, max_iter=max_iter,
                             time_limit=time_limit, dense_max=dense_max, eps=eps)
     cert = _finish_certificate(upper, bound, tol=tol, problem=label, t0=t0, n=problem.n)
+    if bound.rotation is not None and problem.cost(bound.rotation) < problem.cost(Rd):
+        Rd = bound.rotation
     best = problem.cost(Rd)
     if not cert.certified and bound.accepted and relative_gap(best, bound.lower) <= tol:
         cert = dataclasses.replace(cert, message=(
@@ -701,6 +705,8 @@ def certify_result(
         Rr = _dual_candidate(bounded, R)
         bound = _rotation_bound(bounded, Rr, dense_max=dmax, **kw)  # type: ignore[arg-type]
         upper = bounded.cost(R)
+        if bound.rotation is not None and bounded.cost(bound.rotation) < bounded.cost(Rr):
+            Rr = bound.rotation
         Ra = _round_rotation(bound.Z00)
         if Ra is not None:
             Ra = refine_rotation(bounded, Ra)

@@ -86,7 +86,8 @@ def test_bound_is_sound_for_any_candidate() -> None:
         R = (R_good, random_rotation(rng), so3_exp(rng.normal(scale=0.2, size=3)) @ R_good)[i % 3]
         res = rotation_dual_certificate(p, R, max_iterations=50)
         assert res.lower_bound <= opt + 1e-6 * (1 + p.cbar2 * p.weights.sum()), (i, res, opt)
-        assert res.upper_bound == pytest.approx(p.cost(R))
+        assert res.upper_bound == pytest.approx(p.cost(res.rotation))
+        assert res.upper_bound <= p.cost(R) + 1e-12  # restarts only ever improve
         if res.converged:
             assert res.upper_bound - opt <= 1e-3 * (1 + abs(res.upper_bound) + abs(opt))
 
@@ -105,11 +106,35 @@ def test_weighted_instances_certify_in_few_iterations(k: int, ratio: float) -> N
 
 @pytest.mark.parametrize("deg", [3.0, 10.0, 30.0])
 def test_rotated_candidate_is_refused(deg: float) -> None:
+    """The bound refuses the rotated pose; the search moves on to the optimum and certifies it."""
     rng = np.random.default_rng(int(deg) + 1)
     p, _ = random_rotation_problem(rng, 50, 25, varied=False)
     R = rotation_gnc(p)
     axis = rng.normal(size=3)
     R_bad = so3_exp(np.radians(deg) * axis / np.linalg.norm(axis)) @ R
-    res = rotation_dual_certificate(p, R_bad, max_iterations=30)
+    res = rotation_dual_certificate(p, R_bad, restart_every=0, max_iterations=30)
     assert not res.converged
     assert res.lower_bound <= p.cost(R) + 1e-6 * (1 + p.n)
+    res = rotation_dual_certificate(p, R_bad)
+    gap_bad = (p.cost(R_bad) - res.lower_bound) / (1 + p.cost(R_bad) + abs(res.lower_bound))
+    assert gap_bad > 1e-3
+    assert res.converged and res.upper_bound <= p.cost(R) + 1e-9 * (1 + p.cost(R))
+
+
+def test_restarts_reach_the_global_optimum_from_local_minima() -> None:
+    """Candidates refined from random rotations (local minima): rounding the dual's negative
+    directions leads to the exhaustive-search optimum, which is then certified."""
+    rng = np.random.default_rng(3)
+    tried = 0
+    for _ in range(30):
+        p, _ = random_rotation_problem(rng, 10, 4, varied=False)
+        opt = rotation_optimum(p)
+        R0 = refine_rotation(p, random_rotation(rng))
+        if p.cost(R0) <= opt + 1e-6 * (1 + opt):
+            continue  # already optimal
+        tried += 1
+        res = rotation_dual_certificate(p, R0)
+        assert res.lower_bound <= opt + 1e-6 * (1 + opt)
+        assert res.rotation is not None and res.upper_bound == pytest.approx(p.cost(res.rotation))
+        assert res.converged and res.upper_bound <= opt + 1e-6 * (1 + opt), res
+    assert tried >= 20
