@@ -342,6 +342,9 @@ def joint_dual_certificate(
     start : {"zero", "arrowhead"}
         Initial point: the projection of zero onto the affine set, or the closed-form
         arrowhead point of :func:`initial_dual`.
+    coord_scale : "auto", None or (13,) array_like
+        Positive scales ``s`` of the pose coordinates for the search (``y' = y / s``);
+        ``"auto"`` shrinks the translation (see :func:`_auto_scale`), None leaves them.
 
     Returns
     -------
@@ -369,6 +372,8 @@ def joint_dual_certificate(
         dsc = np.ones(lift.d)
     else:
         dsc = np.asarray(coord_scale, dtype=np.float64)
+        if dsc.shape != (lift.d,) or not np.all(dsc > 0):
+            raise ValueError(f"`coord_scale` must be {lift.d} positive numbers.")
     Tinv = np.tile(1.0 / dsc, lift.K + 1)
     lift_s = dataclasses.replace(
         lift, A=lift.A * np.outer(dsc, dsc), B=lift.B * np.outer(dsc, dsc),
