@@ -29,7 +29,6 @@ tolerances (or the dual iteration its target) *and* the recomputed relative gap 
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import time
@@ -39,6 +38,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from solvers._threads import single_thread_blas
 from solvers.certificate import BoundedProblem, Certificate, CertificateStatus, relative_gap
 from solvers.problem import WeightedTLSProblem
 from solvers.procrustes import weighted_procrustes, weighted_rotation
@@ -94,18 +94,6 @@ class _Bound:
 
 
 # ----------------------------------------------------------------------------- helpers
-@contextlib.contextmanager
-def _single_thread_blas():  # type: ignore[no-untyped-def]
-    """Many small eigendecompositions run faster on one BLAS thread (no oversubscription)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # optional
-        yield
-        return
-    with threadpool_limits(1):
-        yield
-
-
 def _check_tol(tol: float) -> float:
     if not (np.isfinite(tol) and tol > 0):
         raise ValueError(f"`tol` must be a positive finite scalar, got {tol!r}.")
@@ -263,7 +251,7 @@ def _drs_bound(
 
     if time_limit is None:
         time_limit = DEFAULT_DUAL_TIME_LIMIT
-    with _single_thread_blas():
+    with single_thread_blas():
         res = dual_certificate(lift, x, tol=tol, max_iterations=max_iter,
                                time_limit=time_limit, relaxation=1.99)
     status = CertificateStatus.GAP_TOO_LARGE if res.converged else CertificateStatus.ITERATION_LIMIT
@@ -315,7 +303,7 @@ def _quaternion_drs_bound(
 
     if time_limit is None:
         time_limit = DEFAULT_DUAL_TIME_LIMIT
-    with _single_thread_blas():
+    with single_thread_blas():
         res = rotation_dual_certificate(rp, R, tol=tol, max_iterations=max_iter,
                                         time_limit=time_limit)
     status = CertificateStatus.GAP_TOO_LARGE if res.converged else CertificateStatus.ITERATION_LIMIT

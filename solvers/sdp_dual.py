@@ -25,7 +25,6 @@ has not converged.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import time
 from dataclasses import dataclass
@@ -33,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from solvers._threads import single_thread_blas
 from solvers.relaxation import Lifting, RotationTLSProblem, rotation_lifting
 from solvers.sdp_relaxation import bound_from_dense_dual
 
@@ -417,17 +417,6 @@ def _min_eig(S: NDArray[np.float64]) -> float:
                       check_finite=False)[0])
 
 
-@contextlib.contextmanager
-def _single_thread_blas():  # type: ignore[no-untyped-def]
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # optional
-        yield
-        return
-    with threadpool_limits(1):
-        yield
-
-
 def _identity_frame_start(
     problem: RotationTLSProblem, R: NDArray[np.float64]
 ) -> tuple[Lifting, float, NDArray[np.float64], NDArray[np.float64]]:
@@ -527,7 +516,7 @@ def rotation_dual_certificate(
 
     # One BLAS thread: many mid-sized eigendecompositions oversubscribe a loaded machine
     # (measured 10-100x slower multi-threaded on 2 busy cores).
-    with _single_thread_blas():
+    with single_thread_blas():
         while True:  # one pass per candidate
             lift, f, th, S_init = _identity_frame_start(problem, R)
             project = _IdentityFrameProjector(S_init, th)
