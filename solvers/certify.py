@@ -286,6 +286,11 @@ def _quaternion_drs_bound(
     with single_thread_blas():
         res = rotation_dual_certificate(rp, R, tol=tol, max_iterations=max_iter,
                                         time_limit=time_limit)
+    return _dual_search_bound(res, "dual certificate search (identity frame)")
+
+
+def _dual_search_bound(res: Any, what: str) -> _Bound:
+    """A :class:`_Bound` from a :class:`solvers.sdp_dual.DualCertificateResult`."""
     status = CertificateStatus.GAP_TOO_LARGE if res.converged else CertificateStatus.ITERATION_LIMIT
     return _Bound(
         lower=res.lower_bound,
@@ -295,7 +300,7 @@ def _quaternion_drs_bound(
         f"{res.iterations} iterations",
         eigenvalue_ratio=float("nan"),
         method="dual_drs",
-        message=f"dual certificate search (identity frame), min eigenvalue {res.min_eig:.3g}",
+        message=f"{what}, min eigenvalue {res.min_eig:.3g}",
         rotation=res.rotation,
     )
 
@@ -336,17 +341,7 @@ def _joint_drs_bound(
         res = joint_dual_certificate(problem, Rr, tr, tol=tol, max_iterations=max_iter,
                                      time_limit=DEFAULT_DUAL_TIME_LIMIT if time_limit is None
                                      else time_limit)
-    status = CertificateStatus.GAP_TOO_LARGE if res.converged else CertificateStatus.ITERATION_LIMIT
-    return _Bound(
-        lower=res.lower_bound,
-        accepted=True,  # the bound is recomputed from an exactly structured dual point
-        status=status,
-        backend_status=f"drs:{'converged' if res.converged else 'stopped'} after "
-        f"{res.iterations} iterations",
-        eigenvalue_ratio=float("nan"),
-        method="dual_drs",
-        message=f"joint dual certificate search, min eigenvalue {res.min_eig:.3g}",
-    )
+    return _dual_search_bound(res, "joint dual certificate search")
 
 
 def _finish_certificate(
@@ -437,7 +432,7 @@ def certify_rotation(
         return _invalid(np.nan, why, tol, label, t0)
     upper = problem.cost(R)
     # The bound holds whatever candidate built the dual; a dual certificate exists only at the
-    # optimum, so build it from the better of the locally refined candidate and GNC's estimate.
+    # optimum, so the search starts from the best rotation at hand.
     Rd = _dual_candidate(problem, R)
     bound = _rotation_bound(problem, Rd, method=method, tol=tol, max_iter=max_iter,
                             time_limit=time_limit, dense_max=dense_max, eps=eps)
