@@ -409,12 +409,35 @@ class _IdentityFrameProjector:
         return self.S_init + out.transpose(0, 2, 1, 3).reshape(n, n)
 
 
-def _min_eig(S: NDArray[np.float64]) -> float:
+def _psd_part_few(M: NDArray[np.float64], m: int = 8) -> NDArray[np.float64]:
+    """Projection onto the PSD cone when ``M`` has few negative eigenvalues.
+
+    Only the ``m`` smallest eigenpairs are computed (LAPACK ``evr`` with an index range: 1.4x
+    faster than a full ``eigh`` at n = 84, 2.8x at n = 404); if all ``m`` are negative, the
+    full decomposition is used. Near a certificate ``M`` has at most 4-5 (measured).
+    """
     from scipy.linalg import eigh
 
-    # The smallest eigenvalue only: LAPACK's evr with an index range, 1.4x faster than eigvalsh.
-    return float(eigh(S, eigvals_only=True, subset_by_index=[0, 0], driver="evr",
-                      check_finite=False)[0])
+    n = M.shape[0]
+    if n <= 2 * m:
+        return _psd_part(M)
+    w, V = eigh(M, subset_by_index=[0, m - 1], driver="evr", check_finite=False)
+    if w[-1] < 0:
+        return _psd_part(M)
+    neg = w < 0
+    if not neg.any():
+        return M
+    Vn = V[:, neg]
+    return M - (Vn * w[neg]) @ Vn.T
+
+
+def _is_pd(S: NDArray[np.float64], delta: float) -> bool:
+    """Whether ``S + delta I`` is positive definite (a Cholesky factorisation succeeds)."""
+    try:
+        np.linalg.cholesky(S + delta * np.eye(S.shape[0]))
+    except np.linalg.LinAlgError:
+        return False
+    return True
 
 
 def _identity_frame_start(
@@ -521,19 +544,19 @@ def rotation_dual_certificate(
             lift, f, th, S_init = _identity_frame_start(problem, R)
             project = _IdentityFrameProjector(S_init, th)
             nb = th.size
-            # In the loop f + (K + 1) min(lambda_min, 0) bounds by construction of the affine
-            # set (y = f, trace bound 1); the returned bound is recomputed from scratch.
-            M, local, R_new = S_init, 0, None
-            best_S, best_est = S_init, f + nb * min(_min_eig(S_init), 0.0)
-            while rel(best_est, f) > tol and it < max_iterations:
+            # On the affine set f + (K + 1) min(lambda_min, 0) is a bound (y = f, trace bound
+            # 1), so the target gap is reached once S + delta I is positive definite: a
+            # Cholesky test, 10x cheaper than the smallest eigenvalue. The returned bound is
+            # recomputed from scratch.
+            delta = 0.5 * tol * (1 + 2 * abs(f)) / (nb * (1 + tol))
+            M, local, R_new, S = S_init, 0, None, S_init
+            done = _is_pd(S_init, delta)
+            while not done and it < max_iterations:
                 it += 1
                 local += 1
-                P = _psd_part(M)
+                P = _psd_part_few(M)
                 S = project(2 * P - M)
-                est = f + nb * min(_min_eig(S), 0.0)
-                if est > best_est:
-                    best_S, best_est = S, est
-                if rel(best_est, f) <= tol:
+                if _is_pd(S, delta):
                     break
                 if time_limit is not None and time.perf_counter() - t0 > time_limit:
                     break
@@ -543,6 +566,7 @@ def rotation_dual_certificate(
                         R_new = Rc
                         break
                 M = M + relaxation * (S - P)
+            best_S = S
             lb, lam = bound_from_dense_dual(lift, best_S)
             if lb > best_lb:
                 best_lb, best_eig = lb, lam
