@@ -14,19 +14,19 @@ Usage::
 
     python examples/bench_certify.py [--reps 10] [--quick] [--out bench_certify.png]
 
-Measured (2-core machine shared with another job, load average 2-3; ``--reps 10``; every
-certificate bounds the rotation subproblem over the TIMs of the max-clique survivors):
+Measured (2-core machine, otherwise quiet; ``--reps 10``; every certificate bounds the
+rotation subproblem over the TIMs of the max-clique survivors):
 
-* N = 20, outliers 0-80%: 100% certified (both pipelines); gnc+certify median 9-16 ms, sdp
-  (the relaxation's own pose, Clarabel) 0.04-0.30 s.
-* N = 100, outliers 0-90%: 100% certified; gnc+certify median 0.25 s at 0%, 0.16 s at 20%,
-  0.07 s at 40%, 0.04 s at 60%, 0.013 s at 80-90%; sdp 0.15-1.4 s.
-* N = 1000, outliers 95/97/99% (5 reps): 100% certified, median 0.07/0.04/0.02 s.
-* Rotation subproblem given directly (K TIMs; outliers 0 / 50 / 80%): every GNC rotation that
-  is optimal certified, every optimum certified (at 80%, K = 20, GNC missed it once; the search
-  then certified the optimum and refused GNC's), every pose rotated by 3/10/30 degrees refused.
-  Dual search alone (TEASER++'s certifier measures this): K = 20: 13/10/13 ms, K = 50:
-  50/32/59 ms, K = 100: 0.26/0.12/0.19 s, in 2-6 iterations.
+* N = 20, outliers 0-80%: 100% certified (both pipelines); gnc+certify median 4-7 ms, sdp
+  (the relaxation's own pose, Clarabel) 0.05-0.29 s.
+* N = 100, outliers 0-90%: 100% certified; gnc+certify median 0.14 s at 0%, 0.08 s at 20%,
+  0.04 s at 40%, 0.02 s at 60%, 0.009 s at 80%, 0.005 s at 90%; sdp 0.16-0.83 s.
+* N = 1000, outliers 95/97/99% (5 reps): 100% certified, median 35/19/14 ms.
+* Rotation subproblem given directly (K TIMs; outliers 0 / 50 / 80%): every optimum certified
+  (at 80%, K = 20, GNC missed it once; the search then certified the optimum and refused GNC's
+  rotation), every pose rotated by 3/10/30 degrees refused. Dual search alone (what TEASER++'s
+  certifier times): K = 20: 5.5/5.9/8.2 ms, K = 50: 25/20/35 ms, K = 100: 121/67/103 ms, in 2-6
+  iterations.
 """
 
 from __future__ import annotations
