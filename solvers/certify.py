@@ -49,6 +49,7 @@ from solvers.relaxation import (
     Lifting,
     RotationTLSProblem,
     joint_lifting,
+    refine_rotation,
     rotation_lifting,
     tim_problem,
 )
@@ -164,25 +165,6 @@ def rotation_gnc(
         prev = cost
         mu *= mu_factor
     return refine_rotation(problem, R)
-
-
-def refine_rotation(
-    problem: RotationTLSProblem, R: ArrayLike, *, max_iterations: int = 50
-) -> NDArray[np.float64]:
-    """Local TLS refinement: alternate inlier selection and weighted Procrustes (never worse)."""
-    R = np.asarray(R, dtype=np.float64)
-    best = problem.cost(R)
-    w0 = problem.weights / problem.noise_bound**2
-    for _ in range(max_iterations):
-        S = problem.inliers(R) & (w0 > 0)
-        if not S.any():
-            break
-        R2 = weighted_rotation((problem.target[S] * w0[S, None]).T @ problem.source[S])
-        c = problem.cost(R2)
-        if not c < best - 1e-14 * max(1.0, best):
-            break
-        R, best = R2, c
-    return R
 
 
 def _dual_candidate(problem: RotationTLSProblem, R: NDArray[np.float64]) -> NDArray[np.float64]:

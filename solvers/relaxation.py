@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from solvers._validation import check_correspondences
 from solvers.problem import WeightedTLSProblem
+from solvers.procrustes import weighted_rotation
 
 __all__ = [
     "RotationTLSProblem",
@@ -32,6 +33,7 @@ __all__ = [
     "rotation_lifting",
     "joint_lifting",
     "tim_problem",
+    "refine_rotation",
 ]
 
 
@@ -130,6 +132,25 @@ class RotationTLSProblem:
 
     def inliers(self, rotation: ArrayLike) -> NDArray[np.bool_]:
         return self.residuals_sq(rotation) <= self.cbar2
+
+
+def refine_rotation(
+    problem: RotationTLSProblem, R: ArrayLike, *, max_iterations: int = 50
+) -> NDArray[np.float64]:
+    """Local TLS refinement: alternate inlier selection and weighted Procrustes (never worse)."""
+    R = np.asarray(R, dtype=np.float64)
+    best = problem.cost(R)
+    w0 = problem.weights / problem.noise_bound**2
+    for _ in range(max_iterations):
+        S = problem.inliers(R) & (w0 > 0)
+        if not S.any():
+            break
+        R2 = weighted_rotation((problem.target[S] * w0[S, None]).T @ problem.source[S])
+        c = problem.cost(R2)
+        if not c < best - 1e-14 * max(1.0, best):
+            break
+        R, best = R2, c
+    return R
 
 
 def tim_problem(

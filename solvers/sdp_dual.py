@@ -33,7 +33,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solvers._threads import single_thread_blas
-from solvers.relaxation import Lifting, RotationTLSProblem, rotation_lifting
+from solvers.relaxation import (
+    Lifting,
+    RotationTLSProblem,
+    quaternion_to_rotation,
+    refine_rotation,
+    rotation_lifting,
+)
 from solvers.sdp_relaxation import bound_from_dense_dual
 
 __all__ = ["DualCertificateResult", "dual_certificate", "rotation_dual_certificate"]
@@ -469,9 +475,6 @@ def _round_negative_directions(
     mapped back and refined locally. Returns ``R`` itself (the same object) when nothing is
     better.
     """
-    from solvers.certify import refine_rotation
-    from solvers.relaxation import quaternion_to_rotation
-
     w, V = np.linalg.eigh(S)
     best, best_cost = R, problem.cost(R)
     # The candidate itself refined, in case it was not stationary.
