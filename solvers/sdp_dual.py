@@ -5,16 +5,16 @@ rank-one candidate ``x = [y; theta_1 y; ...; theta_K y]``, a dual certificate is
 ``S = C - blkdiag(D_0..D_K) - W`` (``W`` with skew off-diagonal blocks, ``sum_k D_k`` in the span
 of the pose constraints) with ``S x = 0`` and ``S >= 0``. The affine conditions form a set ``A``;
 Douglas-Rachford alternates the projection onto ``A`` (a least-norm correction whose normal
-matrix is factored once per candidate) and onto the PSD cone (only the negative eigenpairs are
-computed). This follows the idea of TEASER++'s certifier (Yang, Shi, Carlone 2020), written for
+matrix is factored once per candidate) and onto the PSD cone (one eigendecomposition). This
+follows the idea of TEASER++'s certifier (Yang, Shi, Carlone 2020), written for
 any arrowhead lifting.
 
 :func:`rotation_dual_certificate` specialises the search to the quaternion lifting, as TEASER++'s
 certifier does. The target vectors are first rotated by ``R^T`` so that the candidate is the
 identity (the relaxation is invariant under this change of variables); the lifted candidate is
 then ``theta kron e_4``. In that frame the affine projection has a closed form (its normal
-matrix is ``(K + 3)/4 I - J/4``, inverted by Sherman-Morrison), so an iteration costs one
-eigendecomposition; and the search starts from a closed-form dual point: the multipliers of
+matrix is ``(K + 3)/4 I - J/4``, inverted by Sherman-Morrison), so an iteration costs the
+lowest few eigenpairs and a Cholesky test; and the search starts from a closed-form dual point: the multipliers of
 ``Z_kk = Z_00`` chosen per term from stationarity and the term's geometry (Yang, Shi, Carlone
 2020, appendix), which is often PSD already.
 
