@@ -6,17 +6,17 @@ rank-one candidate ``x = [y; theta_1 y; ...; theta_K y]``, a dual certificate is
 of the pose constraints) with ``S x = 0`` and ``S >= 0``. The affine conditions form a set ``A``;
 Douglas-Rachford alternates the projection onto ``A`` (a least-norm correction whose normal
 matrix is factored once per candidate) and onto the PSD cone (one eigendecomposition). This
-follows the idea of TEASER++'s certifier (Yang, Shi, Carlone 2020), written for
-any arrowhead lifting.
+follows the idea of TEASER++'s certifier (Yang, Shi, Carlone 2020), written for any arrowhead
+lifting.
 
 :func:`rotation_dual_certificate` specialises the search to the quaternion lifting, as TEASER++'s
 certifier does. The target vectors are first rotated by ``R^T`` so that the candidate is the
 identity (the relaxation is invariant under this change of variables); the lifted candidate is
 then ``theta kron e_4``. In that frame the affine projection has a closed form (its normal
 matrix is ``(K + 3)/4 I - J/4``, inverted by Sherman-Morrison), so an iteration costs the
-lowest few eigenpairs and a Cholesky test; and the search starts from a closed-form dual point: the multipliers of
-``Z_kk = Z_00`` chosen per term from stationarity and the term's geometry (Yang, Shi, Carlone
-2020, appendix), which is often PSD already.
+lowest few eigenpairs and a Cholesky test; and the search starts from a closed-form dual point:
+the multipliers of ``Z_kk = Z_00`` chosen per term from stationarity and the term's geometry
+(Yang, Shi, Carlone 2020, appendix), which is often PSD already.
 
 Whatever point the iteration stops at, the bound is recomputed by
 :func:`solvers.sdp_relaxation.bound_from_dense_dual`, so it is valid even when the iteration
