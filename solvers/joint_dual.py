@@ -52,7 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from solvers.problem import WeightedTLSProblem
 from solvers.relaxation import Lifting, joint_lifting
-from solvers.sdp_dual import DualCertificateResult
+from solvers.sdp_dual import DualCertificateResult, _drs_iterates, _psd_part
 from solvers.sdp_relaxation import bound_from_dense_dual
 
 __all__ = ["joint_dual_certificate", "joint_candidate", "initial_dual", "JointAffineProjector"]
@@ -294,15 +294,6 @@ def _auto_scale(lift: Lifting) -> NDArray[np.float64]:
     return s
 
 
-def _psd_part(M: NDArray[np.float64]) -> NDArray[np.float64]:
-    w, V = np.linalg.eigh(M)
-    neg = w < 0
-    if not neg.any():
-        return M
-    Vn = V[:, neg]
-    return M - (Vn * w[neg]) @ Vn.T
-
-
 def joint_dual_certificate(
     problem: WeightedTLSProblem,
     R: ArrayLike,
@@ -393,41 +384,14 @@ def joint_dual_certificate(
         S = proj.project(2 * P - M)
         return relaxation * (S - P), S
 
-    g, S = fixed_point(M)
-    best_lb, best_eig = bound_from_dense_dual(lift_orig, unscale(S))
-    dX: list[NDArray[np.float64]] = []
-    dG: list[NDArray[np.float64]] = []
-    it, conv = 0, rel(best_lb) <= tol
-    while not conv and it < max_iterations:
-        it += 1
-        M_plain = M + g
-        M_new = M_plain
-        if anderson and dX:
-            # Anderson only speeds the search: the bound is recomputed from the affine point.
-            Gm = np.stack([v.ravel() for v in dG], axis=1)
-            Xm = np.stack([v.ravel() for v in dX], axis=1)
-            gam = np.linalg.lstsq(Gm, g.ravel(), rcond=1e-10)[0]
-            M_new = M_plain - ((Xm + Gm) @ gam).reshape(M.shape)
-        g_new, S_new = fixed_point(M_new)
-        if anderson and dX and np.linalg.norm(g_new) > 2.0 * np.linalg.norm(g):
-            # Safeguard: reject the extrapolation and restart the memory.
-            dX.clear()
-            dG.clear()
-            M_new = M_plain
-            g_new, S_new = fixed_point(M_new)
-        if anderson:
-            dX.append(M_new - M)
-            dG.append(g_new - g)
-            if len(dX) > anderson:
-                dX.pop(0)
-                dG.pop(0)
-        M, g, S = M_new, g_new, S_new
-        if it % check_every == 0 or it == max_iterations:
+    best_lb, best_eig, it, conv = -np.inf, np.nan, 0, False
+    for it, S in _drs_iterates(fixed_point, M, max_iterations, anderson):
+        if it == 0 or it % check_every == 0 or it == max_iterations:
             lb, lam = bound_from_dense_dual(lift_orig, unscale(S))
             if lb > best_lb:
                 best_lb, best_eig = lb, lam
             conv = rel(best_lb) <= tol
-            if time_limit is not None and time.perf_counter() - t0 > time_limit:
+            if conv or (time_limit is not None and time.perf_counter() - t0 > time_limit):
                 break
     log.debug("joint dual: bound %.6g after %d iterations (f = %.6g)", best_lb, it, f)
     return DualCertificateResult(

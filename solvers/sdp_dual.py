@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -232,6 +233,48 @@ class _AffineProjector:
         return self.matrix(z)
 
 
+def _drs_iterates(
+    step: Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64]]],
+    M: NDArray[np.float64],
+    max_iterations: int,
+    anderson: int,
+) -> Iterator[tuple[int, NDArray[np.float64]]]:
+    """Affine points of the relaxed Douglas-Rachford iteration, ``(iteration, S)`` from 0.
+
+    ``step(M)`` returns the fixed-point residual ``T(M) - M`` and the affine point. With
+    ``anderson > 0`` the iteration is sped up by safeguarded type-II Anderson acceleration of
+    memory ``anderson``; it only moves the iterate, every bound is recomputed by the caller
+    from the affine point.
+    """
+    g, S = step(M)
+    yield 0, S
+    dX: list[NDArray[np.float64]] = []
+    dG: list[NDArray[np.float64]] = []
+    for it in range(1, max_iterations + 1):
+        M_plain = M + g
+        M_new = M_plain
+        if anderson and dX:
+            G = np.stack([v.ravel() for v in dG], axis=1)
+            X = np.stack([v.ravel() for v in dX], axis=1)
+            gam = np.linalg.lstsq(G, g.ravel(), rcond=1e-10)[0]
+            M_new = M_plain - ((X + G) @ gam).reshape(M.shape)
+        g_new, S_new = step(M_new)
+        if anderson and dX and np.linalg.norm(g_new) > 2.0 * np.linalg.norm(g):
+            # Safeguard: reject the extrapolation, restart the memory from the plain step.
+            dX.clear()
+            dG.clear()
+            M_new = M_plain
+            g_new, S_new = step(M_new)
+        if anderson:
+            dX.append(M_new - M)
+            dG.append(g_new - g)
+            if len(dX) > anderson:
+                dX.pop(0)
+                dG.pop(0)
+        M, g, S = M_new, g_new, S_new
+        yield it, S
+
+
 def dual_certificate(
     lift: Lifting,
     x: NDArray[np.float64],
@@ -278,36 +321,9 @@ def dual_certificate(
         S = proj.project(2 * P - M)
         return relaxation * (S - P), S
 
-    M = proj.project(np.zeros_like(C))
-    g, S = step(M)
-    dX: list[NDArray[np.float64]] = []
-    dG: list[NDArray[np.float64]] = []
     best_lb, best_eig, it, conv = -np.inf, np.nan, 0, False
-    for it in range(1, max_iterations + 1):
-        M_plain = M + g
-        M_new = M_plain
-        if anderson and dX:
-            # Anderson acceleration (type II) of the fixed-point map; only speeds the search,
-            # the bound is recomputed from whatever affine point results.
-            G = np.stack([v.ravel() for v in dG], axis=1)
-            X = np.stack([v.ravel() for v in dX], axis=1)
-            gam = np.linalg.lstsq(G, g.ravel(), rcond=1e-10)[0]
-            M_new = M_plain - ((X + G) @ gam).reshape(M.shape)
-        g_new, S_new = step(M_new)
-        if anderson and dX and np.linalg.norm(g_new) > 2.0 * np.linalg.norm(g):
-            # Safeguard: reject the extrapolation, restart the memory from the plain step.
-            dX.clear()
-            dG.clear()
-            M_new = M_plain
-            g_new, S_new = step(M_new)
-        if anderson:
-            dX.append(M_new - M)
-            dG.append(g_new - g)
-            if len(dX) > anderson:
-                dX.pop(0)
-                dG.pop(0)
-        M, g, S = M_new, g_new, S_new
-        if it % check_every == 0 or it == max_iterations:
+    for it, S in _drs_iterates(step, proj.project(np.zeros_like(C)), max_iterations, anderson):
+        if it and (it % check_every == 0 or it == max_iterations):
             lb, lam = bound_from_dense_dual(lift, S)
             if lb > best_lb:
                 best_lb, best_eig = lb, lam
