@@ -15,26 +15,9 @@ from solvers.joint_dual import (
 )
 from solvers.lie import random_rotation, so3_exp
 from solvers.problem import WeightedTLSProblem
-from solvers.procrustes import weighted_procrustes
 from solvers.registration import solve_registration
 from tests.conftest import make_instance
-
-
-def _subsets(k: int) -> np.ndarray:
-    return ((np.arange(1 << k)[:, None] >> np.arange(k)[None, :]) & 1).astype(bool)
-
-
-def full_optimum(p: WeightedTLSProblem) -> float:
-    """Exact optimum: min over inlier sets S of [weighted LS cost on S + cbar2 * weight outside]."""
-    w = p.weights / p.noise_bound**2
-    best = p.cbar2 * p.weights.sum()
-    for S in _subsets(p.n)[1:]:
-        if not np.any(w[S] > 0):
-            continue
-        R, t = weighted_procrustes(p.source[S], p.target[S], w[S])
-        best = min(best, float(p.weights[S] @ p.residuals_sq(R, t)[S]
-                               + p.cbar2 * p.weights[~S].sum()))
-    return best
+from tests.test_certify import full_optimum
 
 
 def _random_problem(rng: np.random.Generator, k: int, n_out: int, varied: bool) -> WeightedTLSProblem:
