@@ -400,10 +400,19 @@ class _IdentityFrameProjector:
     def __init__(self, S_init: NDArray[np.float64], th: NDArray[np.float64]) -> None:
         self.nb = th.size
         self.S_init = S_init
+        self.th = np.ascontiguousarray(th, dtype=np.float64)
         self.Theta = np.outer(th, th)
         self.c = 4.0 / (self.nb + 2)  # 4 / (K + 3)
 
     def __call__(self, M: NDArray[np.float64]) -> NDArray[np.float64]:
+        from solvers._kernels import identity_frame_projection
+
+        # Compiled: the numpy version below costs 0.2-0.4 ms of Python overhead per call at
+        # K = 20, as much as the eigendecomposition.
+        return identity_frame_projection(M, self.S_init, self.th, self.c)
+
+    def reference(self, M: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The same projection in numpy (the specification the kernel is tested against)."""
         nb = self.nb
         n = 4 * nb
         G = (M - self.S_init).reshape(nb, 4, nb, 4).transpose(0, 2, 1, 3)

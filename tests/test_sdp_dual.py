@@ -138,3 +138,15 @@ def test_restarts_reach_the_global_optimum_from_local_minima() -> None:
         assert res.rotation is not None and res.upper_bound == pytest.approx(p.cost(res.rotation))
         assert res.converged and res.upper_bound <= opt + 1e-6 * (1 + opt), res
     assert tried >= 20
+
+
+def test_compiled_projection_matches_numpy_reference() -> None:
+    rng = np.random.default_rng(5)
+    p, _ = random_rotation_problem(rng, 15, 6)
+    R = refine_rotation(p, rotation_gnc(p))
+    _, S0, th, _ = _identity_frame(p, R)
+    proj = _IdentityFrameProjector(S0, th)
+    for _ in range(3):
+        G = rng.normal(size=S0.shape)
+        M = G + G.T
+        np.testing.assert_allclose(proj(M), proj.reference(M), rtol=1e-12, atol=1e-10)
