@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solvers._threads import single_thread_blas
+from solvers.lie import project_to_so3
 from solvers.relaxation import (
     Lifting,
     RotationTLSProblem,
@@ -560,6 +561,19 @@ def rotation_dual_certificate(
     """
     t0 = time.perf_counter()
     R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise ValueError(f"Expected `R` to be a finite (3, 3) rotation, got shape {R.shape}.")
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
+        raise ValueError("Expected `R` to be a rotation matrix (orthonormal, det +1).")
+    # The change of frame bounds the same problem only if it is an exact isometry.
+    R = project_to_so3(R)
+    if not (np.isfinite(tol) and tol > 0):
+        raise ValueError(f"`tol` must be a positive finite scalar, got {tol!r}.")
+    if not 0 < relaxation < 2:
+        raise ValueError(f"`relaxation` must lie in (0, 2), got {relaxation!r}.")
+    if max_iterations < 0 or restart_every < 0:
+        raise ValueError("`max_iterations` and `restart_every` must be non-negative, got "
+                         f"{max_iterations!r} and {restart_every!r}.")
     best_lb, best_eig, it = -np.inf, np.nan, 0
 
     def rel(lb: float, f: float) -> float:

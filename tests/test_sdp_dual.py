@@ -150,3 +150,20 @@ def test_compiled_projection_matches_numpy_reference() -> None:
         G = rng.normal(size=S0.shape)
         M = G + G.T
         np.testing.assert_allclose(proj(M), proj.reference(M), rtol=1e-12, atol=1e-10)
+
+
+def test_bad_arguments_are_refused_with_their_name() -> None:
+    rng = np.random.default_rng(0)
+    p, _ = random_rotation_problem(rng, 6, 1)
+    with pytest.raises(ValueError, match="`R`"):
+        rotation_dual_certificate(p, np.eye(4))
+    with pytest.raises(ValueError, match="`R`"):
+        rotation_dual_certificate(p, np.full((3, 3), np.nan))
+    with pytest.raises(ValueError, match="`R` to be a rotation"):
+        rotation_dual_certificate(p, 2 * np.eye(3))  # a non-rotation would bound another problem
+    with pytest.raises(ValueError, match="`tol`"):
+        rotation_dual_certificate(p, np.eye(3), tol=0.0)
+    with pytest.raises(ValueError, match="`relaxation`"):
+        rotation_dual_certificate(p, np.eye(3), relaxation=2.0)
+    with pytest.raises(ValueError, match="`max_iterations`"):
+        rotation_dual_certificate(p, np.eye(3), max_iterations=-1)
