@@ -120,12 +120,6 @@ def _candidate_error(R: Any, t: Any) -> tuple[NDArray[np.float64], NDArray[np.fl
     return R, t, ""
 
 
-def _quaternion(R: NDArray[np.float64]) -> NDArray[np.float64]:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_quat()  # [x, y, z, w], the lifting's order
-
-
 def _survivors(problem: WeightedTLSProblem) -> NDArray[np.int64]:
     from solvers.pruning import prune_max_clique
 

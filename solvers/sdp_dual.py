@@ -51,7 +51,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class DualCertificateResult:
-    """Outcome of :func:`dual_certificate`.
+    """Outcome of a dual certificate search (:func:`dual_certificate`,
+    :func:`rotation_dual_certificate`, :func:`solvers.joint_dual.joint_dual_certificate`).
 
     Attributes
     ----------
