@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solvers import RegistrationResult, WeightedTLSProblem, solve_registration
-from solvers._validation import resolve_rng
+from solvers.validation import resolve_rng
 
 __all__ = ["register", "as_points"]
 

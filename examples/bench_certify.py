@@ -39,12 +39,12 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from solvers import solve_registration
 from solvers.certify import certify_result, certify_rotation, rotation_gnc, solve_sdp
+from solvers.certify.relaxation import RotationTLSProblem
+from solvers.certify.sdp_dual import rotation_dual_certificate
 from solvers.lie import random_rotation, rotation_error_deg, so3_exp, translation_error
 from solvers.problem import WeightedTLSProblem
-from solvers.registration import solve_registration
-from solvers.relaxation import RotationTLSProblem
-from solvers.sdp_dual import rotation_dual_certificate
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
 SIGMA = 0.01

@@ -5,8 +5,8 @@ uniform in a ball of radius 5); the candidate is :func:`solvers.registration.sol
 pose. Prints, per K and outlier ratio and per method, the certified fraction, the median relative
 gap and the median time:
 
-* ``joint``: :func:`solvers.joint_dual.joint_dual_certificate` (this benchmark's subject);
-* ``dual``: :func:`solvers.sdp_dual.dual_certificate` on the joint lifting (the generic
+* ``joint``: :func:`solvers.certify.joint_dual.joint_dual_certificate` (this benchmark's subject);
+* ``dual``: :func:`solvers.certify.sdp_dual.dual_certificate` on the joint lifting (the generic
   Douglas-Rachford search; ``certify_pose(scope="full", method="dual")`` now runs ``joint``);
 * ``dense``: ``certify_pose(..., scope="full", method="dense")`` (interior point, small K only).
 
@@ -47,8 +47,8 @@ import time
 
 import numpy as np
 
+from solvers import solve_registration
 from solvers.certificate import relative_gap
-from solvers.registration import solve_registration
 
 
 def _load_bench_certify():  # noqa: ANN202 - the sibling example module
@@ -68,7 +68,7 @@ def run_one(method: str, p, R, t, tol: float, time_limit: float) -> tuple[bool, 
     if method == "joint":
         from threadpoolctl import threadpool_limits
 
-        from solvers.joint_dual import joint_dual_certificate
+        from solvers.certify.joint_dual import joint_dual_certificate
 
         with threadpool_limits(1):
             res = joint_dual_certificate(p, R, t, tol=tol, time_limit=time_limit)
@@ -76,12 +76,12 @@ def run_one(method: str, p, R, t, tol: float, time_limit: float) -> tuple[bool, 
         gap = relative_gap(upper, res.lower_bound)
         return bool(gap <= tol), float(gap), time.perf_counter() - t0, res.iterations
     if method == "dual":
-        # The generic Douglas-Rachford search of solvers.sdp_dual on the same lifting (what
+        # The generic Douglas-Rachford search of solvers.certify.sdp_dual on the same lifting (what
         # certify_pose(scope="full", method="dual") ran before it switched to joint_dual).
         from threadpoolctl import threadpool_limits
 
-        from solvers.relaxation import joint_lifting
-        from solvers.sdp_dual import dual_certificate
+        from solvers.certify.relaxation import joint_lifting
+        from solvers.certify.sdp_dual import dual_certificate
 
         lift = joint_lifting(p)
         tn = (t + R @ lift.src_center - lift.dst_center) / lift.scale

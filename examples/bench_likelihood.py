@@ -21,20 +21,20 @@ import numpy as np
 
 
 def _scene(ycbv: Path | None, voxel: float):
-    from certpose.classifier import classify_from_mask
-    from certpose.features import FPFHBackbone
-    from certpose.scene import build_scene_field
+    from certpose.geometry.features import FPFHBackbone
+    from certpose.model.classifier import classify_from_mask
+    from certpose.model.scene import build_scene_field
 
     bb = FPFHBackbone()
     if ycbv is not None and (ycbv / "0000" / "000001-meta.mat").is_file():
-        from certpose.ycbv import load_model_points, load_ycbv_frame
+        from certpose.io.ycbv import load_model_points, load_ycbv_frame
 
         yf = load_ycbv_frame(ycbv, "0000/000001")
         scene = build_scene_field(yf.frame, bb, voxel_size=voxel)
         cls = classify_from_mask(scene, yf.frame, yf.object_mask("025_mug"))
         pts = load_model_points(ycbv / "models" / "025_mug" / "points.xyz")
         return "YCB-Video 0000/000001 (whole frame)", scene, cls, pts, yf.poses["025_mug"], bb
-    from certpose.synthetic import make_mug_scene
+    from certpose.data.synthetic import make_mug_scene
 
     sc = make_mug_scene(rng=0, n_model_points=6000)
     scene = build_scene_field(sc.frame, bb, voxel_size=voxel)
@@ -43,8 +43,8 @@ def _scene(ycbv: Path | None, voxel: float):
 
 
 def main() -> None:
-    from certpose.likelihood import PoseLikelihood
-    from certpose.objects import object_from_points
+    from certpose.geometry.objects import object_from_points
+    from certpose.model.likelihood import PoseLikelihood
     from solvers.lie import make_transform, random_rotation, so3_exp
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -4,7 +4,7 @@ Usage::
 
     python examples/bench_scene.py [--ycbv ../shared/data/ycbv] [--frame 0000/000001] [--repeat 5]
 
-Reports the wall time of :func:`certpose.scene.build_scene_field` (FPFH descriptors, free-space
+Reports the wall time of :func:`certpose.model.scene.build_scene_field` (FPFH descriptors, free-space
 carving) for a few regions of interest: the first call and the median of the following calls
 (open3d's one-off import, ~1.5-2 s, is timed separately). Target (issue 4): <= 3 s per frame.
 """
@@ -29,8 +29,8 @@ def main() -> None:
     args = parser.parse_args()
 
     t0 = time.perf_counter()
-    from certpose.scene import build_scene_field
-    from certpose.ycbv import load_ycbv_frame
+    from certpose.io.ycbv import load_ycbv_frame
+    from certpose.model.scene import build_scene_field
 
     data = load_ycbv_frame(args.ycbv, args.frame)
     print(f"load frame {args.frame}: {time.perf_counter() - t0:.2f} s (imports included)")

@@ -34,14 +34,19 @@ FRAMES = ("000001", "000002", "000003", "000004", "000005")
 def main() -> None:
     from tqdm import tqdm
 
-    from certpose.classifier import classify_from_mask
-    from certpose.features import FPFHBackbone
-    from certpose.likelihood import PoseLikelihood
-    from certpose.mle import global_search, refine_pose
-    from certpose.objects import object_from_points
-    from certpose.pipeline import YCBV_SYMMETRY_AXES, PoseParams, estimate_pose, pose_errors
-    from certpose.scene import build_scene_field
-    from certpose.ycbv import load_model_points, load_ycbv_frame
+    from certpose.estimation.mle import global_search, refine_pose
+    from certpose.estimation.pipeline import (
+        YCBV_SYMMETRY_AXES,
+        PoseParams,
+        estimate_pose,
+        pose_errors,
+    )
+    from certpose.geometry.features import FPFHBackbone
+    from certpose.geometry.objects import object_from_points
+    from certpose.io.ycbv import load_model_points, load_ycbv_frame
+    from certpose.model.classifier import classify_from_mask
+    from certpose.model.likelihood import PoseLikelihood
+    from certpose.model.scene import build_scene_field
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--ycbv", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv")

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from solvers._validation import check_correspondences
+from solvers.validation import check_correspondences
 
 __all__ = ["WeightedTLSProblem"]
 

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from certpose.bench import (
+from certpose.bench.runner import (
     SOLVERS,
     SUMMARY_COLUMNS,
     TRIAL_COLUMNS,
@@ -17,7 +17,7 @@ from certpose.bench import (
     run_benchmark,
 )
 from certpose.cli import main
-from certpose.io import synthetic_shape
+from certpose.io.points import synthetic_shape
 
 PEERS = ["gnc", "gnc-only", "gtsam-gnc", "o3d-ransac", "o3d-fgr"]
 

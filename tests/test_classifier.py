@@ -7,16 +7,16 @@ import math
 import numpy as np
 import pytest
 
-from certpose.classifier import (
+from certpose.geometry.features import ArrayBackbone
+from certpose.geometry.objects import ObjectModel
+from certpose.geometry.rgbd import CameraIntrinsics, RGBDFrame
+from certpose.model.classifier import (
     ClassifierParams,
     ClassifierStatus,
     classify_best_buddies,
     classify_from_mask,
 )
-from certpose.features import ArrayBackbone
-from certpose.objects import ObjectModel
-from certpose.rgbd import CameraIntrinsics, RGBDFrame
-from certpose.scene import EMPTY, OCCUPIED, UNOBSERVED, SceneField, build_scene_field
+from certpose.model.scene import EMPTY, OCCUPIED, UNOBSERVED, SceneField, build_scene_field
 
 CAM = CameraIntrinsics(100.0, 100.0, 31.5, 23.5, 64, 48)
 

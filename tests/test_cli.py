@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from certpose.cli import main
-from certpose.io import load_bunny
+from certpose.io.points import load_bunny
 from solvers.lie import random_rotation, rotation_error_deg, transform_points
 from tests.conftest import require_data
 
@@ -105,7 +105,7 @@ def test_register_subprocess(tmp_path, bunny_problem):
     _write(tmp_path / "d.csv", dst)
     out = tmp_path / "r.json"
     proc = subprocess.run(
-        [sys.executable, "-m", "certpose.cli", "register", str(tmp_path / "s.ply"),
+        [sys.executable, "-m", "certpose", "register", str(tmp_path / "s.ply"),
          str(tmp_path / "d.csv"), "--noise-bound", str(BETA), "--json", str(out)],
         capture_output=True, text=True, timeout=300,
     )
@@ -175,7 +175,7 @@ def test_register_malformed_subprocess(tmp_path):
     (tmp_path / "garbage.csv").write_text("1,2,banana\n")
     np.save(tmp_path / "good.npy", np.zeros((1, 3)))
     proc = subprocess.run(
-        [sys.executable, "-m", "certpose.cli", "register", str(tmp_path / "good.npy"),
+        [sys.executable, "-m", "certpose", "register", str(tmp_path / "good.npy"),
          str(tmp_path / "garbage.csv"), "--noise-bound", "0.1"],
         capture_output=True, text=True, timeout=300,
     )

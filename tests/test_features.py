@@ -8,14 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from certpose.features import (
+from certpose.geometry.features import (
     ArrayBackbone,
     DinoBackbone,
     FeatureBackbone,
     FPFHBackbone,
     describe_frame,
 )
-from certpose.rgbd import CameraIntrinsics, RGBDFrame
+from certpose.geometry.rgbd import CameraIntrinsics, RGBDFrame
 from solvers.lie import make_transform, so3_exp
 
 
@@ -133,7 +133,7 @@ def test_describe_frame_with_per_pixel_descriptors():
 
 
 def test_describe_frame_fpfh_on_synthetic_object_view():
-    from certpose.synthetic import make_mug_scene
+    from certpose.data.synthetic import make_mug_scene
 
     view = make_mug_scene(rng=0, width=320, height=240, n_model_points=10).render_object_views(1)[0]
     cloud = describe_frame(view, FPFHBackbone(), voxel_size=0.005)

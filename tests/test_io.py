@@ -1,11 +1,11 @@
-"""File readers of certpose.io: every format on real files, and clear errors on bad files."""
+"""File readers of certpose.io.points: every format on real files, and clear errors on bad files."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from certpose.io import (
+from certpose.io.points import (
     load_bunny,
     read_correspondences,
     read_points,

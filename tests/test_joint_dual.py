@@ -1,4 +1,4 @@
-"""Full-problem dual certificates (solvers.joint_dual): soundness, tightness, refusals."""
+"""Full-problem dual certificates (solvers.certify.joint_dual): soundness, tightness, refusals."""
 
 from __future__ import annotations
 
@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
+from solvers import solve_registration
 from solvers.certificate import relative_gap
-from solvers.joint_dual import (
+from solvers.certify.joint_dual import (
     JointAffineProjector,
     initial_dual,
     joint_candidate,
@@ -15,7 +16,6 @@ from solvers.joint_dual import (
 )
 from solvers.lie import random_rotation, so3_exp
 from solvers.problem import WeightedTLSProblem
-from solvers.registration import solve_registration
 from tests.conftest import make_instance
 from tests.test_certify import full_optimum
 

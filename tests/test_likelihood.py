@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from certpose.classifier import ClassifierStatus, ObjectClassification
-from certpose.likelihood import LikelihoodParams, PoseLikelihood, log_likelihood
-from certpose.objects import ObjectModel
-from certpose.scene import EMPTY, OCCUPIED, UNOBSERVED, SceneField
+from certpose.geometry.objects import ObjectModel
+from certpose.model.classifier import ClassifierStatus, ObjectClassification
+from certpose.model.likelihood import LikelihoodParams, PoseLikelihood, log_likelihood
+from certpose.model.scene import EMPTY, OCCUPIED, UNOBSERVED, SceneField
 from solvers.lie import make_transform, random_rotation
 
 

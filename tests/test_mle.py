@@ -7,9 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from certpose.classifier import ClassifierStatus, ObjectClassification
-from certpose.likelihood import LikelihoodParams, PoseLikelihood
-from certpose.mle import (
+from certpose.estimation.mle import (
     Eq2Params,
     MLEParams,
     build_eq2_problem,
@@ -19,8 +17,10 @@ from certpose.mle import (
     refine_pose,
     solve_eq2,
 )
-from certpose.objects import ObjectModel
-from certpose.scene import EMPTY, OCCUPIED, SceneField
+from certpose.geometry.objects import ObjectModel
+from certpose.model.classifier import ClassifierStatus, ObjectClassification
+from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
+from certpose.model.scene import EMPTY, OCCUPIED, SceneField
 from solvers.lie import make_transform, rotation_error_deg, so3_exp
 
 

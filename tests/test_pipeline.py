@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from certpose.cli import main
-from certpose.features import ArrayBackbone, FPFHBackbone
-from certpose.objects import ObjectModel, object_from_points, object_from_views
-from certpose.pipeline import PoseParams, pose_errors, run_demo, run_ycbv
-from certpose.rgbd import CameraIntrinsics, RGBDFrame
+from certpose.estimation.pipeline import PoseParams, pose_errors, run_demo, run_ycbv
+from certpose.geometry.features import ArrayBackbone, FPFHBackbone
+from certpose.geometry.objects import ObjectModel, object_from_points, object_from_views
+from certpose.geometry.rgbd import CameraIntrinsics, RGBDFrame
 from solvers.lie import make_transform, so3_exp
 from tests.conftest import require_data
 

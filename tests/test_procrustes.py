@@ -87,7 +87,7 @@ def test_reflection_is_corrected(seed):
 
 
 def test_numba_kernel_agrees_with_numpy(rng):
-    from solvers import _kernels
+    from solvers.registration import _kernels
 
     a = rng.normal(size=(40, 3))
     b = a @ random_rotation(rng).T + rng.normal(scale=0.3, size=(40, 3))

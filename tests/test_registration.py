@@ -11,7 +11,7 @@ import pytest
 import certpose
 from solvers import GNCParams, SolverStatus, WeightedTLSProblem, solve_gnc, solve_pruned
 from solvers.lie import random_rotation, rotation_error_deg
-from solvers.pruning import consistency_graph, max_clique, maximum_cliques, scalar_tls
+from solvers.registration.pruning import consistency_graph, max_clique, maximum_cliques, scalar_tls
 from tests.conftest import make_instance
 
 

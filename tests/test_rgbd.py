@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from certpose.rgbd import (
+from certpose.geometry.rgbd import (
     CameraIntrinsics,
     RGBDFrame,
     StructuredPointCloud,

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from certpose.features import ArrayBackbone, FPFHBackbone
-from certpose.rgbd import CameraIntrinsics, RGBDFrame
-from certpose.scene import EMPTY, OCCUPIED, UNOBSERVED, SceneField, build_scene_field
+from certpose.geometry.features import ArrayBackbone, FPFHBackbone
+from certpose.geometry.rgbd import CameraIntrinsics, RGBDFrame
+from certpose.model.scene import EMPTY, OCCUPIED, UNOBSERVED, SceneField, build_scene_field
 from solvers.lie import make_transform
 from tests.conftest import require_data
 
@@ -214,7 +214,7 @@ def test_build_bad_input():
 
 
 def test_fpfh_scene_on_synthetic_mug():
-    from certpose.synthetic import make_mug_scene
+    from certpose.data.synthetic import make_mug_scene
 
     syn = make_mug_scene(rng=1)
     scene = build_scene_field(syn.frame, voxel_size=0.005, roi_mask=syn.object_mask, margin=0.04)
@@ -244,7 +244,7 @@ def _ycbv_root() -> Path:
 
 
 def test_real_frame_ground_truth_respects_free_space():
-    from certpose.ycbv import load_model_points, load_ycbv_frame
+    from certpose.io.ycbv import load_model_points, load_ycbv_frame
 
     root = _ycbv_root()
     data = load_ycbv_frame(root, "0000/000001")

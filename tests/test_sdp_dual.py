@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from solvers.certify import refine_rotation, rotation_gnc
-from solvers.lie import random_rotation, so3_exp
-from solvers.relaxation import RotationTLSProblem, rotation_lifting
-from solvers.sdp_dual import (
+from solvers.certify.relaxation import RotationTLSProblem, rotation_lifting
+from solvers.certify.sdp_dual import (
     _IdentityFrameProjector,
     _rotation_initial_dual,
     rotation_dual_certificate,
 )
+from solvers.lie import random_rotation, so3_exp
 from tests.test_certify import random_rotation_problem, rotation_optimum
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from certpose.synthetic import (
+from certpose.data.synthetic import (
     HANDLE_CENTER_X,
     MUG_HEIGHT,
     MUG_RADIUS,

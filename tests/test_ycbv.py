@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from certpose.ycbv import load_class_names, load_model_points, load_ycbv_frame
+from certpose.io.ycbv import load_class_names, load_model_points, load_ycbv_frame
 from tests.conftest import require_data
 
 OBJECTS = ["009_gelatin_box", "025_mug", "061_foam_brick"]

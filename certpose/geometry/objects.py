@@ -1,0 +1,324 @@
+"""The object model: a structured point cloud ``{(p_i, z_i)}`` in the object frame.
+
+Two ways to build one: from model points (e.g. YCB-Video's ``points.xyz``), or the paper's way,
+by back-projecting the masked pixels of posed RGB-D views of the object (whose world frame is
+the object frame) and describing the fused cloud.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from solvers.validation import as_float_array, check_points, resolve_rng
+
+if TYPE_CHECKING:
+    from certpose.geometry.rgbd import RGBDFrame
+
+__all__ = ["ObjectModel", "object_from_points", "object_from_views", "check_descriptors"]
+
+log = logging.getLogger(__name__)
+
+
+def check_descriptors(value: Any, name: str, n: int) -> NDArray[np.float64]:
+    """Validate ``(n, d)`` finite descriptors whose rows have norm at most 1 (L2-normalised or 0)."""
+    arr = as_float_array(value, name)
+    if arr.ndim != 2 or arr.shape[0] != n:
+        raise ValueError(f"Expected `{name}` to have shape ({n}, d), got {arr.shape}.")
+    if arr.shape[1] == 0:
+        raise ValueError(f"Expected `{name}` to have at least one column, got shape {arr.shape}.")
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.count_nonzero(~np.isfinite(arr).all(axis=1)))
+        raise ValueError(f"`{name}` contains NaN or inf values in {bad} row(s).")
+    norms = np.linalg.norm(arr, axis=1)
+    if norms.max() > 1.0 + 1e-6:
+        raise ValueError(
+            f"`{name}` rows must be L2-normalised (norm <= 1), got a maximum norm of {norms.max():.4g}."
+        )
+    return arr
+
+
+@dataclass(frozen=True)
+class ObjectModel:
+    """A structured point cloud of an object in its own frame.
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+        Points ``p_i`` in the object frame, metres.
+    descriptors : (N, d) array_like
+        Descriptors ``z_i``, L2-normalised rows (norm 1, or 0 for "no information").
+    colors : (N, 3) array_like, optional
+        RGB in ``[0, 1]``.
+    normals : (N, 3) array_like, optional
+        Outward unit normals.
+    name : str, optional
+    """
+
+    points: NDArray[np.float64]
+    descriptors: NDArray[np.float64]
+    colors: NDArray[np.float64] | None = None
+    normals: NDArray[np.float64] | None = None
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        pts = check_points(self.points, "points", min_points=3)
+        n = pts.shape[0]
+        desc = check_descriptors(self.descriptors, "descriptors", n)
+        fields: dict[str, NDArray[np.float64]] = {"points": pts, "descriptors": desc}
+        for name in ("colors", "normals"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            arr = as_float_array(value, name)
+            if arr.shape != (n, 3):
+                raise ValueError(f"Expected `{name}` to have shape ({n}, 3), got {arr.shape}.")
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"`{name}` contains NaN or inf values.")
+            fields[name] = arr
+        for name, arr in fields.items():
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def dim(self) -> int:
+        """Descriptor dimension ``d``."""
+        return int(self.descriptors.shape[1])
+
+    @property
+    def centroid(self) -> NDArray[np.float64]:
+        """Mean point (3,), metres."""
+        return self.points.mean(axis=0)
+
+    @property
+    def radius(self) -> float:
+        """Largest distance of a point from the centroid, metres."""
+        return float(np.linalg.norm(self.points - self.centroid, axis=1).max())
+
+    def select(self, index: ArrayLike) -> ObjectModel:
+        """The sub-model of the given indices or boolean mask."""
+        idx = np.asarray(index)
+        pick = (lambda a: None if a is None else a[idx])  # noqa: E731
+        return ObjectModel(
+            self.points[idx], self.descriptors[idx], pick(self.colors), pick(self.normals), self.name
+        )
+
+    def subsample(self, n: int, *, rng: np.random.Generator | int | None = None) -> ObjectModel:
+        """At most ``n`` points spread over the object (farthest-point sampling, random start)."""
+        if int(n) < 3:
+            raise ValueError(f"`n` must be >= 3, got {n}.")
+        if n >= len(self):
+            return self
+        gen = resolve_rng(rng)
+        chosen = np.empty(int(n), dtype=np.int64)
+        chosen[0] = gen.integers(len(self))
+        dist = np.linalg.norm(self.points - self.points[chosen[0]], axis=1)
+        for k in range(1, int(n)):
+            chosen[k] = int(np.argmax(dist))
+            dist = np.minimum(dist, np.linalg.norm(self.points - self.points[chosen[k]], axis=1))
+        return self.select(np.sort(chosen))
+
+
+def _check_voxel_size(voxel_size: float) -> float:
+    vs = float(voxel_size)
+    if not (math.isfinite(vs) and vs > 0):
+        raise ValueError(f"`voxel_size` must be positive and finite, got {voxel_size}.")
+    return vs
+
+
+def _estimate_normals(points: NDArray[np.float64], radius: float) -> NDArray[np.float64]:
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points, dtype=np.float64)))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
+    return np.asarray(pcd.normals, dtype=np.float64).copy()
+
+
+def _describe(backbone: Any, points: NDArray[np.float64], colors: Any, normals: Any) -> NDArray[np.float64]:
+    desc = np.asarray(backbone.describe(points, colors=colors, normals=normals), dtype=np.float64)
+    return check_descriptors(desc, "backbone descriptors", points.shape[0])
+
+
+def object_from_points(
+    points: ArrayLike,
+    backbone: Any,
+    *,
+    voxel_size: float,
+    colors: ArrayLike | None = None,
+    name: str = "",
+) -> ObjectModel:
+    """Build an object model from model points (e.g. YCB-Video's ``points.xyz``).
+
+    The points are averaged per voxel of side ``voxel_size`` (as the scene is), given outward
+    normals (oriented away from the centroid, which suits convex-ish objects) and described by
+    ``backbone``.
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+        Model points in the object frame, metres.
+    backbone : FeatureBackbone
+        Anything with ``describe(points, colors=, normals=) -> (N, d)``.
+    voxel_size : float
+        Voxel side in metres (use the scene's).
+    colors : (N, 3) array_like, optional
+        RGB in ``[0, 1]``.
+    name : str, optional
+
+    Returns
+    -------
+    ObjectModel
+    """
+    from certpose.geometry.rgbd import StructuredPointCloud
+
+    pts = check_points(points, "points", min_points=3)
+    vs = _check_voxel_size(voxel_size)
+    cloud = StructuredPointCloud(pts, np.zeros((pts.shape[0], 0)), colors)
+    cloud = cloud.voxel_downsample(vs)
+    if len(cloud) < 3:
+        raise ValueError(
+            f"Only {len(cloud)} voxel(s) left after downsampling at {vs:g} m; use a smaller `voxel_size`."
+        )
+    p = cloud.points
+    normals = _estimate_normals(p, 3.0 * vs)
+    outward = np.einsum("ij,ij->i", normals, p - p.mean(axis=0)) < 0
+    normals[outward] *= -1.0
+    desc = _describe(backbone, p, cloud.colors, normals)
+    log.info("object model %r: %d points, descriptor dim %d", name, p.shape[0], desc.shape[1])
+    return ObjectModel(p, desc, cloud.colors, normals, name)
+
+
+def _view_and_mask(k: int, item: Any) -> tuple[Any, NDArray[np.bool_]]:
+    """A view ``frame`` or ``(frame, mask)``; the mask defaults to the frame's, then GrabCut."""
+    from certpose.geometry.rgbd import RGBDFrame
+
+    frame, mask = item if isinstance(item, tuple) else (item, None)
+    if not isinstance(frame, RGBDFrame):
+        raise TypeError(f"`views[{k}]` must be an RGBDFrame, got {type(frame).__name__}.")
+    if mask is None:
+        mask = frame.mask if frame.mask is not None else _grabcut(frame)
+    return frame, np.asarray(mask)
+
+
+def _grabcut(frame: RGBDFrame) -> NDArray[np.bool_]:
+    try:
+        import cv2
+    except ImportError as exc:
+        raise ValueError(
+            "an object view has no mask and OpenCV (GrabCut) is not installed; pass masks"
+        ) from exc
+    if frame.color is None:
+        raise ValueError("an object view has neither a mask nor a colour image for GrabCut")
+    h, w = frame.shape
+    # The object is assumed to be in the middle of its view: the border is background.
+    rect = (w // 20, h // 20, w - w // 10, h - h // 10)
+    gc = np.zeros((h, w), np.uint8)
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.grabCut(np.ascontiguousarray(frame.color[..., ::-1]), gc, rect, bgd, fgd, 5,
+                cv2.GC_INIT_WITH_RECT)
+    mask = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
+    if not mask.any():
+        raise ValueError("GrabCut found no foreground in an object view")
+    return mask
+
+
+def _from_image_backbone(views: Sequence[Any], backbone: Any, vs: float, name: str) -> ObjectModel:
+    """Image backbones (e.g. DINO): per-pixel descriptors of each view, fused per voxel."""
+    from certpose.geometry.features import describe_frame
+    from certpose.geometry.rgbd import StructuredPointCloud
+
+    clouds = []
+    for k, item in enumerate(views):
+        frame, mask = _view_and_mask(k, item)
+        clouds.append(describe_frame(frame, backbone, mask=np.asarray(mask), world=True))
+    colors = None
+    if all(c.colors is not None for c in clouds):
+        colors = np.concatenate([c.colors for c in clouds])  # type: ignore[misc]
+    fused = StructuredPointCloud(
+        np.concatenate([c.points for c in clouds]),
+        np.concatenate([c.descriptors for c in clouds]),
+        colors,
+    ).voxel_downsample(vs)
+    if len(fused) < 3:
+        raise ValueError(f"Only {len(fused)} voxel(s) of object points; use a smaller `voxel_size`.")
+    desc = check_descriptors(fused.descriptors, "backbone descriptors", len(fused))
+    return ObjectModel(fused.points, desc, fused.colors, None, name)
+
+
+def object_from_views(
+    views: Sequence[RGBDFrame | tuple[RGBDFrame, ArrayLike]],
+    backbone: Any,
+    *,
+    voxel_size: float,
+    name: str = "",
+) -> ObjectModel:
+    """Build an object model from posed RGB-D views of the object (the paper's way).
+
+    The masked pixels of every view are back-projected into the world frame, which is taken
+    as the object frame; normals come from each view (oriented towards its camera). The fused
+    cloud is averaged per voxel and described by ``backbone``. Image backbones (with
+    ``describe_image``, e.g. DINO as in the paper) describe each view's pixels instead, and the
+    descriptors are averaged per voxel.
+
+    Parameters
+    ----------
+    views : sequence of RGBDFrame or (RGBDFrame, mask)
+        Posed views; the mask (H, W) bool selects the object's pixels. A view without a mask
+        is segmented with GrabCut when OpenCV is installed, else it is an error.
+    backbone : FeatureBackbone
+    voxel_size : float
+        Voxel side in metres (use the scene's).
+    name : str, optional
+
+    Returns
+    -------
+    ObjectModel
+
+    Raises
+    ------
+    ValueError
+        No views, empty masks, or no valid depth inside a mask.
+    """
+    from certpose.geometry.rgbd import StructuredPointCloud
+
+    vs = _check_voxel_size(voxel_size)
+    if len(views) == 0:
+        raise ValueError("`views` is empty: at least one posed view of the object is needed.")
+    all_pts, all_nrm, all_col = [], [], []
+    has_color = True
+    for k, item in enumerate(views):
+        frame, mask = _view_and_mask(k, item)
+        try:
+            pts_c, pix = frame.backproject(mask=np.asarray(mask))
+        except ValueError as exc:
+            raise ValueError(f"`views[{k}]`: {exc}") from exc
+        nrm = _estimate_normals(pts_c, 3.0 * vs)
+        # Camera at the origin of its frame: normals point back at it.
+        flip = np.einsum("ij,ij->i", nrm, pts_c) > 0
+        nrm[flip] *= -1.0
+        R, t = frame.T_world_camera[:3, :3], frame.T_world_camera[:3, 3]
+        all_pts.append(pts_c @ R.T + t)
+        all_nrm.append(nrm @ R.T)
+        col = frame.colors_at(pix)
+        has_color &= col is not None
+        all_col.append(col)
+    colors = np.concatenate(all_col) if has_color else None
+    if hasattr(backbone, "describe_image") and getattr(backbone, "per_pixel", True):
+        return _from_image_backbone(views, backbone, vs, name)
+    # Normals ride along as 3-d "descriptors" so the voxel mean re-normalises them.
+    fused = StructuredPointCloud(np.concatenate(all_pts), np.concatenate(all_nrm), colors)
+    fused = fused.voxel_downsample(vs)
+    if len(fused) < 3:
+        raise ValueError(f"Only {len(fused)} voxel(s) of object points; use a smaller `voxel_size`.")
+    desc = _describe(backbone, fused.points, fused.colors, fused.descriptors)
+    log.info("object model %r from %d views: %d points", name, len(views), len(fused))
+    return ObjectModel(fused.points, desc, fused.colors, fused.descriptors, name)

@@ -1,0 +1,492 @@
+"""RGB-D input: camera intrinsics, posed frames, back-projection and structured point clouds.
+
+Camera frame convention (OpenCV): x right, y down, z forward; pixel ``(row v, col u)`` has its
+centre at image coordinates ``(u, v)``, so a point ``(x, y, z)`` projects to
+``u = fx x / z + cx``, ``v = fy y / z + cy``. Depth is the z coordinate in metres; 0 marks an
+invalid measurement.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from solvers.lie import transform_points
+from solvers.validation import as_float_array, check_points, check_transform
+
+if TYPE_CHECKING:
+    import open3d as o3d
+
+__all__ = [
+    "CameraIntrinsics",
+    "RGBDFrame",
+    "StructuredPointCloud",
+    "backproject",
+    "load_rgbd",
+    "check_mask",
+    "normalize_rows",
+]
+
+log = logging.getLogger(__name__)
+
+# Larger depths are taken for raw sensor units (millimetres and the like), not metres.
+MAX_DEPTH = 100.0
+
+
+def normalize_rows(x: NDArray[np.floating], *, eps: float = 1e-12) -> NDArray[np.float64]:
+    """L2-normalise the rows of ``x`` (shape ``(N, d)``); all-zero rows stay zero."""
+    x = np.asarray(x, dtype=np.float64)
+    norms = np.linalg.norm(x, axis=-1, keepdims=True)
+    return np.divide(x, norms, out=np.zeros_like(x), where=norms > eps)
+
+
+def check_mask(value: Any, name: str, shape: tuple[int, int], *, allow_empty: bool = False) -> NDArray[np.bool_]:
+    """Validate an ``(H, W)`` boolean mask; an all-False mask is an error unless ``allow_empty``."""
+    arr = np.asarray(value)
+    if arr.shape != tuple(shape):
+        raise ValueError(f"Expected `{name}` to have shape {tuple(shape)}, got {arr.shape}.")
+    if arr.dtype != np.bool_:
+        if not (np.issubdtype(arr.dtype, np.integer) and np.isin(arr, (0, 1)).all()):
+            raise TypeError(f"`{name}` must be a boolean mask, got dtype {arr.dtype}.")
+        arr = arr.astype(bool)
+    if not allow_empty and not arr.any():
+        raise ValueError(f"`{name}` is empty (no pixel is set).")
+    return arr
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole camera intrinsics (pixels) and image size.
+
+    Parameters
+    ----------
+    fx, fy : float
+        Focal lengths in pixels (> 0).
+    cx, cy : float
+        Principal point in pixels (column, row).
+    width, height : int
+        Image size in pixels (> 0).
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy", "cx", "cy"):
+            value = float(getattr(self, name))
+            if not np.isfinite(value):
+                raise ValueError(f"`{name}` must be finite, got {value}.")
+            object.__setattr__(self, name, value)
+        for name in ("fx", "fy"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"`{name}` must be positive, got {getattr(self, name)}.")
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if int(value) != value or int(value) <= 0:
+                raise ValueError(f"`{name}` must be a positive integer, got {value}.")
+            object.__setattr__(self, name, int(value))
+
+    @property
+    def K(self) -> NDArray[np.float64]:
+        """The 3x3 camera matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image shape ``(height, width)``."""
+        return (self.height, self.width)
+
+    @classmethod
+    def from_matrix(cls, K: ArrayLike, width: int, height: int) -> CameraIntrinsics:
+        """Build from a 3x3 camera matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``."""
+        K = as_float_array(K, "K")
+        if K.shape != (3, 3):
+            raise ValueError(f"Expected `K` to have shape (3, 3), got {K.shape}.")
+        if not np.all(np.isfinite(K)):
+            raise ValueError("`K` contains NaN or inf values.")
+        if not np.allclose(K[2], [0.0, 0.0, 1.0]) or abs(K[1, 0]) > 1e-9:
+            raise ValueError(f"`K` is not a pinhole camera matrix: {K.tolist()}.")
+        if abs(K[0, 1]) > 1e-9:
+            raise ValueError(f"`K` has a non-zero skew {K[0, 1]:g}; skew is not supported.")
+        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height)
+
+    def project(
+        self, points: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Project camera-frame points.
+
+        Parameters
+        ----------
+        points : array_like, shape (N, 3)
+            Points in the camera frame, metres.
+
+        Returns
+        -------
+        u, v : ndarray, shape (N,)
+            Continuous image coordinates (column, row) in pixels; ``nan`` where ``z <= 0``.
+        z : ndarray, shape (N,)
+            Depth of each point in metres.
+        """
+        p = check_points(points, "points", min_points=0)
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = np.where(z > 0, 1.0 / z, np.nan)
+        return self.fx * p[:, 0] * inv + self.cx, self.fy * p[:, 1] * inv + self.cy, z
+
+    def to_open3d(self) -> Any:
+        """Return an ``open3d.camera.PinholeCameraIntrinsic``."""
+        import open3d as o3d
+
+        return o3d.camera.PinholeCameraIntrinsic(
+            self.width, self.height, self.fx, self.fy, self.cx, self.cy
+        )
+
+
+def _check_depth(depth: Any, name: str, shape: tuple[int, int] | None) -> NDArray[np.float64]:
+    arr = as_float_array(depth, name)
+    if arr.ndim != 2:
+        raise ValueError(f"Expected `{name}` to have shape (H, W), got {arr.shape}.")
+    if shape is not None and arr.shape != tuple(shape):
+        raise ValueError(f"Expected `{name}` to have shape {tuple(shape)}, got {arr.shape}.")
+    if np.isnan(arr).any():
+        raise ValueError(
+            f"`{name}` contains {int(np.isnan(arr).sum())} NaN value(s); mark invalid depth with 0."
+        )
+    if np.isinf(arr).any():
+        raise ValueError(f"`{name}` contains inf values; mark invalid depth with 0.")
+    if (arr < 0).any():
+        raise ValueError(f"`{name}` contains negative values (minimum {arr.min():g} m).")
+    return arr
+
+
+def backproject(
+    depth: ArrayLike,
+    intrinsics: CameraIntrinsics,
+    *,
+    mask: ArrayLike | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Back-project the valid pixels of a depth image into camera-frame points.
+
+    Parameters
+    ----------
+    depth : array_like, shape (H, W)
+        Depth in metres along the optical axis; 0 marks invalid pixels.
+    intrinsics : CameraIntrinsics
+        Camera with ``(height, width) == depth.shape``.
+    mask : array_like of bool, shape (H, W), optional
+        Keep only these pixels (in addition to valid depth).
+
+    Returns
+    -------
+    points : ndarray, shape (M, 3)
+        Points in the camera frame (OpenCV: x right, y down, z forward), metres, in row-major
+        pixel order.
+    pixels : ndarray of int64, shape (M, 2)
+        ``(row v, col u)`` of each point.
+
+    Raises
+    ------
+    ValueError
+        On shape mismatch, NaN/negative depth, an empty mask, or when no pixel is left.
+    """
+    d = _check_depth(depth, "depth", intrinsics.shape)
+    valid = d > 0
+    if mask is not None:
+        valid &= check_mask(mask, "mask", intrinsics.shape)
+    if not valid.any():
+        where = " inside `mask`" if mask is not None else ""
+        raise ValueError(f"`depth` has no valid (non-zero) pixel{where}; nothing to back-project.")
+    v, u = np.nonzero(valid)
+    z = d[v, u]
+    points = np.empty((z.size, 3))
+    points[:, 0] = (u - intrinsics.cx) * z / intrinsics.fx
+    points[:, 1] = (v - intrinsics.cy) * z / intrinsics.fy
+    points[:, 2] = z
+    return points, np.stack([v, u], axis=1).astype(np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class RGBDFrame:
+    """A posed RGB-D image.
+
+    Parameters
+    ----------
+    color : ndarray of uint8, shape (H, W, 3), or None
+        RGB image (``None`` for depth-only input).
+    depth : ndarray, shape (H, W)
+        Depth in metres (float64); 0 marks invalid pixels.
+    intrinsics : CameraIntrinsics
+        Camera with ``(height, width) == (H, W)``.
+    T_world_camera : ndarray, shape (4, 4)
+        Pose of the camera in the world (maps camera points into the world frame).
+    mask : ndarray of bool, shape (H, W), or None
+        Optional pixel mask (e.g. the object in an object view); must not be empty.
+    """
+
+    color: NDArray[np.uint8] | None
+    depth: NDArray[np.float64]
+    intrinsics: CameraIntrinsics
+    T_world_camera: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
+    mask: NDArray[np.bool_] | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.intrinsics, CameraIntrinsics):
+            raise TypeError(
+                f"`intrinsics` must be a CameraIntrinsics, got {type(self.intrinsics).__name__}."
+            )
+        shape = self.intrinsics.shape
+        depth = _check_depth(self.depth, "depth", None)
+        if depth.shape != shape:
+            raise ValueError(
+                f"Expected `depth` to have shape {shape} (from the intrinsics), got {depth.shape}."
+            )
+        if not (depth > 0).any():
+            raise ValueError("`depth` is zero everywhere: the frame has no valid measurement.")
+        if depth.max() > MAX_DEPTH:
+            raise ValueError(
+                f"`depth` reaches {depth.max():g} m (> {MAX_DEPTH:g} m): it looks like raw sensor "
+                "units; divide by the depth scale (e.g. 1000 for millimetres) to get metres."
+            )
+        depth.setflags(write=False)
+        object.__setattr__(self, "depth", depth)
+        if self.color is not None:
+            color = np.asarray(self.color)
+            if color.shape != (*shape, 3):
+                raise ValueError(
+                    f"Expected `color` to have shape {(*shape, 3)} to match `depth`, got {color.shape}."
+                )
+            if color.dtype != np.uint8:
+                raise TypeError(f"`color` must have dtype uint8, got {color.dtype}.")
+            color = color.copy()
+            color.setflags(write=False)
+            object.__setattr__(self, "color", color)
+        T = check_transform(self.T_world_camera, "T_world_camera")
+        T.setflags(write=False)
+        object.__setattr__(self, "T_world_camera", T)
+        if self.mask is not None:
+            mask = check_mask(self.mask, "mask", shape).copy()
+            mask.setflags(write=False)
+            object.__setattr__(self, "mask", mask)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image shape ``(H, W)``."""
+        return self.intrinsics.shape
+
+    @property
+    def T_camera_world(self) -> NDArray[np.float64]:
+        """Inverse of ``T_world_camera``."""
+        from solvers.lie import invert_transform
+
+        return invert_transform(self.T_world_camera)
+
+    def with_mask(self, mask: ArrayLike | None) -> RGBDFrame:
+        """A copy of this frame with another mask."""
+        return RGBDFrame(self.color, self.depth, self.intrinsics, self.T_world_camera, mask)
+
+    def backproject(
+        self, *, mask: ArrayLike | None | bool = True, world: bool = False
+    ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """Back-project the valid pixels.
+
+        Parameters
+        ----------
+        mask : array_like of bool, shape (H, W), or bool, optional
+            ``True`` (default) uses the frame's own mask if any, ``False``/``None`` uses every
+            pixel, an array uses that mask.
+        world : bool, optional
+            Return points in the world frame instead of the camera frame.
+
+        Returns
+        -------
+        points : ndarray, shape (M, 3)
+            Metres, camera (or world) frame.
+        pixels : ndarray of int64, shape (M, 2)
+            ``(row v, col u)``.
+        """
+        if mask is True:
+            mask = self.mask
+        elif mask is False:
+            mask = None
+        points, pixels = backproject(self.depth, self.intrinsics, mask=mask)
+        if world:
+            points = transform_points(self.T_world_camera, points)
+        return points, pixels
+
+    def colors_at(self, pixels: ArrayLike) -> NDArray[np.float64] | None:
+        """Colours in ``[0, 1]`` (shape ``(M, 3)``) at ``(row, col)`` pixels, or ``None``."""
+        if self.color is None:
+            return None
+        px = np.asarray(pixels)
+        return self.color[px[:, 0], px[:, 1]].astype(np.float64) / 255.0
+
+
+def load_rgbd(
+    color_path: str | Path | None,
+    depth_path: str | Path,
+    intrinsics: CameraIntrinsics,
+    *,
+    depth_scale: float = 1000.0,
+    T_world_camera: ArrayLike | None = None,
+    mask: ArrayLike | None = None,
+) -> RGBDFrame:
+    """Read an RGB-D frame from image files.
+
+    Parameters
+    ----------
+    color_path : path or None
+        8-bit RGB image (an alpha channel is dropped, grey is replicated).
+    depth_path : path
+        Single-channel depth image; metres = value / ``depth_scale``.
+    intrinsics : CameraIntrinsics
+    depth_scale : float, optional
+        Raw depth units per metre (1000 for millimetre PNGs; YCB-Video uses 10000).
+    T_world_camera : array_like, shape (4, 4), optional
+    mask : array_like of bool, shape (H, W), optional
+    """
+    if not depth_scale > 0:
+        raise ValueError(f"`depth_scale` must be positive, got {depth_scale}.")
+    raw = _read_image(depth_path, "depth")
+    if raw.ndim != 2:
+        raise ValueError(f"Expected the depth image {depth_path} to have one channel, got shape {raw.shape}.")
+    color = None
+    if color_path is not None:
+        color = _read_image(color_path, "color")
+        if color.ndim == 2:
+            color = np.repeat(color[..., None], 3, axis=2)
+        color = np.ascontiguousarray(color[..., :3]).astype(np.uint8)
+    return RGBDFrame(
+        color,
+        raw.astype(np.float64) / depth_scale,
+        intrinsics,
+        np.eye(4) if T_world_camera is None else T_world_camera,
+        mask,
+    )
+
+
+def _read_image(path: str | Path, what: str) -> NDArray[Any]:
+    import imageio.v3 as iio
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"The {what} image {path} does not exist.")
+    try:
+        return np.asarray(iio.imread(path))
+    except Exception as exc:
+        raise OSError(f"Cannot read the {what} image {path}: {exc}") from exc
+
+
+@dataclass(frozen=True, eq=False)
+class StructuredPointCloud:
+    """Points with a descriptor (and optionally a colour) each.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+        Coordinates in metres (N >= 1).
+    descriptors : ndarray, shape (N, d)
+        Per-point descriptors (float64; ``d`` may be 0). Backbones produce L2-normalised rows.
+    colors : ndarray, shape (N, 3), optional
+        RGB in ``[0, 1]``.
+    """
+
+    points: NDArray[np.float64]
+    descriptors: NDArray[np.float64]
+    colors: NDArray[np.float64] | None = None
+
+    def __post_init__(self) -> None:
+        points = check_points(self.points, "points")
+        n = points.shape[0]
+        desc = as_float_array(self.descriptors, "descriptors")
+        if desc.ndim != 2 or desc.shape[0] != n:
+            raise ValueError(f"Expected `descriptors` to have shape ({n}, d), got {desc.shape}.")
+        if not np.all(np.isfinite(desc)):
+            bad = int(np.count_nonzero(~np.isfinite(desc).all(axis=1)))
+            raise ValueError(f"`descriptors` contains NaN or inf values in {bad} row(s).")
+        for arr in (points, desc):
+            arr.setflags(write=False)
+        object.__setattr__(self, "points", points)
+        object.__setattr__(self, "descriptors", desc)
+        if self.colors is not None:
+            colors = as_float_array(self.colors, "colors")
+            if colors.shape != (n, 3):
+                raise ValueError(f"Expected `colors` to have shape ({n}, 3), got {colors.shape}.")
+            if not np.all(np.isfinite(colors)) or colors.min() < 0 or colors.max() > 1:
+                raise ValueError("`colors` must be finite and within [0, 1].")
+            colors.setflags(write=False)
+            object.__setattr__(self, "colors", colors)
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def dim(self) -> int:
+        """Descriptor dimension ``d``."""
+        return int(self.descriptors.shape[1])
+
+    def voxel_downsample(self, voxel_size: float) -> StructuredPointCloud:
+        """Average the points falling into each cubic voxel of side ``voxel_size`` (metres).
+
+        Each occupied voxel (cells ``floor(p / voxel_size)``) gives one point: the mean point,
+        the mean descriptor re-L2-normalised (a zero mean stays zero), and the mean colour.
+        Output order: lexicographic voxel index.
+        """
+        if not (np.isfinite(voxel_size) and voxel_size > 0):
+            raise ValueError(f"`voxel_size` must be positive and finite, got {voxel_size}.")
+        keys = np.floor(self.points / voxel_size).astype(np.int64)
+        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+        inverse = inverse.reshape(-1)
+        m = counts.size
+
+        def mean(values: NDArray[np.float64]) -> NDArray[np.float64]:
+            out = np.zeros((m, values.shape[1]))
+            np.add.at(out, inverse, values)
+            return out / counts[:, None]
+
+        return StructuredPointCloud(
+            mean(self.points),
+            normalize_rows(mean(self.descriptors)) if self.dim else np.zeros((m, 0)),
+            None if self.colors is None else np.clip(mean(self.colors), 0.0, 1.0),
+        )
+
+    def transform(self, T: ArrayLike) -> StructuredPointCloud:
+        """Apply a rigid transform ``T`` (4x4) to the points; descriptors are unchanged."""
+        T = check_transform(T, "T")
+        return StructuredPointCloud(transform_points(T, self.points), self.descriptors, self.colors)
+
+    def select(self, index: ArrayLike) -> StructuredPointCloud:
+        """The sub-cloud of the given indices or boolean mask."""
+        idx = np.asarray(index)
+        return StructuredPointCloud(
+            self.points[idx], self.descriptors[idx], None if self.colors is None else self.colors[idx]
+        )
+
+    def to_open3d(self) -> o3d.geometry.PointCloud:
+        """An ``open3d.geometry.PointCloud`` with the points (and colours); descriptors are dropped."""
+        import open3d as o3d
+
+        # open3d refuses read-only buffers: hand it copies.
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(self.points)))
+        if self.colors is not None:
+            pcd.colors = o3d.utility.Vector3dVector(np.array(self.colors))
+        return pcd
+
+    @classmethod
+    def from_open3d(
+        cls, pcd: o3d.geometry.PointCloud, descriptors: ArrayLike | None = None
+    ) -> StructuredPointCloud:
+        """Wrap an open3d point cloud; without ``descriptors`` the descriptor dimension is 0."""
+        points = np.asarray(pcd.points, dtype=np.float64)
+        colors = np.asarray(pcd.colors, dtype=np.float64) if pcd.has_colors() else None
+        if descriptors is None:
+            descriptors = np.zeros((points.shape[0], 0))
+        return cls(points, descriptors, colors)

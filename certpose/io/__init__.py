@@ -1,0 +1,33 @@
+"""Reading data from disk: point and weight files, and YCB-Video frames with ground truth.
+
+Owns file formats and their strict checks (a malformed file is an error naming the file, never a
+silently wrong array). May import :mod:`certpose.geometry` (frames) and :mod:`solvers`' public
+names; nothing in here builds a model or estimates a pose.
+"""
+
+from certpose.io.points import (
+    POINT_SUFFIXES,
+    WEIGHT_SUFFIXES,
+    load_bunny,
+    read_correspondences,
+    read_points,
+    read_weights,
+    scale_to_unit_cube,
+    synthetic_shape,
+)
+from certpose.io.ycbv import YCBVFrame, load_class_names, load_model_points, load_ycbv_frame
+
+__all__ = [
+    "POINT_SUFFIXES",
+    "WEIGHT_SUFFIXES",
+    "YCBVFrame",
+    "load_bunny",
+    "load_class_names",
+    "load_model_points",
+    "load_ycbv_frame",
+    "read_correspondences",
+    "read_points",
+    "read_weights",
+    "scale_to_unit_cube",
+    "synthetic_shape",
+]

@@ -1,0 +1,172 @@
+"""Loader for the YCB-Video frame format.
+
+A frame ``<root>/<scene>/<frame>`` consists of ``<frame>-color.png`` (RGB), ``<frame>-depth.png``
+(uint16, metres = value / ``factor_depth``), ``<frame>-label.png`` (per-pixel class index,
+0 = background) and ``<frame>-meta.mat`` (``intrinsic_matrix``, ``factor_depth``,
+``cls_indexes`` (1-based into ``models/classes.txt``) and ``poses`` (3, 4, n): ``[R | t]`` maps
+model points into the camera frame, i.e. ``T_camera_object``). Model points are
+``<root>/models/<name>/points.xyz``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from certpose.geometry.rgbd import CameraIntrinsics, RGBDFrame, load_rgbd
+from solvers.lie import make_transform, project_to_so3
+
+__all__ = ["YCBVFrame", "load_ycbv_frame", "load_model_points", "load_class_names"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class YCBVFrame:
+    """One YCB-Video frame with its labels and ground-truth poses.
+
+    Attributes
+    ----------
+    frame : RGBDFrame
+        Colour, depth (metres) and intrinsics; ``T_world_camera`` is the identity.
+    label : ndarray of int, shape (H, W)
+        Class index per pixel (0 = background).
+    class_names : list of str
+        Names of the objects annotated in this frame (order of ``meta.mat``).
+    class_indexes : list of int
+        Their 1-based class indices (the values used in ``label``).
+    poses : dict of str to ndarray (4, 4)
+        ``T_camera_object`` of each annotated object (rotation projected onto SO(3)).
+    name : str
+        ``"<scene>/<frame>"``.
+    """
+
+    frame: RGBDFrame
+    label: NDArray[np.int64]
+    class_names: list[str]
+    class_indexes: list[int]
+    poses: dict[str, NDArray[np.float64]] = field(repr=False)
+    name: str = ""
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        return self.frame.intrinsics
+
+    def _index(self, name: str) -> int:
+        if name not in self.class_names:
+            raise KeyError(f"Object {name!r} is not annotated in frame {self.name}; it has {self.class_names}.")
+        return self.class_indexes[self.class_names.index(name)]
+
+    def object_mask(self, name: str) -> NDArray[np.bool_]:
+        """Pixels labelled as object ``name``, shape ``(H, W)`` bool.
+
+        Raises ``KeyError`` for an object not in the frame and ``ValueError`` if it has no pixel.
+        """
+        mask = self.label == self._index(name)
+        if not mask.any():
+            raise ValueError(f"Object {name!r} has no labelled pixel in frame {self.name}.")
+        return mask
+
+
+def load_class_names(root: str | Path) -> list[str]:
+    """The class names of ``<root>/models/classes.txt`` (line k = class index k, 1-based)."""
+    path = Path(root) / "models" / "classes.txt"
+    if not path.is_file():
+        raise FileNotFoundError(f"The YCB-Video class list {path} does not exist.")
+    return [line.strip() for line in path.read_text().splitlines() if line.strip()]
+
+
+def _frame_path(root: Path, frame: str, suffix: str) -> Path:
+    path = root / f"{frame}-{suffix}"
+    if not path.is_file():
+        raise FileNotFoundError(f"The YCB-Video file {path} does not exist.")
+    return path
+
+
+def load_ycbv_frame(root: str | Path, frame: str = "0000/000001") -> YCBVFrame:
+    """Load one YCB-Video frame.
+
+    Parameters
+    ----------
+    root : path
+        Dataset folder holding ``<scene>/`` folders and ``models/classes.txt``.
+    frame : str, optional
+        ``"<scene>/<frame>"``, e.g. ``"0000/000001"``.
+
+    Returns
+    -------
+    YCBVFrame
+
+    Raises
+    ------
+    FileNotFoundError
+        Naming the first missing file.
+    ValueError
+        For a malformed ``meta.mat``.
+    """
+    import imageio.v3 as iio
+    import scipy.io
+
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"The YCB-Video folder {root} does not exist.")
+    color_path = _frame_path(root, frame, "color.png")
+    depth_path = _frame_path(root, frame, "depth.png")
+    label_path = _frame_path(root, frame, "label.png")
+    meta_path = _frame_path(root, frame, "meta.mat")
+    try:
+        meta = scipy.io.loadmat(meta_path)
+    except Exception as exc:
+        raise ValueError(f"Cannot read {meta_path}: {exc}") from exc
+    for key in ("intrinsic_matrix", "factor_depth", "cls_indexes", "poses"):
+        if key not in meta:
+            raise ValueError(f"{meta_path} has no `{key}` entry.")
+    names_all = load_class_names(root)
+    label = np.asarray(iio.imread(label_path))
+    if label.ndim != 2:
+        raise ValueError(f"Expected the label image {label_path} to have one channel, got shape {label.shape}.")
+    height, width = label.shape
+    intrinsics = CameraIntrinsics.from_matrix(meta["intrinsic_matrix"], width, height)
+    factor = float(np.asarray(meta["factor_depth"]).ravel()[0])
+    rgbd = load_rgbd(color_path, depth_path, intrinsics, depth_scale=factor)
+
+    indexes = [int(i) for i in np.asarray(meta["cls_indexes"]).ravel()]
+    poses_arr = np.asarray(meta["poses"], dtype=np.float64)
+    if poses_arr.ndim == 2:  # a single object is saved as (3, 4)
+        poses_arr = poses_arr[:, :, None]
+    if poses_arr.shape != (3, 4, len(indexes)):
+        raise ValueError(
+            f"Expected `poses` in {meta_path} to have shape (3, 4, {len(indexes)}), got {poses_arr.shape}."
+        )
+    names, poses = [], {}
+    for k, idx in enumerate(indexes):
+        if not 1 <= idx <= len(names_all):
+            raise ValueError(f"Class index {idx} in {meta_path} is outside classes.txt (1..{len(names_all)}).")
+        name = names_all[idx - 1]
+        # Stored rotations are orthonormal to ~1e-6 only: snap them onto SO(3) so that strict
+        # rigid-transform checks downstream accept them (changes entries by ~1e-6).
+        T = make_transform(project_to_so3(poses_arr[:, :3, k]), poses_arr[:, 3, k])
+        names.append(name)
+        poses[name] = T
+    return YCBVFrame(rgbd, label.astype(np.int64), names, indexes, poses, str(frame))
+
+
+def load_model_points(path: str | Path) -> NDArray[np.float64]:
+    """Read model points (``points.xyz``: one ``x y z`` per line, metres), shape ``(N, 3)``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"The model points file {path} does not exist.")
+    try:
+        pts = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except ValueError as exc:
+        raise ValueError(f"Cannot parse {path} as rows of 'x y z': {exc}") from exc
+    if pts.ndim != 2 or pts.shape[1] < 3 or pts.shape[0] == 0:
+        raise ValueError(f"Expected {path} to hold rows of 3 coordinates, got an array of shape {pts.shape}.")
+    pts = pts[:, :3]
+    if not np.all(np.isfinite(pts)):
+        raise ValueError(f"{path} contains NaN or inf coordinates.")
+    return np.ascontiguousarray(pts)

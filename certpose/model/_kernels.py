@@ -1,0 +1,116 @@
+"""Numba kernels of eq. (1); imported lazily by :mod:`certpose.model.likelihood`.
+
+Grid encoding shared with the Python side: ``index[x, y, z] >= 0`` is the row of an occupied
+voxel in the compact arrays, ``EMPTY_CODE`` marks observed free space, ``UNOBSERVED_CODE``
+unobserved space; corners outside the grid count as unobserved.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+EMPTY_CODE = -1
+UNOBSERVED_CODE = -2
+MIXED, UNIFORM_EMPTY, UNIFORM_UNOBSERVED = 0, 1, 2
+
+
+@njit(inline="always")
+def _point_term(index, cells, desc, logp, zi, qx, qy, qz, origin, inv_vs, offset, beta, c_empty,
+                c_unobs):  # pragma: no cover
+    # Continuous coordinates in the padded grid (one unobserved voxel on each side), integer
+    # values at voxel centres.
+    ux = (qx - origin[0]) * inv_vs - offset + 1.0
+    uy = (qy - origin[1]) * inv_vs - offset + 1.0
+    uz = (qz - origin[2]) * inv_vs - offset + 1.0
+    fx0 = np.floor(ux)
+    fy0 = np.floor(uy)
+    fz0 = np.floor(uz)
+    nx, ny, nz = cells.shape
+    if fx0 < 0.0 or fy0 < 0.0 or fz0 < 0.0 or fx0 >= nx or fy0 >= ny or fz0 >= nz:
+        return c_unobs
+    x0 = int(fx0)
+    y0 = int(fy0)
+    z0 = int(fz0)
+    # Cells whose 8 corners share one non-occupied state need no interpolation.
+    cell = cells[x0, y0, z0]
+    if cell == UNIFORM_EMPTY:
+        return c_empty
+    if cell == UNIFORM_UNOBSERVED:
+        return c_unobs
+    ax = ux - fx0
+    ay = uy - fy0
+    az = uz - fz0
+    acc = 0.0
+    for dx in range(2):
+        wx = ax if dx == 1 else 1.0 - ax
+        for dy in range(2):
+            wxy = wx * (ay if dy == 1 else 1.0 - ay)
+            for dz in range(2):
+                w = wxy * (az if dz == 1 else 1.0 - az)
+                v = index[x0 + dx, y0 + dy, z0 + dz]
+                if v >= 0:
+                    s = np.float32(0.0)
+                    for k in range(zi.shape[0]):
+                        s += desc[v, k] * zi[k]
+                    acc += w * (logp[v] + beta * s)
+                elif v == EMPTY_CODE:
+                    acc += w * c_empty
+                else:
+                    acc += w * c_unobs
+    return acc
+
+
+@njit(fastmath=True, inline="always")
+def _pose_total(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
+                c_unobs):  # pragma: no cover - compiled
+    R00, R01, R02, t0 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+    R10, R11, R12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+    R20, R21, R22, t2 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
+    total = 0.0
+    for i in range(points.shape[0]):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        qx = R00 * px + R01 * py + R02 * pz + t0
+        qy = R10 * px + R11 * py + R12 * pz + t1
+        qz = R20 * px + R21 * py + R22 * pz + t2
+        total += _point_term(index, cells, desc, logp, zdesc[i], qx, qy, qz, origin, inv_vs,
+                             offset, beta, c_empty, c_unobs)
+    return total
+
+
+@njit(parallel=True, fastmath=True, cache=True, nogil=True)
+def eq1_batch(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
+              c_unobs):  # pragma: no cover - compiled
+    """Sum of per-point log-localisation terms for each of the ``B`` poses ``T`` (threads over B)."""
+    out = np.empty(T.shape[0])
+    for b in prange(T.shape[0]):
+        out[b] = _pose_total(T[b], points, zdesc, index, cells, desc, logp, origin, inv_vs, offset,
+                             beta, c_empty, c_unobs)
+    return out
+
+
+@njit(fastmath=True, cache=True, nogil=True)
+def eq1_batch_serial(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta,
+                     c_empty, c_unobs):  # pragma: no cover - compiled
+    """:func:`eq1_batch` on one thread: small batches do not pay the thread wake-up."""
+    out = np.empty(T.shape[0])
+    for b in range(T.shape[0]):
+        out[b] = _pose_total(T[b], points, zdesc, index, cells, desc, logp, origin, inv_vs, offset,
+                             beta, c_empty, c_unobs)
+    return out
+
+
+@njit(fastmath=True, cache=True, nogil=True)
+def eq1_points(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
+               c_unobs):  # pragma: no cover - compiled
+    """Per-point terms ``(N,)`` for one pose ``T`` (4, 4)."""
+    N = points.shape[0]
+    out = np.empty(N)
+    for i in range(N):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        qx = T[0, 0] * px + T[0, 1] * py + T[0, 2] * pz + T[0, 3]
+        qy = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
+        qz = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
+        out[i] = _point_term(index, cells, desc, logp, zdesc[i], qx, qy, qz, origin, inv_vs, offset,
+                             beta, c_empty, c_unobs)
+    return out

@@ -1,0 +1,276 @@
+r"""Eq. (1) of the paper: the log-likelihood of an object pose, for a batch of poses at once.
+
+.. math::
+
+    \log p(\mathcal{O}_{R,t}) = \sum_{i=1}^N \log p_\mathcal{O}(q_i) + \beta f_{scn}(q_i)^T z_i,
+    \qquad q_i = R p_i + t .
+
+How the special scene states enter (NOTES.md 1.4), voxel by voxel:
+
+* **occupied** voxel ``v``: ``log p_O(v)`` from the classifier and ``beta * f_v^T z_i``;
+* **empty** (observed free space, ``z^T z_emp = -inf``): the finite free-space penalty
+  ``c_empty`` (a large negative log-probability, as the appendix does for ``c_min``);
+* **unobserved** (behind surfaces, outside the image or outside the grid; ``z^T z_null = 0``):
+  similarity 0 and a neutral classifier prior ``log_p_unobserved`` (default ``log 0.1``). It
+  sits between a classifier positive (``log 0.9``) and a negative (``c_min = -5``): hidden
+  object points pay neither a penalty nor earn the reward of an observed match. It must stay
+  well below the positives' value: with ``log 0.5`` the few free-space violations caused by
+  depth noise at the true pose outweigh the reward of the visible points, and eq. (1) prefers
+  to hide the whole object in unobserved space (measured on YCB-Video, see
+  ``examples/bench_ycbv.py``).
+
+At a continuous point the per-voxel terms of the 8 surrounding voxel centres are blended
+trilinearly. Because the blend is linear, this equals trilinear interpolation of ``f_scn``
+(with ``z_null = 0`` descriptors) plus trilinear interpolation of ``log p_O`` (with the values
+above at empty and unobserved voxels), and the objective is continuous in the pose.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from certpose.model.grid import EMPTY, OCCUPIED, scene_grid_spec
+from solvers.validation import as_float_array
+
+if TYPE_CHECKING:
+    from certpose.geometry.objects import ObjectModel
+    from certpose.model.classifier import ObjectClassification
+
+__all__ = ["LikelihoodParams", "PoseLikelihood", "log_likelihood"]
+
+log = logging.getLogger(__name__)
+
+# Below this batch size one thread beats waking the pool.
+_PARALLEL_MIN_BATCH = 16
+
+@dataclass(frozen=True)
+class LikelihoodParams:
+    """Constants of eq. (1).
+
+    Attributes
+    ----------
+    beta : float
+        Temperature of the visual-similarity term (>= 0; dimensionless).
+    c_empty : float
+        Log-probability of an object point in observed free space (finite, negative).
+    log_p_unobserved : float
+        Neutral classifier log-prior of an object point in unobserved space (<= 0).
+    free_space_erosion : int
+        Empty voxels within this many voxels (chessboard distance) of an occupied voxel are
+        treated as unobserved: a coarser eq. (1) that tolerates pose errors of that size
+        (used by the coarse search; 0 is the exact model).
+    """
+
+    beta: float = 1.0
+    c_empty: float = -10.0
+    log_p_unobserved: float = math.log(0.1)
+    free_space_erosion: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("beta", "c_empty", "log_p_unobserved"):
+            v = float(getattr(self, name))
+            if not math.isfinite(v):
+                raise ValueError(f"`{name}` must be finite, got {v}.")
+            object.__setattr__(self, name, v)
+        if self.beta < 0:
+            raise ValueError(f"`beta` must be >= 0, got {self.beta}.")
+        if self.c_empty >= 0:
+            raise ValueError(f"`c_empty` must be negative, got {self.c_empty}.")
+        if self.log_p_unobserved > 0:
+            raise ValueError(f"`log_p_unobserved` must be <= 0, got {self.log_p_unobserved}.")
+        if int(self.free_space_erosion) != self.free_space_erosion or self.free_space_erosion < 0:
+            raise ValueError(
+                f"`free_space_erosion` must be a non-negative integer, got {self.free_space_erosion}."
+            )
+
+
+def _morton_order(points: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
+    """Permutation sorting ``points`` along a Morton curve of cells of side ``cell``."""
+    q = np.floor((points - points.min(axis=0)) / cell).astype(np.uint64)
+    q = np.minimum(q, np.uint64(2**21 - 1))
+    code = np.zeros(points.shape[0], dtype=np.uint64)
+    for bit in range(21):
+        for axis in range(3):
+            b = (q[:, axis] >> np.uint64(bit)) & np.uint64(1)
+            code |= b << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")
+
+
+def _cell_codes(index: NDArray[np.int32]) -> NDArray[np.int8]:
+    """Per cell (between 8 neighbouring voxel centres): uniformly empty, uniformly unobserved or mixed."""
+    from certpose.model._kernels import (
+        EMPTY_CODE,
+        MIXED,
+        UNIFORM_EMPTY,
+        UNIFORM_UNOBSERVED,
+        UNOBSERVED_CODE,
+    )
+
+    corners = [index[dx:index.shape[0] - 1 + dx, dy:index.shape[1] - 1 + dy,
+                     dz:index.shape[2] - 1 + dz]
+               for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
+    all_empty = np.logical_and.reduce([c == EMPTY_CODE for c in corners])
+    all_unobs = np.logical_and.reduce([c == UNOBSERVED_CODE for c in corners])
+    cells = np.full(all_empty.shape, MIXED, dtype=np.int8)
+    cells[all_empty] = UNIFORM_EMPTY
+    cells[all_unobs] = UNIFORM_UNOBSERVED
+    return cells
+
+
+def _as_poses(T: ArrayLike) -> tuple[NDArray[np.float64], bool]:
+    arr = as_float_array(T, "T")
+    single = arr.ndim == 2
+    if single:
+        arr = arr[None]
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise ValueError(f"Expected `T` to have shape (4, 4) or (B, 4, 4), got {arr.shape}.")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("`T` contains NaN or inf values.")
+    return np.ascontiguousarray(arr), single
+
+
+class PoseLikelihood:
+    """Eq. (1) for one scene, one object and one classifier, compiled for fast batches.
+
+    Parameters
+    ----------
+    scene : SceneField
+        Fused scene: ``state`` (X, Y, Z) with UNOBSERVED=0 / EMPTY=1 / OCCUPIED=2 and
+        ``descriptors`` (X, Y, Z, d), L2-normalised at occupied voxels.
+    classification : ObjectClassification
+        ``log_p`` (X, Y, Z) on the scene's grid (read at occupied voxels).
+    object_model : ObjectModel
+        Points ``p_i`` (N, 3) in the object frame and descriptors ``z_i`` (N, d).
+    params : LikelihoodParams, optional
+
+    Notes
+    -----
+    Descriptors are stored in float32 (the sums are accumulated in float64 per point), so
+    values agree with a float64 evaluation to about 1e-6 relative.
+    """
+
+    def __init__(
+        self,
+        scene: Any,
+        classification: ObjectClassification,
+        object_model: ObjectModel,
+        *,
+        params: LikelihoodParams | None = None,
+    ) -> None:
+        from certpose.model._kernels import EMPTY_CODE, UNOBSERVED_CODE
+
+        self.params = params or LikelihoodParams()
+        self.grid = scene_grid_spec(scene)
+        state = np.asarray(scene.state)
+        desc = np.asarray(scene.descriptors)
+        if desc.ndim != 4 or desc.shape[:3] != state.shape:
+            raise ValueError(
+                f"Expected `scene.descriptors` to have shape {(*state.shape, 'd')}, got {desc.shape}."
+            )
+        d = desc.shape[3]
+        if object_model.descriptors.shape[1] != d:
+            raise ValueError(
+                f"Descriptor dimensions differ: object {object_model.descriptors.shape[1]}, scene {d}."
+            )
+        log_p = np.asarray(classification.log_p, dtype=np.float64)
+        if log_p.shape != state.shape:
+            raise ValueError(
+                f"Expected `classification.log_p` to have the scene's grid shape {state.shape}, "
+                f"got {log_p.shape}."
+            )
+        occ = np.flatnonzero(state.reshape(-1) == OCCUPIED)
+        occ_desc = desc.reshape(-1, d)[occ]
+        occ_logp = log_p.reshape(-1)[occ]
+        if not np.all(np.isfinite(occ_desc)):
+            raise ValueError("`scene.descriptors` contains NaN or inf values at occupied voxels.")
+        if not np.all(np.isfinite(occ_logp)):
+            raise ValueError("`classification.log_p` contains NaN or inf values at occupied voxels.")
+        empty = state == EMPTY
+        if self.params.free_space_erosion > 0:
+            from scipy.ndimage import binary_dilation
+
+            near = binary_dilation(state == OCCUPIED, np.ones((3, 3, 3), bool),
+                                   iterations=int(self.params.free_space_erosion))
+            empty &= ~near
+        index = np.full(state.size, UNOBSERVED_CODE, dtype=np.int32)
+        index[empty.reshape(-1)] = EMPTY_CODE
+        index[occ] = np.arange(occ.size, dtype=np.int32)
+        # One unobserved voxel of padding on each side lets the kernel skip bounds checks.
+        self._index = np.pad(index.reshape(state.shape), 1, constant_values=UNOBSERVED_CODE)
+        self._cells = _cell_codes(self._index)
+        self._desc = np.ascontiguousarray(occ_desc, dtype=np.float32)
+        self._logp = np.ascontiguousarray(occ_logp, dtype=np.float64)
+        # Points in Morton (Z-curve) order: neighbours in memory stay neighbours in the grid
+        # under any pose, which keeps the voxel look-ups cache-friendly.
+        self._order = _morton_order(object_model.points, self.grid.voxel_size)
+        self._inverse = np.argsort(self._order)
+        self._points = np.ascontiguousarray(object_model.points[self._order], dtype=np.float64)
+        self._z = np.ascontiguousarray(object_model.descriptors[self._order], dtype=np.float32)
+        self.num_points = int(self._points.shape[0])
+        self.centroid = object_model.points.mean(axis=0)
+
+    def _args(self) -> tuple[Any, ...]:
+        p = self.params
+        return (
+            self._points, self._z, self._index, self._cells, self._desc, self._logp,
+            self.grid.origin, 1.0 / self.grid.voxel_size, self.grid.offset,
+            np.float32(p.beta), p.c_empty, p.log_p_unobserved,
+        )
+
+    def __call__(self, T: ArrayLike) -> float | NDArray[np.float64]:
+        """Alias of :meth:`log_likelihood`."""
+        return self.log_likelihood(T)
+
+    def log_likelihood(self, T: ArrayLike) -> float | NDArray[np.float64]:
+        """Eq. (1) at the pose(s) ``T``.
+
+        Parameters
+        ----------
+        T : (4, 4) or (B, 4, 4) array_like
+            ``T_scene_object`` poses (map object points into the scene frame).
+
+        Returns
+        -------
+        float or (B,) ndarray
+            Log-likelihood up to the constant ``-N log Z`` (nats).
+        """
+        from certpose.model._kernels import eq1_batch, eq1_batch_serial
+
+        poses, single = _as_poses(T)
+        kernel = eq1_batch if poses.shape[0] >= _PARALLEL_MIN_BATCH else eq1_batch_serial
+        with warnings.catch_warnings():
+            # numba tries TBB first and warns when the installed one is too old; harmless.
+            warnings.filterwarnings("ignore", message=".*TBB.*")
+            out = kernel(poses, *self._args())
+        return float(out[0]) if single else out
+
+    def point_terms(self, T: ArrayLike) -> NDArray[np.float64]:
+        """Per-point terms ``log p_loc(q_i)`` (N,) at one pose ``T`` (4, 4); they sum to eq. (1)."""
+        from certpose.model._kernels import eq1_points
+
+        poses, single = _as_poses(T)
+        if not single:
+            raise ValueError(f"Expected `T` to have shape (4, 4), got {poses.shape}.")
+        return eq1_points(poses[0], *self._args())[self._inverse]
+
+
+def log_likelihood(
+    scene: Any,
+    classification: ObjectClassification,
+    object_model: ObjectModel,
+    T: ArrayLike,
+    *,
+    params: LikelihoodParams | None = None,
+) -> float | NDArray[np.float64]:
+    """Eq. (1) at the pose(s) ``T`` ((4, 4) or (B, 4, 4)); see :class:`PoseLikelihood`.
+
+    Build a :class:`PoseLikelihood` once when evaluating many batches.
+    """
+    return PoseLikelihood(scene, classification, object_model, params=params).log_likelihood(T)

@@ -1,0 +1,6 @@
+"""The pose distribution: samplers of p(O_R,t) seeded by eq. (2) solutions, their baselines and
+initialisers for other samplers.
+
+May import :mod:`certpose.model`, :mod:`certpose.estimation` and :mod:`solvers`' public names;
+never the CLI or the bench.
+"""

@@ -1,0 +1,28 @@
+"""Certificates of global optimality for weighted TLS registration.
+
+Owns the Black-Rangarajan relaxations (rotation over translation-invariant measurements, and the
+joint rotation-translation lifting), their interior-point (cvxpy + Clarabel) and first-order
+dual searches, and the front end that turns a bound into a :class:`solvers.Certificate`. May
+import the public modules of :mod:`solvers` and :mod:`solvers.registration`; nothing imports it
+but callers who ask for a certificate (it loads cvxpy on demand).
+"""
+
+from solvers.certify.front import (
+    certify_pose,
+    certify_result,
+    certify_rotation,
+    refine_pose,
+    refine_rotation,
+    rotation_gnc,
+    solve_sdp,
+)
+
+__all__ = [
+    "certify_pose",
+    "certify_result",
+    "certify_rotation",
+    "refine_pose",
+    "refine_rotation",
+    "rotation_gnc",
+    "solve_sdp",
+]

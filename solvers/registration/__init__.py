@@ -1,0 +1,38 @@
+"""Robust registration: GNC-TLS, max-clique pruning and scalar TLS voting.
+
+Owns the solvers that turn a :class:`solvers.WeightedTLSProblem` into a
+:class:`solvers.RegistrationResult` and their numba kernels. May import the public modules of
+:mod:`solvers` (problem, result, lie, procrustes, validation); never :mod:`solvers.certify`.
+"""
+
+from solvers.registration.pruning import (
+    consistency_graph,
+    max_clique,
+    maximum_cliques,
+    prune_max_clique,
+    prune_maximum_cliques,
+    scalar_tls,
+)
+from solvers.registration.solve import (
+    GNCParams,
+    PruningParams,
+    degeneracy,
+    solve_gnc,
+    solve_pruned,
+    solve_registration,
+)
+
+__all__ = [
+    "GNCParams",
+    "PruningParams",
+    "consistency_graph",
+    "degeneracy",
+    "max_clique",
+    "maximum_cliques",
+    "prune_max_clique",
+    "prune_maximum_cliques",
+    "scalar_tls",
+    "solve_gnc",
+    "solve_pruned",
+    "solve_registration",
+]

@@ -1,0 +1,293 @@
+"""Numba kernels for the hot loops of GNC and pruning (consistency graph, greedy clique, voting).
+
+Kept free of Python objects so each call costs microseconds; compiled once and cached.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def procrustes(a, b, w):  # pragma: no cover - compiled
+    """Weighted Horn/Umeyama; returns (R, t, ok). ``ok`` is False for a zero weight sum."""
+    n = a.shape[0]
+    sw = 0.0
+    ca = np.zeros(3)
+    cb = np.zeros(3)
+    for k in range(n):
+        sw += w[k]
+        for d in range(3):
+            ca[d] += w[k] * a[k, d]
+            cb[d] += w[k] * b[k, d]
+    R = np.eye(3)
+    if sw <= 0.0:
+        return R, np.zeros(3), False
+    ca /= sw
+    cb /= sw
+    H = np.zeros((3, 3))
+    for k in range(n):
+        if w[k] == 0.0:
+            continue
+        for i in range(3):
+            bi = w[k] * (b[k, i] - cb[i])
+            for j in range(3):
+                H[i, j] += bi * (a[k, j] - ca[j])
+    U, _, Vt = np.linalg.svd(H)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
+        for i in range(3):
+            U[i, 2] = -U[i, 2]
+    R = U @ Vt
+    t = cb - R @ ca
+    return R, t, True
+
+
+@njit(cache=True)
+def residuals_sq(a, b, R, t, inv_beta2):  # pragma: no cover - compiled
+    n = a.shape[0]
+    r2 = np.empty(n)
+    for k in range(n):
+        s = 0.0
+        for i in range(3):
+            d = b[k, i] - t[i] - (R[i, 0] * a[k, 0] + R[i, 1] * a[k, 1] + R[i, 2] * a[k, 2])
+            s += d * d
+        r2[k] = s * inv_beta2[k]
+    return r2
+
+
+@njit(cache=True)
+def gnc_tls(a, b, prior_w, inv_beta2, cbar2, max_iter, mu_factor, cost_tol):  # pragma: no cover
+    """GNC-TLS (Yang et al. 2020) with per-correspondence prior weights.
+
+    Returns (R, t, gnc_weights, iterations, converged, ok).
+    """
+    n = a.shape[0]
+    w = prior_w.copy()
+    R, t, ok = procrustes(a, b, w)
+    if not ok:
+        return R, t, w, 0, False, False
+    r2 = residuals_sq(a, b, R, t, inv_beta2)
+    r2max = 0.0
+    for k in range(n):
+        if prior_w[k] > 0.0 and r2[k] > r2max:
+            r2max = r2[k]
+    gw = np.ones(n)
+    if 2.0 * r2max <= cbar2:
+        # Every residual is already inside the truncation: least squares is the TLS optimum.
+        return R, t, gw, 1, True, True
+    mu = cbar2 / (2.0 * r2max - cbar2)
+    prev_cost = np.inf
+    it = 0
+    converged = False
+    cbar = np.sqrt(cbar2)
+    while it < max_iter:
+        it += 1
+        lo = mu / (mu + 1.0) * cbar2
+        hi = (mu + 1.0) / mu * cbar2
+        for k in range(n):
+            if r2[k] <= lo:
+                gw[k] = 1.0
+            elif r2[k] >= hi:
+                gw[k] = 0.0
+            else:
+                gw[k] = cbar / np.sqrt(r2[k]) * np.sqrt(mu * (mu + 1.0)) - mu
+            w[k] = gw[k] * prior_w[k]
+        R, t, ok = procrustes(a, b, w)
+        if not ok:
+            return R, t, gw, it, False, False
+        r2 = residuals_sq(a, b, R, t, inv_beta2)
+        cost = 0.0
+        for k in range(n):
+            cost += w[k] * r2[k]
+        if abs(cost - prev_cost) <= cost_tol * max(1.0, abs(cost)):
+            converged = True
+            break
+        # Binary weights mean the surrogate equals TLS: further mu increases change nothing.
+        binary = True
+        for k in range(n):
+            if gw[k] != 0.0 and gw[k] != 1.0:
+                binary = False
+                break
+        if binary and it > 1 and abs(cost - prev_cost) <= 1e-9 * max(1.0, abs(cost)):
+            converged = True
+            break
+        prev_cost = cost
+        mu *= mu_factor
+    return R, t, gw, it, converged, True
+
+
+@njit(cache=True, fastmath=True)
+def consistency_matrix(at, bt, beta, cbar):  # pragma: no cover - compiled
+    """Dense symmetric adjacency (uint8) of the pairwise-consistency graph.
+
+    ``at``/``bt`` are the points transposed, (3, N) contiguous, so the inner loop vectorises.
+    ``i ~ j`` when |‖a_j - a_i‖ - ‖b_j - b_i‖| <= cbar (β_i + β_j); the diagonal is 0.
+    """
+    n = at.shape[1]
+    ax, ay, az = at[0], at[1], at[2]
+    bx, by, bz = bt[0], bt[1], bt[2]
+    adj = np.zeros((n, n), dtype=np.uint8)
+    for i in range(n):
+        row = adj[i]
+        for j in range(n):
+            x0 = ax[j] - ax[i]
+            x1 = ay[j] - ay[i]
+            x2 = az[j] - az[i]
+            y0 = bx[j] - bx[i]
+            y1 = by[j] - by[i]
+            y2 = bz[j] - bz[i]
+            d = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2) - np.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
+            row[j] = abs(d) <= cbar * (beta[i] + beta[j])
+        row[i] = 0
+    return adj
+
+
+@njit(cache=True)
+def multistart_greedy_clique(adj, deg):  # pragma: no cover - compiled
+    """Best of the greedy cliques grown inside each vertex's neighbourhood (by degree order).
+
+    A cheap, strong lower bound on the maximum clique: O(N * d * c) for degree d and clique
+    size c.
+    """
+    n = adj.shape[0]
+    order = np.argsort(-deg, kind="mergesort")
+    best = np.empty(0, dtype=np.int64)
+    in_best = np.zeros(n, dtype=np.bool_)
+    members = np.empty(n, dtype=np.int64)
+    for v in order:
+        if deg[v] + 1 <= best.shape[0]:
+            break  # later starts have lower degree: none can beat the best clique
+        if in_best[v]:
+            continue  # its neighbourhood was just explored from inside the best clique
+        members[0] = v
+        m = 1
+        for u in order:
+            if u == v or adj[v, u] == 0:
+                continue
+            ok = True
+            for k in range(1, m):
+                if adj[u, members[k]] == 0:
+                    ok = False
+                    break
+            if ok:
+                members[m] = u
+                m += 1
+        if m > best.shape[0]:
+            best = members[:m].copy()
+            in_best[:] = False
+            in_best[best] = True
+    return best
+
+
+@njit(cache=True)
+def degrees(adj):  # pragma: no cover - compiled
+    n = adj.shape[0]
+    deg = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        s = 0
+        for j in range(n):
+            s += adj[i, j]
+        deg[i] = s
+    return deg
+
+
+@njit(cache=True)
+def peel_to_core(adj, deg_in, k):  # pragma: no cover - compiled
+    """Vertices of the k-core (repeatedly drop vertices of degree < k)."""
+    n = adj.shape[0]
+    alive = np.ones(n, dtype=np.bool_)
+    deg = deg_in.copy()
+    stack = np.empty(n, dtype=np.int64)
+    top = 0
+    for i in range(n):
+        if deg[i] < k:
+            alive[i] = False
+            stack[top] = i
+            top += 1
+    while top > 0:
+        top -= 1
+        v = stack[top]
+        for u in range(n):
+            if adj[v, u] and alive[u]:
+                deg[u] -= 1
+                if deg[u] < k:
+                    alive[u] = False
+                    stack[top] = u
+                    top += 1
+    return np.flatnonzero(alive)
+
+
+@njit(cache=True)
+def scalar_tls(v, beta, w, cbar2):  # pragma: no cover - compiled
+    """Exact scalar TLS by sweeping sorted interval endpoints; returns (x, cost, found).
+
+    ``found`` is False when no piece beats "all outliers" (then any x is optimal).
+    """
+    n = v.shape[0]
+    cbar = np.sqrt(cbar2)
+    ends = np.empty(2 * n)
+    for k in range(n):
+        ends[k] = v[k] - beta[k] * cbar
+        ends[n + k] = v[k] + beta[k] * cbar
+    order = np.argsort(ends, kind="mergesort")
+    total_w = 0.0
+    for k in range(n):
+        total_w += w[k]
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    aw = 0.0
+    best_x = 0.0
+    best_cost = total_w * cbar2
+    found = False
+    for m in range(2 * n - 1):
+        e = order[m]
+        k = e if e < n else e - n
+        sign = 1.0 if e < n else -1.0
+        p = w[k] / (beta[k] * beta[k])
+        s0 += sign * p
+        s1 += sign * p * v[k]
+        s2 += sign * p * v[k] * v[k]
+        aw += sign * w[k]
+        lo = ends[e]
+        hi = ends[order[m + 1]]
+        if s0 <= 1e-300 or hi < lo:
+            continue
+        x = min(max(s1 / s0, lo), hi)
+        cost = s0 * x * x - 2.0 * s1 * x + s2 + (total_w - aw) * cbar2
+        if cost < best_cost:
+            best_cost = cost
+            best_x = x
+            found = True
+    return best_x, best_cost, found
+
+
+@njit(cache=True)
+def weighted_spread(p, w):  # pragma: no cover - compiled
+    """Square roots of the weighted covariance eigenvalues of ``p`` (descending), and the count."""
+    n = p.shape[0]
+    sw = 0.0
+    c = np.zeros(3)
+    cnt = 0
+    for k in range(n):
+        if w[k] > 0.0:
+            sw += w[k]
+            cnt += 1
+            for d in range(3):
+                c[d] += w[k] * p[k, d]
+    out = np.zeros(3)
+    if cnt == 0:
+        return out, 0
+    c /= sw
+    cov = np.zeros((3, 3))
+    for k in range(n):
+        if w[k] > 0.0:
+            for i in range(3):
+                di = p[k, i] - c[i]
+                for j in range(3):
+                    cov[i, j] += w[k] * di * (p[k, j] - c[j])
+    ev = np.linalg.eigvalsh(cov / sw)
+    for i in range(3):
+        out[i] = np.sqrt(max(ev[2 - i], 0.0))
+    return out, cnt

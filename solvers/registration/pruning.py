@@ -1,0 +1,172 @@
+"""Outlier pruning for extreme outlier rates (TEASER++-style).
+
+Pairwise consistency of translation-invariant measurements gives a graph whose maximum clique
+holds the mutually consistent correspondences; translation is then voted exactly per component.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    "consistency_graph",
+    "max_clique",
+    "maximum_cliques",
+    "scalar_tls",
+    "prune_max_clique",
+    "prune_maximum_cliques",
+]
+
+log = logging.getLogger(__name__)
+
+
+def consistency_graph(
+    source: ArrayLike, target: ArrayLike, noise_bound: ArrayLike, cbar: float = 1.0
+) -> NDArray[np.uint8]:
+    """Dense adjacency matrix of the pairwise-consistency graph, shape (N, N), uint8.
+
+    Correspondences ``i`` and ``j`` are consistent when the lengths of the translation-invariant
+    measurements ``a_j - a_i`` and ``b_j - b_i`` differ by at most ``cbar (beta_i + beta_j)``,
+    which holds for every pair of inliers.
+    """
+    from solvers.registration import _kernels  # numba: imported on first solve
+
+    at = np.ascontiguousarray(np.asarray(source, dtype=np.float64).T)
+    bt = np.ascontiguousarray(np.asarray(target, dtype=np.float64).T)
+    beta = np.asarray(noise_bound, dtype=np.float64)
+    if beta.ndim == 0:
+        beta = np.full(at.shape[1], float(beta))
+    beta = np.ascontiguousarray(beta)
+    return _kernels.consistency_matrix(at, bt, beta, float(cbar))
+
+
+def maximum_cliques(
+    adjacency: ArrayLike, *, limit: int = 16, exact_max_vertices: int | None = 500
+) -> tuple[list[NDArray[np.int64]], bool]:
+    """Maximum cliques of an undirected graph: all of them (up to ``limit``) when tied.
+
+    Multi-start greedy cliques give a strong lower bound ``L``; every clique of size ``>= L``
+    lies in the ``(L-1)``-core, which for registration graphs is usually tiny or already
+    complete. What is left goes to igraph's exact search (Cliquer) -- unless it still has more
+    than ``exact_max_vertices`` vertices: dense geometric graphs (e.g. eq. (2) candidate sets) make
+    the exact search exponential, so the greedy clique is returned and flagged as inexact.
+    Ties matter with few inliers: another clique of the same size can hold outliers.
+
+    Parameters
+    ----------
+    adjacency : (N, N) array_like
+        Symmetric 0/1 adjacency matrix with a zero diagonal.
+    limit : int
+        At most this many tied maximum cliques are returned.
+    exact_max_vertices : int or None
+        Largest reduced graph handed to the exact search; ``None`` always searches exactly.
+
+    Returns
+    -------
+    cliques : list of (m,) ndarray of int64
+        Sorted vertex indices of each clique, all of the same size (one vertex when there are
+        no edges).
+    exact : bool
+        True when the cliques are proven maximum.
+    """
+    from solvers.registration import _kernels
+
+    adj = np.ascontiguousarray(adjacency, dtype=np.uint8)
+    n = adj.shape[0]
+    if n == 0:
+        return [np.empty(0, dtype=np.int64)], True
+    deg = _kernels.degrees(adj)
+    best = np.sort(_kernels.multistart_greedy_clique(adj, deg))
+    core = _kernels.peel_to_core(adj, deg, best.size - 1)
+    if core.size <= best.size:
+        return [best], True
+    sub = adj[np.ix_(core, core)]
+    if int(np.count_nonzero(sub)) == core.size * (core.size - 1):
+        return [core], True  # the core is itself a clique
+    if exact_max_vertices is not None and core.size > exact_max_vertices:
+        log.info("max clique: %d-vertex core left after pruning exceeds %d; keeping the greedy "
+                 "clique of %d (not proven maximum)", core.size, exact_max_vertices, best.size)
+        return [best], False
+    import igraph as ig
+
+    iu, ju = np.nonzero(np.triu(sub, 1))
+    g = ig.Graph(n=core.size, edges=np.column_stack([iu, ju]).tolist(), directed=False)
+    found = g.largest_cliques()
+    if not found or len(found[0]) < best.size:
+        return [best], True
+    return [np.sort(core[np.asarray(c, dtype=np.int64)]) for c in found[: max(1, limit)]], True
+
+
+def max_clique(
+    adjacency: ArrayLike, *, exact_max_vertices: int | None = 500
+) -> tuple[NDArray[np.int64], bool]:
+    """One maximum clique (see :func:`maximum_cliques`) and whether it is proven maximum."""
+    cliques, exact = maximum_cliques(adjacency, limit=1, exact_max_vertices=exact_max_vertices)
+    return cliques[0], exact
+
+
+def scalar_tls(
+    values: ArrayLike, noise_bound: ArrayLike, weights: ArrayLike | None = None, cbar2: float = 1.0
+) -> tuple[float, float]:
+    """Exact minimiser of ``sum_k w_k min((x - v_k)^2 / beta_k^2, cbar2)`` over scalar ``x``.
+
+    Adaptive voting: the cost is quadratic between consecutive interval endpoints
+    ``v_k -/+ beta_k cbar``; sweeping the sorted endpoints with running sums evaluates every piece.
+
+    Returns
+    -------
+    x : float
+        The minimiser.
+    cost : float
+        Its cost.
+    """
+    from solvers.registration import _kernels
+
+    v = np.ascontiguousarray(values, dtype=np.float64).ravel()
+    n = v.size
+    if n == 0:
+        raise ValueError("`values` must not be empty.")
+    beta = np.asarray(noise_bound, dtype=np.float64)
+    beta = np.full(n, float(beta)) if beta.ndim == 0 else np.ascontiguousarray(beta)
+    w = np.ones(n) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
+    x, cost, found = _kernels.scalar_tls(v, beta, w, float(cbar2))
+    if not found:
+        # No piece beats "everything is an outlier": every x is optimal; report the median.
+        return float(np.median(v)), float(cost)
+    return float(x), float(cost)
+
+
+def prune_max_clique(
+    source: NDArray[np.float64],
+    target: NDArray[np.float64],
+    noise_bound: NDArray[np.float64],
+    cbar2: float = 1.0,
+    *,
+    exact_max_vertices: int | None = 500,
+) -> tuple[NDArray[np.int64], int, bool]:
+    """Indices of one maximum consistent set, the number of graph edges, and exactness."""
+    cliques, n_edges, exact = prune_maximum_cliques(
+        source, target, noise_bound, cbar2, limit=1, exact_max_vertices=exact_max_vertices
+    )
+    return cliques[0], n_edges, exact
+
+
+def prune_maximum_cliques(
+    source: NDArray[np.float64],
+    target: NDArray[np.float64],
+    noise_bound: NDArray[np.float64],
+    cbar2: float = 1.0,
+    *,
+    limit: int = 16,
+    exact_max_vertices: int | None = 500,
+) -> tuple[list[NDArray[np.int64]], int, bool]:
+    """All tied maximum consistent sets (up to ``limit``), the number of edges, and exactness."""
+    adj = consistency_graph(source, target, noise_bound, np.sqrt(cbar2))
+    cliques, exact = maximum_cliques(adj, limit=limit, exact_max_vertices=exact_max_vertices)
+    n_edges = int(np.count_nonzero(adj)) // 2
+    log.debug("consistency graph: %d vertices, %d edges, %d maximum clique(s) of %d (exact: %s)",
+              source.shape[0], n_edges, len(cliques), cliques[0].size, exact)
+    return cliques, n_edges, exact

@@ -1,0 +1,141 @@
+"""Public argument checks shared by solvers and certpose (messages name the argument and shape)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "as_float_array",
+    "check_points",
+    "check_per_item",
+    "check_rotation",
+    "check_transform",
+    "check_correspondences",
+    "resolve_rng",
+]
+
+
+def as_float_array(value: Any, name: str) -> NDArray[np.float64]:
+    """Convert ``value`` to a float64 array, raising ``TypeError`` for non-numeric input."""
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:  # ragged lists and the like
+        raise TypeError(f"`{name}` must be a numeric array, got {type(value).__name__}.") from exc
+    if arr.dtype == object or not (
+        np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.bool_)
+    ):
+        raise TypeError(f"`{name}` must be a numeric array, got dtype {arr.dtype}.")
+    if np.iscomplexobj(arr):
+        raise TypeError(f"`{name}` must be real-valued, got dtype {arr.dtype}.")
+    return np.array(arr, dtype=np.float64)
+
+
+def check_points(value: Any, name: str, *, min_points: int = 1) -> NDArray[np.float64]:
+    """Validate an ``(N, 3)`` array of finite points."""
+    arr = as_float_array(value, name)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"Expected `{name}` to have shape (N, 3), got {arr.shape}.")
+    if arr.shape[0] < min_points:
+        raise ValueError(
+            f"Expected `{name}` to have at least {min_points} points, got {arr.shape[0]}."
+        )
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.count_nonzero(~np.isfinite(arr).all(axis=1)))
+        raise ValueError(f"`{name}` contains NaN or inf values in {bad} row(s).")
+    return arr
+
+
+def check_per_item(
+    value: Any, name: str, n: int, *, positive: bool, allow_scalar: bool
+) -> NDArray[np.float64]:
+    """Validate a scalar or ``(n,)`` array of finite, non-negative (or positive) values."""
+    arr = as_float_array(value, name)
+    if arr.ndim == 0:
+        if not allow_scalar:
+            raise ValueError(f"Expected `{name}` to have shape ({n},), got a scalar.")
+        arr = np.full(n, float(arr))
+    elif arr.shape != (n,):
+        shape = "a scalar or shape" if allow_scalar else "shape"
+        raise ValueError(f"Expected `{name}` to have {shape} ({n},), got {arr.shape}.")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"`{name}` contains NaN or inf values.")
+    if positive and np.any(arr <= 0):
+        raise ValueError(f"`{name}` must be strictly positive, got minimum {arr.min():g}.")
+    if not positive and np.any(arr < 0):
+        raise ValueError(f"`{name}` must be non-negative, got minimum {arr.min():g}.")
+    return arr
+
+
+def check_rotation(value: Any, name: str = "rotation", *, atol: float = 1e-6) -> NDArray[np.float64]:
+    """Validate a 3x3 rotation matrix (orthonormal, determinant +1)."""
+    arr = as_float_array(value, name)
+    if arr.shape != (3, 3):
+        raise ValueError(f"Expected `{name}` to have shape (3, 3), got {arr.shape}.")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"`{name}` contains NaN or inf values.")
+    if not np.allclose(arr.T @ arr, np.eye(3), atol=atol) or np.linalg.det(arr) <= 0:
+        raise ValueError(f"`{name}` is not a rotation matrix (orthonormal with det +1).")
+    return arr
+
+
+def check_transform(value: Any, name: str = "T", *, atol: float = 1e-6) -> NDArray[np.float64]:
+    """Validate a 4x4 homogeneous rigid transform."""
+    arr = as_float_array(value, name)
+    if arr.shape != (4, 4):
+        raise ValueError(f"Expected `{name}` to have shape (4, 4), got {arr.shape}.")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"`{name}` contains NaN or inf values.")
+    if not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0], atol=atol):
+        raise ValueError(f"The last row of `{name}` must be [0, 0, 0, 1], got {arr[3].tolist()}.")
+    check_rotation(arr[:3, :3], f"{name}[:3, :3]", atol=atol)
+    return arr
+
+
+def resolve_rng(rng: np.random.Generator | int | None) -> np.random.Generator:
+    """Return a ``Generator`` from a seed, a generator or ``None``."""
+    if isinstance(rng, np.random.Generator):
+        return rng
+    if rng is None or isinstance(rng, (int, np.integer)):
+        return np.random.default_rng(rng)
+    raise TypeError(f"`rng` must be a numpy Generator, an int or None, got {type(rng).__name__}.")
+
+
+def check_correspondences(
+    source: Any,
+    target: Any,
+    *,
+    noise_bound: Any,
+    weights: Any,
+    cbar2: Any,
+    min_n: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
+    """Validate a weighted TLS problem's data; returns (source, target, beta, weights, cbar2).
+
+    ``noise_bound`` is a positive scalar or (N,) array, ``weights`` None (all ones), a
+    non-negative scalar or (N,) array, and ``cbar2`` a positive finite scalar.
+    """
+    src = check_points(source, "source")
+    dst = check_points(target, "target")
+    if src.shape[0] != dst.shape[0]:
+        raise ValueError(
+            "Expected `source` and `target` to have the same number of rows, got "
+            f"{src.shape[0]} and {dst.shape[0]}."
+        )
+    n = src.shape[0]
+    if n < min_n:
+        raise ValueError(f"Expected at least {min_n} correspondences, got {n}.")
+    if noise_bound is None:
+        raise ValueError("`noise_bound` is required (a positive scalar or an (N,) array).")
+    beta = check_per_item(noise_bound, "noise_bound", n, positive=True, allow_scalar=True)
+    w = (
+        np.ones(n)
+        if weights is None
+        else check_per_item(weights, "weights", n, positive=False, allow_scalar=True)
+    )
+    c2 = as_float_array(cbar2, "cbar2")
+    if c2.ndim != 0 or not np.isfinite(c2) or c2 <= 0:
+        raise ValueError(f"`cbar2` must be a positive finite scalar, got {cbar2!r}.")
+    return src, dst, beta, w, float(c2)
