@@ -4,3 +4,7 @@ initialisers for other samplers.
 May import :mod:`certpose.model`, :mod:`certpose.estimation` and :mod:`solvers`' public names;
 never the CLI or the bench.
 """
+
+from certpose.sampling.distribution import PoseDistribution
+
+__all__ = ["PoseDistribution"]

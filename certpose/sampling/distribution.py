@@ -1,0 +1,206 @@
+"""A weighted particle set over object poses ``T_camera_object``.
+
+Tangent chart (used by :meth:`PoseDistribution.tangent`): a pose ``(R, t)`` relative to a
+reference ``(R0, t0)`` is the 6-vector ``(log(R0^T R), t - t0)``, rotation vector in radians
+(object-frame perturbation) followed by the translation offset in metres (camera frame).
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+__all__ = ["PoseDistribution"]
+
+logger = logging.getLogger(__name__)
+
+_ORTHO_TOL = 1e-6
+
+
+def _check_rotations(rotations: NDArray[np.float64]) -> None:
+    if rotations.ndim != 3 or rotations.shape[1:] != (3, 3):
+        raise ValueError(f"Expected `rotations` to have shape (n, 3, 3), got {rotations.shape}.")
+    if not np.all(np.isfinite(rotations)):
+        raise ValueError("`rotations` contains NaN or infinite values.")
+    err = np.abs(np.einsum("nji,njk->nik", rotations, rotations) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(rotations)
+    bad = np.flatnonzero((err > _ORTHO_TOL) | (det < 0))
+    if bad.size:
+        raise ValueError(
+            f"`rotations[{bad[0]}]` is not a rotation (|R^T R - I| = {err[bad[0]]:.2e}, "
+            f"det = {det[bad[0]]:.3f}); {bad.size} of {len(rotations)} are invalid."
+        )
+
+
+@dataclass(frozen=True)
+class PoseDistribution:
+    """Weighted particles of ``T_camera_object``.
+
+    Parameters
+    ----------
+    rotations : (n, 3, 3) float64
+        Rotation parts of ``T_camera_object``.
+    translations : (n, 3) float64
+        Translation parts, metres.
+    weights : (n,) float64
+        Normalised importance weights (positive, summing to 1). Use :meth:`from_log_weights`
+        for unnormalised log-weights.
+    log_weights : (n,) float64 or None
+        Raw log importance ratios, kept for the Pareto-k diagnostic; None after resampling.
+    """
+
+    rotations: NDArray[np.float64]
+    translations: NDArray[np.float64]
+    weights: NDArray[np.float64]
+    log_weights: NDArray[np.float64] | None = None
+
+    def __post_init__(self) -> None:
+        R = np.array(self.rotations, dtype=np.float64)
+        t = np.array(self.translations, dtype=np.float64)
+        w = np.array(self.weights, dtype=np.float64)
+        if R.ndim == 3 and R.shape[0] == 0:
+            raise ValueError("Expected a non-empty particle set, got 0 particles.")
+        _check_rotations(R)
+        n = R.shape[0]
+        if t.shape != (n, 3):
+            raise ValueError(f"Expected `translations` to have shape ({n}, 3), got {t.shape}.")
+        if not np.all(np.isfinite(t)):
+            raise ValueError("`translations` contains NaN or infinite values.")
+        if w.shape != (n,):
+            raise ValueError(f"Expected `weights` to have shape ({n},), got {w.shape}.")
+        if not np.all(np.isfinite(w)):
+            raise ValueError("`weights` contains NaN or infinite values.")
+        if np.any(w <= 0):
+            raise ValueError(f"`weights` must be positive; {int(np.sum(w <= 0))} are <= 0.")
+        if abs(w.sum() - 1.0) > 1e-8:
+            raise ValueError(f"`weights` must sum to 1, got {w.sum():.6g}.")
+        lw = None
+        if self.log_weights is not None:
+            lw = np.array(self.log_weights, dtype=np.float64)
+            if lw.shape != (n,):
+                raise ValueError(f"Expected `log_weights` to have shape ({n},), got {lw.shape}.")
+            lw.setflags(write=False)
+        for a in (R, t, w):
+            a.setflags(write=False)
+        object.__setattr__(self, "rotations", R)
+        object.__setattr__(self, "translations", t)
+        object.__setattr__(self, "weights", w)
+        object.__setattr__(self, "log_weights", lw)
+
+    @classmethod
+    def from_log_weights(
+        cls, rotations: ArrayLike, translations: ArrayLike, log_weights: ArrayLike
+    ) -> PoseDistribution:
+        """Build from unnormalised log-weights (``-inf`` is refused, NaN is refused)."""
+        lw = np.asarray(log_weights, dtype=np.float64)
+        if lw.ndim != 1 or lw.size == 0:
+            raise ValueError(f"Expected `log_weights` to have shape (n,), n > 0, got {lw.shape}.")
+        if not np.all(np.isfinite(lw)):
+            raise ValueError("`log_weights` contains NaN or infinite values.")
+        w = np.exp(lw - lw.max())
+        w /= w.sum()
+        # Underflowed weights would be refused as zero: floor them at the smallest positive float.
+        w = np.maximum(w, np.finfo(np.float64).tiny)
+        w /= w.sum()
+        return cls(np.asarray(rotations), np.asarray(translations), w, log_weights=lw)
+
+    def __len__(self) -> int:
+        return int(self.weights.shape[0])
+
+    @property
+    def poses(self) -> NDArray[np.float64]:
+        """(n, 4, 4) homogeneous ``T_camera_object``."""
+        T = np.zeros((len(self), 4, 4))
+        T[:, :3, :3] = self.rotations
+        T[:, :3, 3] = self.translations
+        T[:, 3, 3] = 1.0
+        return T
+
+    @property
+    def ess(self) -> float:
+        """Kish effective sample size ``1 / sum(w^2)``."""
+        return float(1.0 / np.sum(self.weights**2))
+
+    def pareto_k(self) -> float:
+        """Pareto-k of PSIS on the raw log-weights (arviz); k > 0.7 means unreliable weights.
+
+        Raises
+        ------
+        ValueError
+            If the distribution carries no raw log-weights (e.g. after resampling).
+        """
+        if self.log_weights is None:
+            raise ValueError("Pareto-k needs the raw `log_weights`; this distribution has none.")
+        with warnings.catch_warnings():
+            # arviz announces its refactor on import; psislw is unaffected.
+            warnings.simplefilter("ignore", FutureWarning)
+            import arviz
+
+        _, k = arviz.psislw(self.log_weights.copy())
+        return float(np.asarray(k))
+
+    def resample(
+        self, n: int | None = None, *, rng: np.random.Generator | int | None = None
+    ) -> PoseDistribution:
+        """Systematic resampling to ``n`` equally weighted particles (default: same size)."""
+        n = len(self) if n is None else int(n)
+        if n <= 0:
+            raise ValueError(f"Expected `n` > 0, got {n}.")
+        rng = np.random.default_rng(rng)
+        cdf = np.cumsum(self.weights)
+        cdf[-1] = 1.0
+        u = (rng.random() + np.arange(n)) / n
+        idx = np.searchsorted(cdf, u, side="right")
+        return PoseDistribution(self.rotations[idx], self.translations[idx], np.full(n, 1.0 / n))
+
+    def tangent(self, R0: ArrayLike, t0: ArrayLike) -> NDArray[np.float64]:
+        """(n, 6) chart coordinates ``(log(R0^T R), t - t0)`` around ``(R0, t0)``."""
+        R0 = np.asarray(R0, dtype=np.float64)
+        rel = np.einsum("ji,njk->nik", R0, self.rotations)
+        rv = Rotation.from_matrix(rel).as_rotvec()
+        return np.hstack([rv, self.translations - np.asarray(t0, dtype=np.float64).reshape(1, 3)])
+
+    def mean_and_covariance(self, *, iterations: int = 10) -> tuple[NDArray, NDArray, NDArray]:
+        """Weighted Karcher mean rotation, mean translation, and 6x6 tangent covariance.
+
+        Returns ``(R_mean (3,3), t_mean (3,), cov (6,6))`` in the chart of the module docstring.
+        """
+        i0 = int(np.argmax(self.weights))
+        R0, t0 = self.rotations[i0], np.asarray(self.weights @ self.translations)
+        for _ in range(iterations):
+            d = self.weights @ self.tangent(R0, t0)[:, :3]
+            R0 = R0 @ Rotation.from_rotvec(d).as_matrix()
+            if np.linalg.norm(d) < 1e-12:
+                break
+        X = self.tangent(R0, t0)
+        cov = np.einsum("n,ni,nj->ij", self.weights, X, X)
+        return R0, t0, cov
+
+    def save(self, path: str | Path) -> None:
+        """Write ``rotations``, ``translations``, ``weights`` (and raw ``log_weights``) to ``.npz``."""
+        arrays = dict(
+            rotations=self.rotations, translations=self.translations, weights=self.weights
+        )
+        if self.log_weights is not None:
+            arrays["log_weights"] = self.log_weights
+        np.savez(path, **arrays)
+
+    @classmethod
+    def load(cls, path: str | Path) -> PoseDistribution:
+        """Read a distribution written by :meth:`save`."""
+        try:
+            data = np.load(path)
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"Cannot read particle file {str(path)!r}: {exc}") from exc
+        with data:
+            missing = {"rotations", "translations", "weights"} - set(data.files)
+            if missing:
+                raise ValueError(f"Particle file {str(path)!r} lacks {sorted(missing)}.")
+            lw = data["log_weights"] if "log_weights" in data.files else None
+            return cls(data["rotations"], data["translations"], data["weights"], log_weights=lw)

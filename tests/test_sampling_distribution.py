@@ -1,0 +1,121 @@
+"""PoseDistribution: weights, ESS, Pareto-k, resampling, tangent moments, .npz round trip."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from certpose.sampling.distribution import PoseDistribution
+
+
+def _particles(n, rng=0):
+    rng = np.random.default_rng(rng)
+    R = Rotation.random(n, random_state=1).as_matrix()
+    t = rng.normal(size=(n, 3))
+    return R, t
+
+
+def test_ess_hand_computed():
+    R, t = _particles(4)
+    d = PoseDistribution(R, t, np.array([0.5, 0.25, 0.125, 0.125]))
+    # 1 / (0.25 + 0.0625 + 2 * 0.015625) = 1 / 0.34375
+    assert d.ess == pytest.approx(1 / 0.34375)
+    assert PoseDistribution(R, t, np.full(4, 0.25)).ess == pytest.approx(4.0)
+
+
+def test_from_log_weights_normalises():
+    R, t = _particles(3)
+    d = PoseDistribution.from_log_weights(R, t, np.log([1.0, 2.0, 5.0]) + 1000.0)
+    np.testing.assert_allclose(d.weights, [0.125, 0.25, 0.625])
+
+
+def test_pareto_k_uniform_vs_heavy_tail():
+    rng = np.random.default_rng(3)
+    n = 2000
+    R, t = _particles(n)
+    # Bounded log-weights (light tail): k well below 0.5.
+    lw_light = 0.1 * rng.random(n)
+    assert PoseDistribution.from_log_weights(R, t, lw_light).pareto_k() < 0.5
+    # Log-weights of a Pareto(k = 1) tail: ratios w = U^-1, so PSIS must report k near 1.
+    lw = -np.log(rng.random(n))
+    k = PoseDistribution.from_log_weights(R, t, lw).pareto_k()
+    assert 0.7 < k < 1.3
+
+
+def test_resample_frequencies_match_weights():
+    R, t = _particles(3)
+    w = np.array([0.6, 0.3, 0.1])
+    r = PoseDistribution(R, t, w).resample(10_000, rng=0)
+    counts = [np.sum(np.all(r.translations == t[i], axis=1)) for i in range(3)]
+    # Systematic resampling: each count is within one of n * w.
+    np.testing.assert_array_less(np.abs(np.array(counts) - 10_000 * w), 1.0 + 1e-9)
+    assert r.ess == pytest.approx(10_000)
+    assert r.log_weights is None
+    with pytest.raises(ValueError, match="raw `log_weights`"):
+        r.pareto_k()
+
+
+def test_mean_and_covariance_recover_gaussian():
+    rng = np.random.default_rng(5)
+    n = 20_000
+    R0 = Rotation.from_rotvec([0.3, -1.0, 0.5]).as_matrix()
+    t0 = np.array([0.1, 0.2, 0.8])
+    sd = np.array([0.05, 0.1, 0.02, 0.01, 0.003, 0.02])
+    X = rng.normal(size=(n, 6)) * sd
+    R = R0 @ Rotation.from_rotvec(X[:, :3]).as_matrix()
+    d = PoseDistribution(R, t0 + X[:, 3:], np.full(n, 1.0 / n))
+    Rm, tm, cov = d.mean_and_covariance()
+    assert np.linalg.norm(Rotation.from_matrix(R0.T @ Rm).as_rotvec()) < 3e-3
+    np.testing.assert_allclose(tm, t0, atol=1e-3)
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), sd, rtol=0.05)
+
+
+def test_npz_round_trip(tmp_path):
+    R, t = _particles(5)
+    d = PoseDistribution.from_log_weights(R, t, np.arange(5.0))
+    d.save(tmp_path / "p.npz")
+    e = PoseDistribution.load(tmp_path / "p.npz")
+    for name in ("rotations", "translations", "weights", "log_weights"):
+        np.testing.assert_array_equal(getattr(e, name), getattr(d, name))
+    with pytest.raises(ValueError, match="Cannot read"):
+        PoseDistribution.load(tmp_path / "missing.npz")
+
+
+@pytest.mark.parametrize(
+    "weights, match",
+    [
+        ([0.5, 0.5, 0.0], "positive"),
+        ([1.5, -0.5, 0.0], "positive"),
+        ([np.nan, 0.5, 0.5], "NaN"),
+        ([0.2, 0.2, 0.2], "sum to 1"),
+        ([0.5, 0.5], r"shape \(3,\)"),
+    ],
+)
+def test_bad_weights(weights, match):
+    R, t = _particles(3)
+    with pytest.raises(ValueError, match=match):
+        PoseDistribution(R, t, np.array(weights))
+
+
+def test_bad_particles():
+    R, t = _particles(3)
+    with pytest.raises(ValueError, match="non-empty"):
+        PoseDistribution(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0))
+    R_bad = R.copy()
+    R_bad[1] *= 1.1
+    with pytest.raises(ValueError, match=r"`rotations\[1\]` is not a rotation"):
+        PoseDistribution(R_bad, t, np.full(3, 1 / 3))
+    with pytest.raises(ValueError, match="not a rotation"):
+        PoseDistribution(-R, t, np.full(3, 1 / 3))
+    with pytest.raises(ValueError, match=r"shape \(3, 3\)"):
+        PoseDistribution(R, t[:, :2], np.full(3, 1 / 3))
+    with pytest.raises(ValueError, match="NaN"):
+        PoseDistribution.from_log_weights(R, t, [0.0, np.nan, 1.0])
+
+
+def test_frozen():
+    R, t = _particles(2)
+    d = PoseDistribution(R, t, np.full(2, 0.5))
+    with pytest.raises(AttributeError):
+        d.weights = np.ones(2)
+    with pytest.raises(ValueError):
+        d.weights[0] = 1.0
