@@ -119,3 +119,21 @@ def test_frozen():
         d.weights = np.ones(2)
     with pytest.raises(ValueError):
         d.weights[0] = 1.0
+
+
+def test_log_density_matches_smoothed_gaussian():
+    rng = np.random.default_rng(7)
+    n = 5000
+    sd = np.array([0.02, 0.03, 0.01, 0.004, 0.002, 0.003])
+    X = rng.normal(size=(n, 6)) * sd
+    R0 = Rotation.from_rotvec([0.2, 0.1, -0.4]).as_matrix()
+    t0 = np.array([0.0, 0.1, 0.7])
+    d = PoseDistribution(
+        R0 @ Rotation.from_rotvec(X[:, :3]).as_matrix(), t0 + X[:, 3:], np.full(n, 1 / n)
+    )
+    # A Gaussian KDE of a Gaussian is, in expectation, the Gaussian with covariance (1 + h^2) C.
+    h2 = n ** (-0.2)
+    expected = -3 * np.log(2 * np.pi) - np.sum(np.log(sd)) - 3 * np.log(1 + h2)
+    assert d.log_density(R0, t0) == pytest.approx(expected, abs=0.15)
+    # Far from the particles the density is tiny.
+    assert d.log_density(R0, t0 + 0.05) < expected - 100

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
+from scipy.special import logsumexp
 
 __all__ = ["PoseDistribution"]
 
@@ -181,6 +182,26 @@ class PoseDistribution:
         X = self.tangent(R0, t0)
         cov = np.einsum("n,ni,nj->ij", self.weights, X, X)
         return R0, t0, cov
+
+    def log_density(self, R: ArrayLike, t: ArrayLike) -> float:
+        """Log-density of one pose under a Gaussian kernel density of the particles.
+
+        Each particle carries a Gaussian of covariance ``h^2 C`` in the chart around itself, with
+        ``C`` the weighted tangent covariance and ``h`` Scott's factor ``ess^(-1/10)``. The density
+        is per unit of rotation vector (rad^3) and metre^3; the exp-map Jacobian is ignored, which
+        is exact to O(h^2 |omega|^2) for kernels a few degrees wide.
+        """
+        R = np.asarray(R, dtype=np.float64)
+        t = np.asarray(t, dtype=np.float64).reshape(3)
+        _check_rotations(R[None])
+        _, _, cov = self.mean_and_covariance()
+        h2 = self.ess ** (-2.0 / 10.0)
+        L = np.linalg.cholesky(h2 * cov + 1e-12 * np.eye(6))
+        rel = np.einsum("nji,jk->nik", self.rotations, R)
+        X = np.hstack([Rotation.from_matrix(rel).as_rotvec(), t - self.translations])
+        z = np.linalg.solve(L, X.T)
+        log_norm = -0.5 * 6 * np.log(2 * np.pi) - np.sum(np.log(np.diag(L)))
+        return float(logsumexp(np.log(self.weights) - 0.5 * np.sum(z * z, axis=0)) + log_norm)
 
     def save(self, path: str | Path) -> None:
         """Write ``rotations``, ``translations``, ``weights`` (and raw ``log_weights``) to ``.npz``."""
