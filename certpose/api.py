@@ -40,6 +40,9 @@ def register(
     rng: np.random.Generator | int | None = None,
     prune: Literal["auto", "always", "never"] = "auto",
     cbar2: float = 1.0,
+    scope: Literal["auto", "full", "pruned", "rotation"] = "auto",
+    tol: float = 1e-3,
+    time_limit: float | None = None,
 ) -> RegistrationResult:
     """Robustly register corresponding point sets with the weighted TLS cost.
 
@@ -63,6 +66,14 @@ def register(
         Whether to prune with the pairwise-consistency max clique before GNC.
     cbar2 : float
         TLS truncation on normalised squared residuals (default 1).
+    scope : {"auto", "full", "pruned", "rotation"}
+        Which problem the certificate bounds (``certify=True`` or ``solver="sdp"``): ``"auto"``
+        is the full problem for ``certify`` (clique decomposition at scale) and the TIM rotation
+        subproblem for ``solver="sdp"`` (what TEASER++ certifies, ``"rotation"``).
+    tol : float
+        Gap tolerance of the certificate (see :class:`solvers.certificate.Certificate`).
+    time_limit : float or None
+        Seconds the certifier may spend (default 120 s per bound search).
 
     Returns
     -------
@@ -91,10 +102,10 @@ def register(
     if solver == "sdp":
         from solvers.certify import solve_sdp  # cvxpy: imported on demand
 
-        return solve_sdp(problem)
+        return solve_sdp(problem, scope=scope, tol=tol, time_limit=time_limit)
     result = solve_registration(problem, method=method)  # type: ignore[arg-type]
     if certify:
         from solvers.certify import certify_result
 
-        result = certify_result(problem, result)
+        result = certify_result(problem, result, scope=scope, tol=tol, time_limit=time_limit)
     return result

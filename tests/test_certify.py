@@ -190,8 +190,11 @@ def test_wrong_full_pose_is_not_certified() -> None:
     p = WeightedTLSProblem(src, dst, noise_bound=0.0554)
     res = solve_registration(p)
     R_bad = so3_exp(np.radians(10.0) * np.array([0.0, 0.0, 1.0])) @ res.rotation
-    cert = certify_pose(p, R_bad, res.translation)
-    assert not cert.certified and cert.problem == "rotation_tim_subproblem"
+    cert = certify_pose(p, R_bad, res.translation)  # default: the full problem
+    assert not cert.certified and cert.problem == "full_weighted_tls"
+    assert cert.status is CertificateStatus.GAP_TOO_LARGE
+    tim = certify_pose(p, R_bad, res.translation, scope="rotation")
+    assert not tim.certified and tim.problem == "rotation_tim_subproblem"
 
 
 # ----------------------------------------------------------------------------- failure paths
@@ -283,7 +286,7 @@ def test_infeasible_relaxation_is_reported_not_raised(kind: str) -> None:
     import dataclasses
 
     from solvers.certificate import BoundedProblem
-    from solvers.certify.front import _finish_certificate, _ipm_bound
+    from solvers.certify.front import _finish_certificate, _ipm_bound, _Scoped
 
     rng = np.random.default_rng(4)
     p, _ = random_rotation_problem(rng, 5, 1)
@@ -292,8 +295,8 @@ def test_infeasible_relaxation_is_reported_not_raised(kind: str) -> None:
     assert sol.status == "infeasible" and not sol.accepted, sol
     bound = _ipm_bound(lift, kind, 200, 1e-7)
     assert bound.status is CertificateStatus.INFEASIBLE and not bound.accepted
-    cert = _finish_certificate(p.cost(np.eye(3)), bound, tol=1e-3,
-                               problem=BoundedProblem.ROTATION, t0=0.0, n=p.n)
+    cert = _finish_certificate(p.cost(np.eye(3)), bound, tol=1e-3, ws=1.0, outlier_cost=0.0,
+                               scoped=_Scoped(BoundedProblem.ROTATION, p, None, None), t0=0.0)
     assert not cert.certified and cert.status is CertificateStatus.INFEASIBLE
     assert "no certificate" in cert.message
 

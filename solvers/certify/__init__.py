@@ -2,7 +2,8 @@
 
 Owns the Black-Rangarajan relaxations (rotation over translation-invariant measurements, and the
 joint rotation-translation lifting), their interior-point (cvxpy + Clarabel) and first-order
-dual searches, and the front end that turns a bound into a :class:`solvers.Certificate`. May
+dual searches, the clique decomposition of the full problem with exact branch and bound
+per clique, and the front end that turns a bound into a :class:`solvers.Certificate`. May
 import the public modules of :mod:`solvers` and :mod:`solvers.registration`; nothing imports it
 but callers who ask for a certificate (it loads cvxpy on demand).
 """
@@ -11,6 +12,7 @@ from solvers.certify.front import (
     certify_pose,
     certify_result,
     certify_rotation,
+    rebuild_bounded_problem,
     refine_pose,
     refine_rotation,
     rotation_gnc,
@@ -25,4 +27,5 @@ __all__ = [
     "refine_rotation",
     "rotation_gnc",
     "solve_sdp",
+    "rebuild_bounded_problem",
 ]

@@ -8,26 +8,38 @@ Public entry points
 
 Which problem is bounded (``scope``)
 ------------------------------------
-* ``"full"``: the weighted TLS problem as given, through the joint rotation-translation lifting
-  ``y = [1; vec(R); t]`` (:func:`solvers.certify.relaxation.joint_lifting`). For ``K <= dense_max`` the
-  dense relaxation with the redundant and product constraints is solved by Clarabel (tight,
-  but growing like ``K^6``: 15-35 s at ``K = 4-5``); beyond, a Douglas-Rachford dual search
-  (:func:`solvers.certify.joint_dual.joint_dual_certificate`) reaches that relaxation's bound, slowly
-  (measured K = 10-20: 3-50 s at 0-50% outliers; not at 80% within 60 s). The chordal
-  relaxation (``method="chordal"``) is fast but loose on this problem.
-* ``"pruned"``: the same on the max-clique survivors only.
+* ``"full"`` (the default, ``"auto"``): the weighted TLS problem as given, bounded by
+  **clique decomposition** (:mod:`solvers.certify.cliques`): every pose's inlier set is a
+  clique of the pairwise-consistency graph (two inliers' translation-invariant measurements
+  differ in length by at most ``cbar (beta_i + beta_j)``), hence lies in a maximal clique ``C``,
+  and the pose's cost is exactly its cost on ``C`` plus ``cbar2`` times the weight outside
+  ``C``. The least, over the maximal cliques that could beat the candidate, of (a certified
+  bound on the subproblem restricted to ``C``) + (the outlier cost outside ``C``) is a lower
+  bound on the full problem. A clique subproblem (nearly all inliers) is solved exactly by
+  branch and bound over its inlier sets (closed-form least squares per set); beyond the node
+  budget (large cliques at low outlier rates) it is bounded by the joint relaxation's
+  Douglas-Rachford dual search (:func:`solvers.certify.joint_dual.joint_dual_certificate`).
+  ``method="dense"``/``"chordal"``/``"dual"`` bound the whole problem with the joint
+  relaxation (lifting ``y = [1; vec(R); t]``) instead.
+* ``"pruned"``: the joint relaxation of the problem restricted to the max-clique survivors.
 * ``"rotation"``: the rotation subproblem over translation-invariant measurements (a chain of
-  TIMs through the max-clique survivors), QUASAR's quaternion relaxation. This is what TEASER++'s
-  certifier bounds; it is tight up to high outlier rates. A dual certificate of the candidate
-  is searched by Douglas-Rachford splitting from a closed-form dual point in the candidate's
-  frame (:func:`solvers.certify.sdp_dual.rotation_dual_certificate`, 2-7 iterations at K = 100),
-  with the dense interior-point solve as the fallback for ``K <= dense_max``.
-* ``"auto"``: ``"rotation"``.
+  TIMs through the max-clique survivors), QUASAR's quaternion relaxation: what TEASER++'s
+  certifier bounds. A dual certificate of the candidate is searched by Douglas-Rachford
+  splitting from a closed-form dual point in the candidate's frame
+  (:func:`solvers.certify.sdp_dual.rotation_dual_certificate`), with the dense interior-point
+  solve as the fallback for ``K <= dense_max``.
 
-Every lower bound is recomputed in numpy from a dual point with the eigenvalue correction; the
-backend's objective is never used. A certificate is issued only when the backend reached its
-tolerances (or the dual iteration its target) *and* the recomputed relative gap is within
-``tol``.
+What a certificate vouches for
+------------------------------
+A certificate is attached to exactly one pose: its ``upper_bound`` is that pose's cost on the
+bounded problem (in the user's units). Every relaxation bound is recomputed in numpy from a
+dual point with the eigenvalue correction and a rounding allowance (the backend's objective is
+never used); a branch-and-bound value is an exact minimum less a rounding allowance. ``certified`` needs a backend that reached its tolerances (or a dual iteration that
+reached its target) *and* a small gap on the normalised problem, not diluted by the outliers'
+constant cost (:func:`solvers.certificate.undiluted_gap`; the literature's gap is reported
+beside it). When certifying finds a better optimum of the bounded problem, the certificate
+says so (``better_upper_bound``); :func:`certify_result` returns that pose only if its cost on
+the user's problem is not higher, and then certifies *it*.
 """
 
 from __future__ import annotations
@@ -41,7 +53,13 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from solvers.certificate import BoundedProblem, Certificate, CertificateStatus, relative_gap
+from solvers.certificate import (
+    BoundedProblem,
+    Certificate,
+    CertificateStatus,
+    relative_gap,
+    undiluted_gap,
+)
 from solvers.certify._threads import single_thread_blas
 from solvers.certify.relaxation import (
     Lifting,
@@ -63,12 +81,27 @@ __all__ = [
     "rotation_gnc",
     "refine_pose",
     "refine_rotation",
+    "rebuild_bounded_problem",
+    "ROTATION_ATOL",
 ]
 
 log = logging.getLogger(__name__)
 
 DEFAULT_DUAL_TIME_LIMIT = 120.0
 """Seconds the dual certificate search may take when no ``time_limit`` is given."""
+
+ROTATION_ATOL = 1e-9
+"""Absolute tolerance on ``|R^T R - I|`` (max entry) and ``|det R - 1|`` for a candidate.
+
+A matrix off by more bounds another problem's cost: a rotation scaled by ``1 + 5e-6`` (accepted
+by ``np.allclose``'s default relative tolerance) was once "certified" with ``upper < lower``."""
+
+MAX_CLIQUES = 64
+"""Most maximal cliques the clique decomposition bounds before giving up (uncertified)."""
+
+BNB_MAX_NODES = 100_000
+"""Node budget of the exact branch and bound on one clique (about 5 s); beyond it the clique
+subproblem goes to the joint dual search."""
 
 Scope = Literal["auto", "full", "pruned", "rotation"]
 Method = Literal["auto", "dense", "chordal", "dual"]
@@ -94,7 +127,9 @@ class _Bound:
     method: str
     message: str
     Z00: NDArray[np.float64] | None = None
-    rotation: NDArray[np.float64] | None = None  # the dual search's final candidate
+    rotation: NDArray[np.float64] | None = None  # a better candidate found by the search
+    translation: NDArray[np.float64] | None = None
+    cliques: tuple[tuple[int, ...], ...] | None = None
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -115,8 +150,12 @@ def _candidate_error(R: Any, t: Any) -> tuple[NDArray[np.float64], NDArray[np.fl
     t = t.reshape(3)
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
         return R, t, "the candidate pose contains NaN or inf"
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
-        return R, t, "the candidate `R` is not a rotation matrix"
+    orth = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if orth > ROTATION_ATOL or abs(det - 1.0) > ROTATION_ATOL:
+        return R, t, (f"the candidate `R` is not a rotation matrix (max |R^T R - I| = {orth:.2e}, "
+                      f"det = {det:.12g}; tolerance {ROTATION_ATOL:g}); project it onto SO(3) "
+                      f"first, e.g. with scipy.spatial.transform.Rotation.from_matrix")
     return R, t, ""
 
 
@@ -317,40 +356,210 @@ def _joint_drs_bound(
         res = joint_dual_certificate(problem, Rr, tr, tol=tol, max_iterations=max_iter,
                                      time_limit=DEFAULT_DUAL_TIME_LIMIT if time_limit is None
                                      else time_limit)
-    return _dual_search_bound(res, "joint dual certificate search")
+    bound = _dual_search_bound(res, "joint dual certificate search")
+    return dataclasses.replace(bound, rotation=Rr, translation=tr)
 
 
+# ----------------------------------------------------------------------------- scoping
+@dataclass(frozen=True, eq=False)
+class _Scoped:
+    """The bounded problem (user units) and how it was built from the user's problem."""
+
+    label: BoundedProblem
+    problem: WeightedTLSProblem | RotationTLSProblem
+    indices: NDArray[np.int64] | None  # terms of the user's problem; None = all
+    pairs: NDArray[np.int64] | None  # TIM pairs (user indices)
+
+
+def _scope_problem(problem: WeightedTLSProblem, scope: Scope, survivors: ArrayLike | None) -> _Scoped:
+    """The bounded problem for ``scope`` (``"auto"`` is ``"full"``)."""
+    if scope not in ("auto", "full", "pruned", "rotation"):
+        raise ValueError(f"`scope` must be 'auto', 'full', 'pruned' or 'rotation', got {scope!r}.")
+    if scope in ("auto", "full"):
+        return _Scoped(BoundedProblem.FULL, problem, None, None)
+    idx = _survivors(problem) if survivors is None else np.asarray(survivors, dtype=np.int64)
+    if idx.ndim != 1 or (idx.size and (idx.min() < 0 or idx.max() >= problem.n)):
+        raise ValueError(f"`survivors` must be indices in [0, {problem.n}), got shape {idx.shape}.")
+    if idx.size < 3:
+        idx = np.arange(problem.n)
+    if scope == "pruned":
+        return _Scoped(BoundedProblem.PRUNED, problem.subset(idx), idx, None)
+    chain = np.stack([idx[:-1], idx[1:]], axis=1)
+    return _Scoped(BoundedProblem.ROTATION_TIM, tim_problem(problem, chain), idx, chain)
+
+
+def rebuild_bounded_problem(
+    problem: WeightedTLSProblem, certificate: Certificate
+) -> WeightedTLSProblem | RotationTLSProblem:
+    """The problem a certificate of a pose for ``problem`` bounds, rebuilt from its record.
+
+    Its ``upper_bound`` is the certified pose's cost on the returned problem and its
+    ``lower_bound`` a bound on that problem's optimum (user units).
+    """
+    if certificate.problem == BoundedProblem.FULL.value:
+        return problem
+    if certificate.problem == BoundedProblem.PRUNED.value and certificate.indices is not None:
+        return problem.subset(np.asarray(certificate.indices, dtype=np.int64))
+    if certificate.problem == BoundedProblem.ROTATION_TIM.value and certificate.pairs is not None:
+        return tim_problem(problem, np.asarray(certificate.pairs, dtype=np.int64).reshape(-1, 2))
+    raise ValueError(f"The certificate ({certificate.problem}) does not record its bounded "
+                     f"problem's terms.")
+
+
+def _normalised(p: WeightedTLSProblem | RotationTLSProblem) -> tuple[Any, float]:
+    """The problem with weights divided by their positive mean, and that scale.
+
+    The cost then counts one average correspondence's outlier cost as ``cbar2``: gaps do not
+    depend on the weights' units (the liftings centre and scale the points themselves).
+    """
+    pos = p.weights[p.weights > 0]
+    ws = float(pos.mean()) if pos.size else 1.0
+    if not (np.isfinite(ws) and ws > 0):
+        ws = 1.0
+    cls = type(p)
+    return cls(p.source, p.target, noise_bound=p.noise_bound, weights=p.weights / ws,
+               cbar2=p.cbar2), ws
+
+
+def _cost(p: WeightedTLSProblem | RotationTLSProblem, R: NDArray[np.float64],
+          t: NDArray[np.float64] | None) -> float:
+    return p.cost(R) if isinstance(p, RotationTLSProblem) else p.cost(R, t)
+
+
+def _outlier_cost(p: WeightedTLSProblem | RotationTLSProblem, R: NDArray[np.float64],
+                  t: NDArray[np.float64] | None) -> float:
+    r2 = p.residuals_sq(R) if isinstance(p, RotationTLSProblem) else p.residuals_sq(R, t)
+    return float(p.cbar2 * p.weights[r2 > p.cbar2].sum())
+
+
+# ----------------------------------------------------------------------------- clique route
+def _clique_bound(
+    pn: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.float64], *, tol: float,
+    max_iter: int | None, time_limit: float | None, eps: float,
+) -> _Bound:
+    """Lower bound on the (normalised) full problem by clique decomposition (module docstring).
+
+    """
+    from solvers.certify.cliques import candidate_cliques, clique_optimum
+
+    t0 = time.perf_counter()
+    budget = DEFAULT_DUAL_TIME_LIMIT if time_limit is None else time_limit
+    u = pn.cost(R, t)
+    cliques, complete = candidate_cliques(pn, u, limit=MAX_CLIQUES)
+    if not complete:
+        return _Bound(lower=-np.inf, accepted=False, status=CertificateStatus.ITERATION_LIMIT,
+                      backend_status="cliques:too_many", eigenvalue_ratio=np.nan,
+                      method="clique_decomposition",
+                      message=f"more than {MAX_CLIQUES} maximal cliques could beat the pose")
+    total = float(pn.weights.sum())
+    c2 = pn.cbar2
+    r2 = pn.residuals_sq(R, t)
+    # Cliques that could beat u: none left means u is optimal up to the skip threshold.
+    lower = u * (1 + 1e-9) + 1e-12 * total
+    best_R, best_t, best_u = None, None, u
+    used: list[tuple[int, ...]] = []
+    stopped, methods, iters = False, set(), []
+    for C in cliques:
+        out_cost = c2 * (total - float(pn.weights[C].sum()))
+        used.append(tuple(int(i) for i in C))
+        remaining = budget - (time.perf_counter() - t0)
+        if C.size < 3:
+            lower = min(lower, out_cost)  # f_C >= 0
+            continue
+        sub = pn.subset(C)
+        u_sub = sub.cost(R, t)
+        res = clique_optimum(sub, u_sub, np.argsort(-r2[C], kind="stable"),
+                             max_nodes=BNB_MAX_NODES, time_limit=max(remaining, 0.0) / 2)
+        iters.append(res.nodes)
+        if res.complete:
+            methods.add("bnb")
+            lb_sub = res.lower_bound
+            if res.best_cost < u_sub:
+                Rc, tc = refine_pose(pn, res.rotation, res.translation)
+                if pn.cost(Rc, tc) < best_u:
+                    best_R, best_t, best_u = Rc, tc, pn.cost(Rc, tc)
+        else:
+            # Too many nodes (a large clique with many near-threshold terms): the joint dual
+            # search bounds the clique subproblem instead.
+            methods.add("joint_dual")
+            remaining = budget - (time.perf_counter() - t0)
+            if remaining <= 0:
+                stopped = True
+                lower = min(lower, out_cost)
+                continue
+            Rc, tc = refine_pose(sub, R, t)
+            b = _joint_drs_bound(sub, Rc, tc, tol / 4, max_iter or 3000, remaining)
+            lb_sub = b.lower if b.accepted else 0.0
+            if b.status is CertificateStatus.ITERATION_LIMIT:
+                stopped = True
+        lower = min(lower, lb_sub + out_cost)
+    lower = min(lower, u)  # the bound never exceeds a pose's cost
+    rot, trans = (best_R, best_t) if best_R is not None else (None, None)
+    return _Bound(
+        lower=float(lower), accepted=True,
+        status=CertificateStatus.ITERATION_LIMIT if stopped else CertificateStatus.GAP_TOO_LARGE,
+        backend_status=f"cliques:{len(cliques)} bounded ({'+'.join(sorted(methods)) or 'none'}"
+                       f", {sum(iters)} nodes)",
+        eigenvalue_ratio=np.nan, method="clique_decomposition",
+        message=(f"clique decomposition over {len(cliques)} maximal clique(s) of sizes "
+                 f"{[c.size for c in cliques][:8]}"),
+        rotation=rot, translation=trans, cliques=tuple(used),
+    )
+
+
+# ----------------------------------------------------------------------------- certificates
 def _finish_certificate(
-    upper: float, bound: _Bound, *, tol: float, problem: BoundedProblem, t0: float, n: int
+    upper: float, bound: _Bound, *, tol: float, scoped: _Scoped, ws: float, outlier_cost: float,
+    t0: float, better: float | None = None,
 ) -> Certificate:
-    gap = relative_gap(upper, bound.lower)
-    certified = bool(bound.accepted and gap <= tol)
-    if certified:
-        status = CertificateStatus.CERTIFIED
-        msg = f"globally optimal for {problem.value} within relative gap {gap:.3g} <= {tol:g}"
-    elif bound.status is CertificateStatus.GAP_TOO_LARGE or (
-        bound.accepted and bound.status is CertificateStatus.ITERATION_LIMIT
-    ):
-        status = bound.status
-        msg = (f"relative gap {gap:.3g} > {tol:g}: the pose is suboptimal or the relaxation is "
-               f"not tight ({bound.message})")
+    """The certificate of a pose of cost ``upper`` (user units); ``bound`` is normalised."""
+    u, lo, c = upper / ws, bound.lower, outlier_cost / ws
+    gap = undiluted_gap(u, lo, c)
+    lit = relative_gap(u, lo)
+    status = bound.status
+    if bound.accepted and np.isfinite(lo) and lo > u + 1e-9 * (1 + abs(u)):
+        # A lower bound above a feasible cost: the numbers cannot be trusted.
+        certified, status = False, CertificateStatus.SOLVER_ERROR
+        msg = (f"no certificate: the lower bound {lo:.9g} exceeds the pose's cost {u:.9g} "
+               f"(numerical failure)")
     else:
-        status = bound.status
-        msg = f"no certificate: {bound.message}"
+        certified = bool(bound.accepted and gap <= tol)
+        if certified:
+            status = CertificateStatus.CERTIFIED
+            msg = (f"globally optimal for {scoped.label.value} within gap {gap:.3g} <= {tol:g}")
+        elif bound.status is CertificateStatus.GAP_TOO_LARGE or (
+            bound.accepted and bound.status is CertificateStatus.ITERATION_LIMIT
+        ):
+            msg = (f"gap {gap:.3g} > {tol:g}: the pose is suboptimal or the bound is not tight "
+                   f"({bound.message})")
+        else:
+            msg = f"no certificate: {bound.message}"
+    if better is not None:
+        opt = bound.accepted and relative_gap(better / ws, lo) <= tol
+        msg += (f"; the candidate is suboptimal: a pose of cost {better:.6g} (vs {upper:.6g}) on "
+                f"the {scoped.label.value} was found"
+                + (", globally optimal within the tolerance" if opt else ""))
     return Certificate(
         upper_bound=float(upper),
-        lower_bound=float(bound.lower),
+        lower_bound=float(lo * ws) if np.isfinite(lo) else float(lo),
         relative_gap=float(gap),
         certified=certified,
         tol=tol,
-        problem=problem.value,
+        problem=scoped.label.value,
         eigenvalue_ratio=float(bound.eigenvalue_ratio),
         backend_status=bound.backend_status,
         solve_time=time.perf_counter() - t0,
         message=msg,
         status=status,
         method=bound.method,
-        num_terms=int(n),
+        num_terms=int(scoped.problem.n),
+        literature_gap=float(lit),
+        weight_scale=float(ws),
+        outlier_cost=float(outlier_cost),
+        indices=None if scoped.indices is None else tuple(int(i) for i in scoped.indices),
+        pairs=None if scoped.pairs is None else tuple((int(i), int(j)) for i, j in scoped.pairs),
+        cliques=bound.cliques,
+        better_upper_bound=None if better is None else float(better),
     )
 
 
@@ -360,7 +569,92 @@ def _invalid(upper: float, why: str, tol: float, problem: BoundedProblem, t0: fl
         tol=tol, problem=problem.value, eigenvalue_ratio=np.nan, backend_status="not_run",
         solve_time=time.perf_counter() - t0, message=f"no certificate: {why}",
         status=CertificateStatus.INVALID_INPUT, method="", num_terms=0,
+        literature_gap=np.inf,
     )
+
+
+def _max_bound(a: _Bound, b: _Bound | None) -> _Bound:
+    """The better of two valid bounds of the same problem."""
+    if b is None or not b.accepted:
+        return a
+    if not a.accepted or b.lower > a.lower:
+        return dataclasses.replace(b, rotation=a.rotation if b.rotation is None else b.rotation)
+    return a
+
+
+def _certify(
+    problem: WeightedTLSProblem,
+    R: NDArray[np.float64],
+    t: NDArray[np.float64],
+    *,
+    tol: float,
+    scope: Scope,
+    method: Method,
+    survivors: ArrayLike | None,
+    max_iter: int | None,
+    time_limit: float | None,
+    dense_max: int | None,
+    eps: float,
+    extra: _Bound | None = None,
+) -> tuple[Certificate, tuple[NDArray[np.float64], NDArray[np.float64]] | None]:
+    """Certificate of ``(R, t)`` and a better pose of the bounded problem if one was found.
+
+    ``extra`` is an already computed bound on the *normalised* bounded problem (e.g. from the
+    relaxation ``solve_sdp`` rounded).
+    """
+    t0 = time.perf_counter()
+    scoped = _scope_problem(problem, scope, survivors)
+    bp = scoped.problem
+    pn, ws = _normalised(bp)
+    upper = _cost(bp, R, t)
+    c_out = _outlier_cost(bp, R, t)
+    better: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+    if isinstance(pn, RotationTLSProblem):
+        # The candidate optimised the full problem; the dual search starts from the best
+        # rotation at hand (a dual certificate exists only at an optimum), the bound holds
+        # whatever built it.
+        Rd = _dual_candidate(pn, R)
+        bound = _rotation_bound(pn, Rd, method=method, tol=tol, max_iter=max_iter,
+                                time_limit=time_limit, dense_max=dense_max or 10, eps=eps)
+        bound = _max_bound(bound, extra)
+        cands = [Rd] + ([bound.rotation] if bound.rotation is not None else [])
+        Ra = _round_rotation(bound.Z00)
+        if Ra is not None:
+            cands.append(refine_rotation(pn, Ra))
+        Rb = min(cands, key=pn.cost)
+        if pn.cost(Rb) < pn.cost(R) - 1e-9 * max(1.0, pn.cost(R)):
+            idx = scoped.indices if scoped.indices is not None else np.arange(problem.n)
+            better = (Rb, _vote_translation(problem, Rb, idx))
+    else:
+        dmax = dense_max or 4
+        if scoped.label is BoundedProblem.FULL and method == "auto":
+            bound = _clique_bound(pn, R, t, tol=tol, max_iter=max_iter, time_limit=time_limit,
+                                  eps=eps)
+        else:
+            bound = _joint_bound(pn, R, t, method=method, tol=tol, max_iter=max_iter,
+                                 time_limit=time_limit, dense_max=dmax, eps=eps)
+        bound = _max_bound(bound, extra)
+        cands = []
+        if bound.rotation is not None and bound.translation is not None:
+            cands.append((bound.rotation, bound.translation))
+        if bound.Z00 is not None:
+            _, V = np.linalg.eigh((bound.Z00 + bound.Z00.T) / 2)
+            Ra, ta = joint_lifting(pn).pose_from_vector(V[:, -1])
+            cands.append(refine_pose(pn, Ra, ta))
+        u0 = pn.cost(R, t)
+        for Rb, tb in cands:
+            if pn.cost(Rb, tb) < u0 - 1e-9 * max(1.0, u0) and (
+                better is None or pn.cost(Rb, tb) < pn.cost(*better)
+            ):
+                better = (Rb, tb)
+        if better is not None and scoped.indices is not None:
+            better = refine_pose(problem, *better)  # a pruned pose, refined on the user's problem
+    better_cost = None if better is None else _cost(bp, better[0], better[1])
+    if better_cost is not None and not better_cost < upper:
+        better, better_cost = None, None
+    cert = _finish_certificate(upper, bound, tol=tol, scoped=scoped, ws=ws, outlier_cost=c_out,
+                               t0=t0, better=better_cost)
+    return cert, better
 
 
 # ----------------------------------------------------------------------------- public API
@@ -374,7 +668,6 @@ def certify_rotation(
     time_limit: float | None = None,
     dense_max: int = 10,
     eps: float = 1e-7,
-    label: BoundedProblem = BoundedProblem.ROTATION,
 ) -> Certificate:
     """Certify a rotation for a rotation-only TLS problem (QUASAR relaxation).
 
@@ -382,9 +675,9 @@ def certify_rotation(
     ----------
     problem : RotationTLSProblem
     R : (3, 3) array_like
-        Candidate rotation.
+        Candidate rotation (orthonormal with determinant 1 within ``ROTATION_ATOL``).
     tol : float
-        Relative-gap tolerance.
+        Tolerance on the gap (see :class:`~solvers.certificate.Certificate`).
     method : {"auto", "dense", "chordal", "dual"}
         ``"dense"``: interior-point solve of the relaxation with all redundant constraints;
         ``"chordal"``: clique-decomposed relaxation (looser); ``"dual"``: Douglas-Rachford search
@@ -403,40 +696,26 @@ def certify_rotation(
     """
     t0 = time.perf_counter()
     tol = _check_tol(tol)
+    _check_method(method)
     R, _, why = _candidate_error(R, np.zeros(3))
+    scoped = _Scoped(BoundedProblem.ROTATION, problem, None, None)
     if why:
-        return _invalid(np.nan, why, tol, label, t0)
+        return _invalid(np.nan, why, tol, BoundedProblem.ROTATION, t0)
+    pn, ws = _normalised(problem)
     upper = problem.cost(R)
-    # The bound holds whatever candidate built the dual; a dual certificate exists only at the
-    # optimum, so the search starts from the best rotation at hand.
-    Rd = _dual_candidate(problem, R)
-    bound = _rotation_bound(problem, Rd, method=method, tol=tol, max_iter=max_iter,
+    Rd = _dual_candidate(pn, R)
+    bound = _rotation_bound(pn, Rd, method=method, tol=tol, max_iter=max_iter,
                             time_limit=time_limit, dense_max=dense_max, eps=eps)
-    cert = _finish_certificate(upper, bound, tol=tol, problem=label, t0=t0, n=problem.n)
-    if bound.rotation is not None and problem.cost(bound.rotation) < problem.cost(Rd):
-        Rd = bound.rotation
-    best = problem.cost(Rd)
-    if not cert.certified and bound.accepted and relative_gap(best, bound.lower) <= tol:
-        cert = dataclasses.replace(cert, message=(
-            f"{cert.message}; the candidate is suboptimal: a rotation of cost {best:.6g} (vs "
-            f"{upper:.6g}) is globally optimal within the tolerance"))
-    return cert
+    cands = [Rd] + ([bound.rotation] if bound.rotation is not None else [])
+    Rb = min(cands, key=pn.cost)
+    better = problem.cost(Rb) if pn.cost(Rb) < pn.cost(R) - 1e-9 * max(1.0, pn.cost(R)) else None
+    return _finish_certificate(upper, bound, tol=tol, scoped=scoped, ws=ws,
+                               outlier_cost=_outlier_cost(problem, R, None), t0=t0, better=better)
 
 
-def _scope_problem(
-    problem: WeightedTLSProblem, scope: Scope, survivors: ArrayLike | None
-) -> tuple[BoundedProblem, WeightedTLSProblem | RotationTLSProblem, NDArray[np.int64]]:
-    """The bounded problem and the survivors (all indices for the full scope)."""
-    if scope not in ("auto", "full", "pruned", "rotation"):
-        raise ValueError(f"`scope` must be 'auto', 'full', 'pruned' or 'rotation', got {scope!r}.")
-    if scope == "full":
-        return BoundedProblem.FULL, problem, np.arange(problem.n)
-    idx = _survivors(problem) if survivors is None else np.asarray(survivors, dtype=np.int64)
-    if idx.size < 3:
-        idx = np.arange(problem.n)
-    if scope == "pruned":
-        return BoundedProblem.PRUNED, problem.subset(idx), idx
-    return BoundedProblem.ROTATION_TIM, tim_problem(problem.subset(idx)), idx
+def _check_method(method: str) -> None:
+    if method not in ("auto", "dense", "chordal", "dual"):
+        raise ValueError(f"`method` must be 'auto', 'dense', 'chordal' or 'dual', got {method!r}.")
 
 
 def certify_pose(
@@ -459,27 +738,31 @@ def certify_pose(
     ----------
     problem : WeightedTLSProblem or RotationTLSProblem
     R : (3, 3) array_like
-        Candidate rotation.
+        Candidate rotation (orthonormal with determinant 1 within ``ROTATION_ATOL``).
     t : (3,) array_like or None
         Candidate translation (units of the points); ignored for rotation problems.
     tol : float
-        Relative-gap tolerance for ``certified`` (default 1e-3).
+        Tolerance on the gap (default 1e-3; see :class:`~solvers.certificate.Certificate`).
     scope : {"auto", "full", "pruned", "rotation"}
-        Which problem to bound (see the module docstring); ``"auto"`` is ``"rotation"``.
+        Which problem to bound (see the module docstring); ``"auto"`` is ``"full"``.
     method : {"auto", "dense", "chordal", "dual"}
         Relaxation and solver. ``"auto"``: for rotation problems the dual certificate search
-        with the dense interior point as fallback for ``K <= dense_max``; for full/pruned
-        problems the dense interior point for ``K <= dense_max``, else the chordal relaxation.
+        with the dense interior point as fallback for ``K <= dense_max``; for the full problem
+        clique decomposition (exact branch and bound per clique, the joint dual search for
+        cliques beyond its node budget); for the pruned one the dense joint relaxation for
+        ``K <= dense_max``, else its dual search. ``"dense"``/``"chordal"``/``"dual"`` on the
+        full problem bound it as a whole with that relaxation.
     survivors : array_like of int or None
         Max-clique survivors, if already known (else recomputed for ``"pruned"``/``"rotation"``).
     max_iter, time_limit, eps
-        Backend limits and tolerances.
+        Backend limits and tolerances (``time_limit`` in seconds, default 120 s per search).
     dense_max : int or None
         Default 10 for rotation problems, 4 for full/pruned ones.
 
     Returns
     -------
     Certificate
+        Attached to exactly ``(R, t)``: ``upper_bound`` is its cost on the bounded problem.
         Never raises on a backend failure; ``certified`` is False with a ``status`` then.
 
     Raises
@@ -489,8 +772,7 @@ def certify_pose(
     """
     t0 = time.perf_counter()
     tol = _check_tol(tol)
-    if method not in ("auto", "dense", "chordal", "dual"):
-        raise ValueError(f"`method` must be 'auto', 'dense', 'chordal' or 'dual', got {method!r}.")
+    _check_method(method)
     if isinstance(problem, RotationTLSProblem):
         return certify_rotation(problem, R, tol=tol, method=method, max_iter=max_iter,
                                 time_limit=time_limit, dense_max=dense_max or 10, eps=eps)
@@ -499,18 +781,12 @@ def certify_pose(
     if t is None:
         raise ValueError("`t` is required for a WeightedTLSProblem.")
     R, t, why = _candidate_error(R, t)
-    label, bounded, _ = _scope_problem(problem, scope, survivors)
+    scoped = _scope_problem(problem, scope, survivors)
     if why:
-        return _invalid(np.nan, why, tol, label, t0)
-    if isinstance(bounded, RotationTLSProblem):
-        cert = certify_rotation(bounded, R, tol=tol, method=method, max_iter=max_iter,
-                                time_limit=time_limit, dense_max=dense_max or 10, eps=eps,
-                                label=label)
-        return dataclasses.replace(cert, solve_time=time.perf_counter() - t0)
-    upper = bounded.cost(R, t)
-    bound = _joint_bound(bounded, R, t, method=method, tol=tol, max_iter=max_iter,
-                         time_limit=time_limit, dense_max=dense_max or 4, eps=eps)
-    return _finish_certificate(upper, bound, tol=tol, problem=label, t0=t0, n=bounded.n)
+        return _invalid(np.nan, why, tol, scoped.label, t0)
+    cert, _ = _certify(problem, R, t, tol=tol, scope=scope, method=method, survivors=survivors,
+                       max_iter=max_iter, time_limit=time_limit, dense_max=dense_max, eps=eps)
+    return dataclasses.replace(cert, solve_time=time.perf_counter() - t0)
 
 
 def _round_rotation(Z00: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
@@ -536,7 +812,7 @@ def solve_sdp(
     problem: WeightedTLSProblem,
     *,
     tol: float = 1e-3,
-    scope: Scope = "auto",
+    scope: Scope = "rotation",
     method: Method = "auto",
     max_iter: int | None = None,
     time_limit: float | None = None,
@@ -547,17 +823,17 @@ def solve_sdp(
 
     The relaxation's moment matrix is rounded (leading eigenvector, projection to SO(3)) and the
     pose refined locally (inlier selection and weighted Procrustes). With ``scope="rotation"``
-    (the default) the rotation comes from the TIM rotation relaxation over the max-clique
-    survivors and the translation from exact per-axis TLS voting; the certificate bounds the
-    rotation subproblem. With ``scope="full"`` the joint relaxation gives the whole pose.
+    (the default, what TEASER++ solves) the rotation comes from the TIM rotation relaxation over
+    the max-clique survivors and the translation from exact per-axis TLS voting. With
+    ``scope="full"``/``"pruned"`` the joint relaxation gives the whole pose (``K <= dense_max``
+    densely, else the loose chordal relaxation). The certificate is computed for the *returned*
+    pose on the bounded problem; the relaxation's own bound is one of its lower bounds.
 
     Parameters
     ----------
     problem : WeightedTLSProblem
     tol, scope, method, max_iter, time_limit, dense_max, eps
-        As in :func:`certify_pose`; for rounding, ``method="auto"`` solves the dense relaxation
-        when ``K <= dense_max`` and the chordal one otherwise, then certifies the refined pose
-        (dual certificate search for rotation problems).
+        As in :func:`certify_pose` (``"auto"`` scope: ``"rotation"`` here).
 
     Returns
     -------
@@ -569,51 +845,35 @@ def solve_sdp(
 
     t0 = time.perf_counter()
     tol = _check_tol(tol)
-    label, bounded, idx = _scope_problem(problem, scope, None)
-    info: dict[str, Any] = {"bounded_problem": label.value}
-    if isinstance(bounded, RotationTLSProblem):
-        dmax = dense_max or 10
-        kind = method if method in ("dense", "chordal") else ("dense" if bounded.n <= dmax
-                                                              else "chordal")
-        sol = _ipm_bound(rotation_lifting(bounded), kind, max_iter or 200, eps, time_limit)
-        R = _round_rotation(sol.Z00)
-        if R is None:
-            cert = _finish_certificate(np.nan, sol, tol=tol, problem=label, t0=t0, n=bounded.n)
-            res = _finish(problem, np.eye(3), np.zeros(3), iterations=0, t0=t0,
-                          status=SolverStatus.SOLVER_ERROR,
-                          message=f"SDP relaxation failed: {sol.message}", solver="sdp",
-                          info=info)
-            return dataclasses.replace(res, certificate=cert)
-        R = refine_rotation(bounded, R)
-        upper = bounded.cost(R)
-        if kind == "dense":
-            bound = sol
-        else:
-            bound = _rotation_bound(bounded, R, method="dual", tol=tol, max_iter=None,
-                                    time_limit=time_limit, dense_max=dmax, eps=eps)
-            if sol.accepted and sol.lower > bound.lower:
-                bound = sol
-        cert = _finish_certificate(upper, bound, tol=tol, problem=label, t0=t0, n=bounded.n)
-        t = _vote_translation(problem, R, idx)
-        R, t = refine_pose(problem, R, t)
+    _check_method(method)
+    scope = "rotation" if scope == "auto" else scope
+    scoped = _scope_problem(problem, scope, None)
+    pn, _ = _normalised(scoped.problem)
+    info: dict[str, Any] = {"bounded_problem": scoped.label.value}
+    rot = isinstance(pn, RotationTLSProblem)
+    dmax = dense_max or (10 if rot else 4)
+    kind = method if method in ("dense", "chordal") else ("dense" if pn.n <= dmax else "chordal")
+    lift = rotation_lifting(pn) if rot else joint_lifting(pn)
+    sol = _ipm_bound(lift, kind, max_iter or 200, eps, time_limit)
+    if sol.Z00 is None:
+        res = _finish(problem, np.eye(3), np.zeros(3), iterations=0, t0=t0,
+                      status=SolverStatus.SOLVER_ERROR,
+                      message=f"SDP relaxation failed: {sol.message}", solver="sdp", info=info)
+        cert = _invalid(np.nan, f"the relaxation failed ({sol.message})", tol, scoped.label, t0)
+        return dataclasses.replace(res, certificate=dataclasses.replace(
+            cert, status=sol.status, backend_status=sol.backend_status, method=sol.method))
+    _, V = np.linalg.eigh((sol.Z00 + sol.Z00.T) / 2)
+    if rot:
+        R = refine_rotation(pn, _round_rotation(sol.Z00))
+        idx = scoped.indices if scoped.indices is not None else np.arange(problem.n)
+        R, t = refine_pose(problem, R, _vote_translation(problem, R, idx))
     else:
-        lift = joint_lifting(bounded)
-        dmax = dense_max or 4
-        kind = method if method in ("dense", "chordal") else ("dense" if bounded.n <= dmax
-                                                              else "chordal")
-        sol = _ipm_bound(lift, kind, max_iter or 200, eps, time_limit)
-        if sol.Z00 is None:
-            cert = _finish_certificate(np.nan, sol, tol=tol, problem=label, t0=t0, n=bounded.n)
-            res = _finish(problem, np.eye(3), np.zeros(3), iterations=0, t0=t0,
-                          status=SolverStatus.SOLVER_ERROR,
-                          message=f"SDP relaxation failed: {sol.message}", solver="sdp",
-                          info=info)
-            return dataclasses.replace(res, certificate=cert)
-        _, V = np.linalg.eigh((sol.Z00 + sol.Z00.T) / 2)
         R, t = lift.pose_from_vector(V[:, -1])
-        R, t = refine_pose(bounded, R, t)
-        cert = _finish_certificate(bounded.cost(R, t), sol, tol=tol, problem=label, t0=t0,
-                                   n=bounded.n)
+        R, t = refine_pose(problem, *refine_pose(pn, R, t))
+    # The certificate is for the pose returned; the relaxation's bound is one of its bounds.
+    cert, _ = _certify(problem, R, t, tol=tol, scope=scope, method="dual" if rot else method,
+                       survivors=scoped.indices, max_iter=None, time_limit=time_limit,
+                       dense_max=dmax, eps=eps, extra=sol if sol.accepted else None)
     status = SolverStatus.CONVERGED if sol.accepted else SolverStatus.SOLVER_ERROR
     msg = (f"SDP ({sol.method}) rounded and refined; {cert.summary()}" if sol.accepted
            else f"SDP backend did not reach its tolerances ({sol.message}); pose is the rounded "
@@ -636,14 +896,16 @@ def certify_result(
     dense_max: int | None = None,
     eps: float = 1e-7,
 ) -> RegistrationResult:
-    """Attach a certificate to ``result``; return a better pose if the relaxation finds one.
+    """Attach a certificate to ``result``'s pose, or to a better pose found while certifying.
 
-    The candidate is ``result``'s pose. Its rotation is first refined locally on the bounded
-    problem and, when an interior-point relaxation was solved, compared with the relaxation's
-    rounded and refined pose. If the best of them is strictly better on the bounded problem
-    (for ``scope="rotation"``: the TIM rotation subproblem, translation then voted exactly over
-    the survivors; for full/pruned scopes: also not worse on the full problem), it is returned
-    instead with a message saying so (``info["replaced_candidate"] = True``).
+    The returned pose is the best found *for the problem the user posed*: when certifying finds
+    a better optimum of the bounded problem, its pose (refined on ``problem``) replaces the
+    candidate only if its cost on ``problem`` is not higher, and is then certified itself
+    (``info["replaced_candidate"] = True``, the candidate's certificate in
+    ``info["candidate_certificate"]``). Otherwise the candidate keeps its certificate, which
+    records the better subproblem cost (``better_upper_bound``, also in
+    ``info["better_subproblem_cost"]``). Either way the certificate's ``upper_bound`` is the
+    returned pose's cost on the bounded problem.
 
     Parameters
     ----------
@@ -651,63 +913,49 @@ def certify_result(
         The problem ``result`` was computed for.
     result : RegistrationResult
     tol, scope, method, survivors, max_iter, time_limit, dense_max, eps
-        As in :func:`certify_pose`.
+        As in :func:`certify_pose` (``scope="auto"`` is the full problem).
     """
     t0 = time.perf_counter()
     tol = _check_tol(tol)
-    R, t = result.rotation.copy(), result.translation.copy()
-    label, bounded, idx = _scope_problem(problem, scope, survivors)
-    kw = dict(tol=tol, method=method, max_iter=max_iter, time_limit=time_limit, eps=eps)
-    R_alt = t_alt = None
+    _check_method(method)
+    R, t = np.array(result.rotation), np.array(result.translation)
+    scoped = _scope_problem(problem, scope, survivors)
     _, _, why = _candidate_error(R, t)
     if why:
-        return dataclasses.replace(result, certificate=_invalid(np.nan, why, tol, label, t0))
-    if isinstance(bounded, RotationTLSProblem):
-        dmax = dense_max or 10
-        # The candidate optimised the full problem; its rotation is refined locally on the
-        # bounded subproblem first (a dual certificate exists only at an optimum).
-        Rr = _dual_candidate(bounded, R)
-        bound = _rotation_bound(bounded, Rr, dense_max=dmax, **kw)  # type: ignore[arg-type]
-        upper = bounded.cost(R)
-        if bound.rotation is not None and bounded.cost(bound.rotation) < bounded.cost(Rr):
-            Rr = bound.rotation
-        Ra = _round_rotation(bound.Z00)
-        if Ra is not None:
-            Ra = refine_rotation(bounded, Ra)
-            if bounded.cost(Ra) < bounded.cost(Rr):
-                Rr = Ra
-        if bounded.cost(Rr) < upper - 1e-9 * max(1.0, upper):
-            R_alt, t_alt, upper = Rr, _vote_translation(problem, Rr, idx), bounded.cost(Rr)
-    else:
-        dmax = dense_max or 4
-        bound = _joint_bound(bounded, R, t, dense_max=dmax, **kw)  # type: ignore[arg-type]
-        upper = bounded.cost(R, t)
-        if bound.Z00 is not None:
-            from solvers.certify.relaxation import joint_lifting as _jl
-
-            _, V = np.linalg.eigh((bound.Z00 + bound.Z00.T) / 2)
-            Ra, ta = _jl(bounded).pose_from_vector(V[:, -1])
-            Ra, ta = refine_pose(bounded, Ra, ta)
-            if bounded.cost(Ra, ta) < upper - 1e-9 * max(1.0, upper) and (
-                problem.cost(Ra, ta) <= problem.cost(R, t)
-            ):
-                R_alt, t_alt, upper = Ra, ta, bounded.cost(Ra, ta)
-    cert = _finish_certificate(upper, bound, tol=tol, problem=label, t0=t0, n=bounded.n)
-    if R_alt is None:
-        return dataclasses.replace(result, certificate=cert)
+        return dataclasses.replace(result, certificate=_invalid(np.nan, why, tol, scoped.label, t0))
+    kw: dict[str, Any] = dict(tol=tol, scope=scope, method=method, survivors=scoped.indices,
+                              max_iter=max_iter, time_limit=time_limit, dense_max=dense_max,
+                              eps=eps)
+    cert, better = _certify(problem, R, t, **kw)
+    info = dict(result.info)
+    if better is None:
+        return dataclasses.replace(result, certificate=cert, info=info)
+    old = problem.cost(R, t)
+    Rb, tb = refine_pose(problem, *better)
+    if problem.cost(Rb, tb) > problem.cost(*better):
+        Rb, tb = better
+    new = problem.cost(Rb, tb)
+    info["better_subproblem_cost"] = cert.better_upper_bound
+    if not new <= old:
+        info["better_subproblem_pose_full_cost"] = new
+        msg = (f"{result.message}; certification found a better pose of the {scoped.label.value} "
+               f"whose cost on the full problem is higher ({new:.6g} > {old:.6g}): kept the "
+               f"candidate")
+        return dataclasses.replace(result, certificate=cert, info=info, message=msg)
+    cert_new, _ = _certify(problem, Rb, tb, **kw)
     from solvers.lie import make_transform
 
-    cand = bounded.cost(R) if isinstance(bounded, RotationTLSProblem) else bounded.cost(R, t)
-    old, new = problem.cost(R, t), problem.cost(R_alt, t_alt)
-    info = {**result.info, "replaced_candidate": True, "candidate_cost": old}
+    info.update(replaced_candidate=True, candidate_cost=old,
+                candidate_certificate=cert.to_dict())
     return dataclasses.replace(
         result,
-        T_target_source=make_transform(R_alt, t_alt),
-        inliers=problem.inliers(R_alt, t_alt),
+        T_target_source=make_transform(Rb, tb),
+        inliers=problem.inliers(Rb, tb),
         cost=new,
-        certificate=cert,
+        certificate=dataclasses.replace(cert_new, solve_time=time.perf_counter() - t0),
         info=info,
-        message=(f"certification found a better pose than the candidate on the {label.value} "
-                 f"(cost {upper:.6g} < {cand:.6g}; full-problem cost {new:.6g} vs {old:.6g}); "
-                 f"returning it. Candidate: {result.message}"),
+        message=(f"certification found a better pose than the candidate on the "
+                 f"{scoped.label.value} (cost {cert.better_upper_bound:.6g} < {cert.upper_bound:.6g}"
+                 f"; full-problem cost {new:.6g} <= {old:.6g}); returning it, certified anew. "
+                 f"Candidate: {result.message}"),
     )

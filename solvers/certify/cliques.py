@@ -1,0 +1,248 @@
+"""Clique decomposition of weighted TLS, and exact optima of small clique subproblems.
+
+Why it is sound
+---------------
+Let ``S(R, t) = {i : r_i^2 < cbar2}`` be a pose's strict inliers. Two of them satisfy
+``| ||a_j - a_i|| - ||b_j - b_i|| | <= cbar (beta_i + beta_j)`` (triangle inequality), so ``S`` is
+a clique of the pairwise-consistency graph and lies in some maximal clique ``C``. Every term
+outside ``C`` is then an outlier and costs ``cbar2 w_i``, so
+
+    ``f(R, t) = f_C(R, t) + cbar2 W(not C) >= f_C^* + cbar2 W(not C)``,
+
+and ``min f >= min_C [lb(f_C^*) + cbar2 W(not C)]`` over the maximal cliques. Cliques with
+``cbar2 W(not C) >= u`` cannot beat a pose of cost ``u`` and are skipped. The graph is built
+with a small slack (a supergraph is still sound: its maximal cliques contain the true ones).
+
+A clique subproblem's optimum is exact:
+
+    ``f_C^* = min_{S subset C} [LS_S^* + cbar2 W(C \\ S)]``
+
+with ``LS_S^*`` the weighted least-squares optimum on ``S``, closed form (weighted Procrustes),
+because truncation only lowers a cost and the TLS optimum's inlier set attains it. A
+branch-and-bound over "in"/"out" decisions finds it: a node with forced-in set ``I`` and
+forced-out set ``O`` costs at least ``LS_I^* + cbar2 W(O)`` (least squares can only grow with
+more terms). It is fast when the clique's optimum has few outliers and small residuals (the
+high-outlier regime, where the maximal cliques are small); its node budget bounds the rest.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from solvers.problem import WeightedTLSProblem
+
+__all__ = ["consistency_edges", "candidate_cliques", "CliqueOptimum", "clique_optimum"]
+
+log = logging.getLogger(__name__)
+
+_EPS = float(np.finfo(np.float64).eps)
+
+
+def consistency_edges(problem: WeightedTLSProblem, vertices: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Edges ``(i, j)``, ``i < j`` (positions in ``vertices``) of the consistency graph, with slack.
+
+    Pairs with ``| ||a_ij|| - ||b_ij|| | <= cbar (beta_i + beta_j) (1 + 1e-9) + 8 eps (||a_ij|| +
+    ||b_ij||)`` are joined: the slack covers the rounding of the lengths, so no pair of true
+    inliers is ever left out.
+    """
+    a = problem.source[vertices]
+    b = problem.target[vertices]
+    beta = problem.noise_bound[vertices]
+    cbar = float(np.sqrt(problem.cbar2))
+    n = vertices.size
+    out = []
+    step = max(1, int(4e6 // max(n, 1)))  # rows per chunk: bounded memory at large N
+    for lo in range(0, n, step):
+        hi = min(n, lo + step)
+        la = np.linalg.norm(a[lo:hi, None, :] - a[None, :, :], axis=2)
+        lb = np.linalg.norm(b[lo:hi, None, :] - b[None, :, :], axis=2)
+        tol = cbar * (beta[lo:hi, None] + beta[None, :]) * (1 + 1e-9) + 8 * _EPS * (la + lb)
+        ok = np.abs(la - lb) <= tol
+        i, j = np.nonzero(ok)
+        i = i + lo
+        keep = i < j
+        out.append(np.stack([i[keep], j[keep]], axis=1))
+    return np.concatenate(out) if out else np.empty((0, 2), dtype=np.int64)
+
+
+def candidate_cliques(
+    problem: WeightedTLSProblem, upper: float, *, limit: int
+) -> tuple[list[NDArray[np.int64]], bool]:
+    """The maximal cliques ``C`` (indices of ``problem``) with ``cbar2 W(not C) < upper``.
+
+    Only terms of positive weight are vertices (the others cost nothing anywhere). Returns the
+    cliques sorted by decreasing weight and ``complete`` (False when there were more than
+    ``limit``; the list is then empty).
+    """
+    import igraph as ig
+
+    w = problem.weights
+    act = np.flatnonzero(w > 0)
+    c2 = problem.cbar2
+    total = float(w.sum())
+    # A clique of weight <= thr costs at least cbar2 (total - thr) >= upper; slack for rounding.
+    thr = total - upper * (1 + 1e-9) / c2 - 1e-12 * total
+    if act.size == 0 or thr < 0:
+        # Even the empty inlier set could beat `upper`: the whole problem is one "clique".
+        return [act], True
+    ws = np.sort(w[act])[::-1]
+    above = np.flatnonzero(np.cumsum(ws) > thr)
+    if above.size == 0:
+        return [], True
+    s_min = int(above[0]) + 1
+    edges = consistency_edges(problem, act)
+    g = ig.Graph(n=act.size, edges=edges.tolist())
+    core = np.asarray(g.coreness())
+    keep = np.flatnonzero(core >= s_min - 1)
+    if keep.size < s_min:
+        return [], True
+    sub = g.induced_subgraph(keep.tolist())
+    found = []
+    for c in sub.maximal_cliques(min=s_min):
+        idx = act[keep[np.asarray(c, dtype=np.int64)]]
+        if float(w[idx].sum()) > thr:
+            found.append(np.sort(idx))
+            if len(found) > limit:
+                return [], False
+    found.sort(key=lambda c: -float(w[c].sum()))
+    return found, True
+
+
+@dataclass(frozen=True)
+class CliqueOptimum:
+    """Outcome of :func:`clique_optimum` (costs in the subproblem's units).
+
+    Attributes
+    ----------
+    lower_bound : float
+        A sound lower bound on the subproblem's optimum (the exact optimum minus a rounding
+        allowance when ``complete``; the least open node's bound otherwise).
+    best_cost : float
+        ``LS_S^* + cbar2 W(C \\ S)`` of the best inlier set found (an upper bound on the
+        optimum: the true TLS cost of ``rotation``, ``translation`` is at most this).
+    rotation, translation : ndarray
+        The least-squares pose of the best inlier set.
+    complete : bool
+        The search finished within its node budget.
+    nodes : int
+        Branch-and-bound nodes evaluated.
+    """
+
+    lower_bound: float
+    best_cost: float
+    rotation: NDArray[np.float64]
+    translation: NDArray[np.float64]
+    complete: bool
+    nodes: int
+
+
+def _ls_from_sums(sw: float, sa: NDArray, sb: NDArray, sab: NDArray, saa: float, sbb: float
+                  ) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+    """Weighted least-squares optimum ``min_{R,t} sum w |R a + t - b|^2`` from running sums."""
+    if sw <= 0:
+        return 0.0, np.eye(3), np.zeros(3)
+    ca, cb = sa / sw, sb / sw
+    H = sab - sw * np.outer(ca, cb)  # sum w (a - ca)(b - cb)^T
+    U, s, Vt = np.linalg.svd(H)
+    d = 1.0 if np.linalg.det(U @ Vt) > 0 else -1.0
+    trace = s[0] + s[1] + d * s[2]
+    val = (saa - sw * ca @ ca) + (sbb - sw * cb @ cb) - 2.0 * trace
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return max(float(val), 0.0), R, cb - R @ ca
+
+
+def clique_optimum(
+    problem: WeightedTLSProblem,
+    upper: float,
+    order: NDArray[np.int64] | None = None,
+    *,
+    max_nodes: int = 200_000,
+    time_limit: float | None = None,
+) -> CliqueOptimum:
+    """Exact optimum of a (small, nearly all-inlier) weighted TLS problem by branch and bound.
+
+    Parameters
+    ----------
+    problem : WeightedTLSProblem
+        The subproblem (e.g. one maximal clique).
+    upper : float
+        A known upper bound on its optimum (e.g. the candidate's cost on it): prunes the search.
+    order : (K,) array of int, optional
+        Branching order (default: as given). Deciding likely outliers first prunes sooner.
+    max_nodes : int
+        Node budget.
+    time_limit : float or None
+        Seconds.
+    """
+    t0 = time.perf_counter()
+    K = problem.n
+    order = np.arange(K) if order is None else np.asarray(order, dtype=np.int64)
+    # Each term in units of its noise bound: w/beta^2 |R a + t - b|^2 = |R a' + t' - b'|^2 * w/beta^2
+    # does not factor (per-term beta), so the sums carry v = w / beta^2 explicitly.
+    v = (problem.weights / problem.noise_bound**2)[order]
+    a = problem.source[order]
+    b = problem.target[order]
+    # Centre for accuracy of the running-sum formula (a rigid shift keeps LS values).
+    ca = (v @ a) / max(v.sum(), 1e-300)
+    cb = (v @ b) / max(v.sum(), 1e-300)
+    a, b = a - ca, b - cb
+    wout = problem.cbar2 * problem.weights[order]
+    # Rounding allowance of a value computed from the sums (cancellation in saa - sw |ca|^2).
+    scale = float(v @ (np.einsum("ij,ij->i", a, a) + np.einsum("ij,ij->i", b, b)))
+    allowance = 64 * _EPS * (scale + K * float(wout.max(initial=0.0)) + 1.0)
+    aa = np.einsum("ij,ij->i", a, a)
+    bb = np.einsum("ij,ij->i", b, b)
+    ab = a[:, :, None] * b[:, None, :]
+
+    best = [float(upper), None, None]
+    nodes = [0]
+    stopped = [False]
+
+    def visit(k: int, sw: float, sa, sb, sab, saa, sbb, out_cost: float) -> None:
+        if stopped[0]:
+            return
+        nodes[0] += 1
+        ls, R, t = _ls_from_sums(sw, sa, sb, sab, saa, sbb)
+        bound = ls + out_cost
+        if bound - allowance >= best[0]:
+            return
+        if nodes[0] >= max_nodes or (time_limit is not None and time.perf_counter() - t0 > time_limit):
+            stopped[0] = True
+            return
+        if k == K:
+            if bound < best[0] or best[1] is None:
+                best[0], best[1], best[2] = bound, R, t
+            return
+        vk = v[k]
+        visit(k + 1, sw + vk, sa + vk * a[k], sb + vk * b[k], sab + vk * ab[k], saa + vk * aa[k],
+              sbb + vk * bb[k], out_cost)
+        visit(k + 1, sw, sa, sb, sab, saa, sbb, out_cost + wout[k])
+
+    import sys
+
+    old = sys.getrecursionlimit()
+    sys.setrecursionlimit(max(old, 4 * K + 100))
+    try:
+        z = np.zeros(3)
+        visit(0, 0.0, z, z, np.zeros((3, 3)), 0.0, 0.0, 0.0)
+    finally:
+        sys.setrecursionlimit(old)
+    complete = not stopped[0]
+    if best[1] is None:
+        # Nothing beat `upper`: the optimum is `upper` itself (complete) or unknown.
+        R, t = np.eye(3), np.zeros(3)
+        best_cost = np.inf
+    else:
+        R = best[1]
+        t = cb - R @ ca + best[2]
+        best_cost = best[0]
+    # Complete: every inlier set is a visited leaf or in a pruned subtree, all >= best.
+    # Stopped: unvisited siblings are bounded only by 0 (costs are non-negative).
+    lower = best[0] - allowance if complete else 0.0
+    return CliqueOptimum(lower_bound=float(lower), best_cost=float(best_cost), rotation=R,
+                         translation=t, complete=complete, nodes=nodes[0])
