@@ -301,13 +301,14 @@ def test_infeasible_relaxation_is_reported_not_raised(kind: str) -> None:
     assert "no certificate" in cert.message
 
 
-def test_full_scope_uses_the_joint_dual_search_beyond_dense_max() -> None:
-    """scope="full" past the dense size: the joint dual search certifies the full problem."""
+def test_full_scope_joint_dual_search() -> None:
+    """method="dual": the joint dual search certifies the full problem as a whole."""
     rng = np.random.default_rng(14)
     src, dst, R, t, _ = make_instance(rng, 8, 0.0)
     p = WeightedTLSProblem(src, dst, noise_bound=0.0554)
     res = solve_registration(p)
-    cert = certify_pose(p, res.rotation, res.translation, scope="full", time_limit=60)
+    cert = certify_pose(p, res.rotation, res.translation, scope="full", method="dual",
+                        time_limit=60)
     assert cert.problem == "full_weighted_tls" and cert.method == "dual_drs"
     assert cert.certified, cert
     assert cert.lower_bound <= full_optimum(p) + 1e-6 * (1 + p.weights.sum())
