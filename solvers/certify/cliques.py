@@ -156,6 +156,42 @@ def _ls_from_sums(sw: float, sa: NDArray, sb: NDArray, sab: NDArray, saa: float,
     return max(float(val), 0.0), R, cb - R @ ca
 
 
+ENUMERATE_MAX = 12
+"""Cliques up to this size are solved by enumerating every inlier set at once (batched)."""
+
+
+def _enumerated_optimum(problem: WeightedTLSProblem, upper: float) -> CliqueOptimum:
+    """Exact optimum of a small problem: every inlier set's least squares, batched."""
+    K = problem.n
+    M = ((np.arange(1 << K)[:, None] >> np.arange(K)[None, :]) & 1).astype(np.float64)
+    v = problem.weights / problem.noise_bound**2
+    ca0 = (v @ problem.source) / max(v.sum(), 1e-300)
+    cb0 = (v @ problem.target) / max(v.sum(), 1e-300)
+    a, b = problem.source - ca0, problem.target - cb0
+    V = M * v
+    sw = V.sum(axis=1)
+    safe = np.where(sw > 0, sw, 1.0)
+    ca = (V @ a) / safe[:, None]
+    cb = (V @ b) / safe[:, None]
+    H = np.einsum("bk,ki,kj->bij", V, a, b) - sw[:, None, None] * ca[:, :, None] * cb[:, None, :]
+    U, sv, Vt = np.linalg.svd(H)
+    d = np.where(np.linalg.det(U @ Vt) > 0, 1.0, -1.0)
+    aa = np.einsum("ki,ki->k", a, a)
+    bb = np.einsum("ki,ki->k", b, b)
+    ls = (V @ aa - sw * np.einsum("bi,bi->b", ca, ca) + V @ bb - sw * np.einsum("bi,bi->b", cb, cb)
+          - 2 * (sv[:, 0] + sv[:, 1] + d * sv[:, 2]))
+    ls = np.where(sw > 0, np.maximum(ls, 0.0), 0.0)
+    g = ls + problem.cbar2 * ((1 - M) @ problem.weights)
+    i = int(np.argmin(g))
+    scale = float(v @ (aa + bb))
+    allowance = 64 * _EPS * (scale + K * float(problem.weights.max(initial=0.0)) * problem.cbar2 + 1.0)
+    R = Vt[i].T @ np.diag([1.0, 1.0, d[i]]) @ U[i].T
+    t = cb[i] + cb0 - R @ (ca[i] + ca0)
+    best = float(g[i])
+    return CliqueOptimum(lower_bound=min(best, float(upper)) - allowance, best_cost=best,
+                         rotation=R, translation=t, complete=True, nodes=int(M.shape[0]))
+
+
 def clique_optimum(
     problem: WeightedTLSProblem,
     upper: float,
@@ -181,6 +217,8 @@ def clique_optimum(
     """
     t0 = time.perf_counter()
     K = problem.n
+    if K <= ENUMERATE_MAX:
+        return _enumerated_optimum(problem, upper)
     order = np.arange(K) if order is None else np.asarray(order, dtype=np.int64)
     # Each term in units of its noise bound: w/beta^2 |R a + t - b|^2 = |R a' + t' - b'|^2 * w/beta^2
     # does not factor (per-term beta), so the sums carry v = w / beta^2 explicitly.

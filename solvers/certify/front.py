@@ -96,7 +96,7 @@ ROTATION_ATOL = 1e-9
 A matrix off by more bounds another problem's cost: a rotation scaled by ``1 + 5e-6`` (accepted
 by ``np.allclose``'s default relative tolerance) was once "certified" with ``upper < lower``."""
 
-MAX_CLIQUES = 64
+MAX_CLIQUES = 5000
 """Most maximal cliques the clique decomposition bounds before giving up (uncertified)."""
 
 BNB_MAX_NODES = 100_000
