@@ -130,10 +130,9 @@ def transform_points(T: ArrayLike, points: ArrayLike) -> NDArray[np.float64]:
 
 def project_to_so3(M: ArrayLike) -> NDArray[np.float64]:
     """Closest rotation matrix to ``M`` (3, 3) in the Frobenius norm (SVD, det corrected)."""
-    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=np.float64))
-    D = np.ones(3)
-    D[2] = np.sign(np.linalg.det(U @ Vt)) or 1.0
-    return (U * D) @ Vt
+    from solvers.procrustes import weighted_rotation
+
+    return weighted_rotation(M)
 
 
 def rotation_angle_deg(R: ArrayLike) -> float:

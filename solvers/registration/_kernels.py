@@ -8,39 +8,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from solvers.procrustes import procrustes_kernel
 
-@njit(cache=True)
-def procrustes(a, b, w):  # pragma: no cover - compiled
-    """Weighted Horn/Umeyama; returns (R, t, ok). ``ok`` is False for a zero weight sum."""
-    n = a.shape[0]
-    sw = 0.0
-    ca = np.zeros(3)
-    cb = np.zeros(3)
-    for k in range(n):
-        sw += w[k]
-        for d in range(3):
-            ca[d] += w[k] * a[k, d]
-            cb[d] += w[k] * b[k, d]
-    R = np.eye(3)
-    if sw <= 0.0:
-        return R, np.zeros(3), False
-    ca /= sw
-    cb /= sw
-    H = np.zeros((3, 3))
-    for k in range(n):
-        if w[k] == 0.0:
-            continue
-        for i in range(3):
-            bi = w[k] * (b[k, i] - cb[i])
-            for j in range(3):
-                H[i, j] += bi * (a[k, j] - ca[j])
-    U, _, Vt = np.linalg.svd(H)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
-        for i in range(3):
-            U[i, 2] = -U[i, 2]
-    R = U @ Vt
-    t = cb - R @ ca
-    return R, t, True
+procrustes = procrustes_kernel()  # the one weighted Procrustes, compiled
 
 
 @njit(cache=True)
