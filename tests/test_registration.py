@@ -11,7 +11,13 @@ import pytest
 import certpose
 from solvers import GNCParams, SolverStatus, WeightedTLSProblem, solve_gnc, solve_pruned
 from solvers.lie import random_rotation, rotation_error_deg
-from solvers.registration.pruning import consistency_graph, max_clique, maximum_cliques, scalar_tls
+from solvers.registration.pruning import (
+    consistency_graph,
+    max_clique,
+    maximum_cliques,
+    scalar_tls,
+    vote_translation,
+)
 from tests.conftest import make_instance
 
 
@@ -140,6 +146,15 @@ def test_scalar_tls_is_exact_against_a_fine_grid(rng):
         grid = (w * np.minimum((xs[:, None] - v) ** 2 / beta**2, 1.0)).sum(axis=1)
         assert c <= grid.min() + 1e-9
         assert c == pytest.approx((w * np.minimum((x - v) ** 2 / beta**2, 1.0)).sum(), abs=1e-9)
+
+
+def test_vote_translation_recovers_the_translation_through_outliers(rng):
+    a, b, R, t, inl = make_instance(rng, 60, 0.5)
+    p = WeightedTLSProblem(a, b, noise_bound=0.0554)
+    t_vote = vote_translation(p, R)
+    assert np.linalg.norm(t_vote - t) < 0.02
+    # Restricted to the outliers, the vote no longer finds it.
+    assert np.linalg.norm(vote_translation(p, R, np.flatnonzero(~inl)) - t) > 0.1
 
 
 def test_max_clique_flags_a_greedy_answer_on_large_dense_graphs():

@@ -12,6 +12,7 @@ from solvers.registration.pruning import (
     prune_max_clique,
     prune_maximum_cliques,
     scalar_tls,
+    vote_translation,
 )
 from solvers.registration.solve import (
     GNCParams,
@@ -35,4 +36,5 @@ __all__ = [
     "solve_gnc",
     "solve_pruned",
     "solve_registration",
+    "vote_translation",
 ]

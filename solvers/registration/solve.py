@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from solvers.lie import make_transform
 from solvers.problem import WeightedTLSProblem
-from solvers.registration.pruning import prune_maximum_cliques, scalar_tls
+from solvers.registration.pruning import prune_maximum_cliques, vote_translation
 from solvers.result import RegistrationResult, SolverStatus
 
 __all__ = [
@@ -232,13 +232,7 @@ def solve_pruned(
         R, t, it, converged, ok = _gnc_core(problem, survivors, params)
         if not ok:
             continue
-        # Exact TLS translation per axis given R, over the survivors (TEASER++'s adaptive voting).
-        resid = problem.target[survivors] - problem.source[survivors] @ R.T
-        beta_s = problem.noise_bound[survivors]
-        w_s = problem.weights[survivors]
-        t_vote = np.array(
-            [scalar_tls(resid[:, d], beta_s, w_s, problem.cbar2)[0] for d in range(3)]
-        )
+        t_vote = vote_translation(problem, R, survivors)
         cost, cost_vote = problem.cost(R, t), problem.cost(R, t_vote)
         if cost_vote < cost:  # keep whichever translation the full TLS cost prefers
             t, cost = t_vote, cost_vote
