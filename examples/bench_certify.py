@@ -37,13 +37,14 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 from solvers import solve_registration
 from solvers.certify import certify_result, certify_rotation, rotation_gnc, solve_sdp
 from solvers.certify.relaxation import RotationTLSProblem
 from solvers.certify.sdp_dual import rotation_dual_certificate
-from solvers.lie import random_rotation, rotation_error_deg, so3_exp, translation_error
+from solvers.lie import rotation_error_deg, translation_error
 from solvers.problem import WeightedTLSProblem
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
@@ -61,7 +62,7 @@ def load_bunny() -> np.ndarray:
 
 def instance(rng: np.random.Generator, bunny: np.ndarray, n: int, ratio: float):  # noqa: ANN201
     src = bunny[rng.choice(bunny.shape[0], size=n, replace=n > bunny.shape[0])]
-    R = random_rotation(rng)
+    R = Rotation.random(random_state=rng).as_matrix()
     t = rng.normal(size=3)
     t *= rng.uniform() ** (1 / 3) / np.linalg.norm(t)
     dst = src @ R.T + t + rng.normal(0, SIGMA, (n, 3))
@@ -118,7 +119,7 @@ def run_rotation_subproblem(bunny: np.ndarray, ks: list[int], reps: int,
         for _ in range(reps):
             i, j = rng.choice(bunny.shape[0], size=(2, k))
             a = bunny[j] - bunny[i]
-            R = random_rotation(rng)
+            R = Rotation.random(random_state=rng).as_matrix()
             b = a @ R.T + rng.normal(0, SIGMA, (k, 3)) + rng.normal(0, SIGMA, (k, 3))
             n_out = int(round(ratio * k))
             b[:n_out] = rng.normal(size=(n_out, 3))
@@ -136,7 +137,7 @@ def run_rotation_subproblem(bunny: np.ndarray, ks: list[int], reps: int,
             iters.append(d.iterations)
             for deg in (3.0, 10.0, 30.0):
                 ax = rng.normal(size=3)
-                Rw = so3_exp(np.radians(deg) * ax / np.linalg.norm(ax)) @ Rg
+                Rw = Rotation.from_rotvec(np.radians(deg) * ax / np.linalg.norm(ax)).as_matrix() @ Rg
                 cw = certify_rotation(p, Rw)
                 refused.append(not cw.certified)
                 twrong.append(cw.solve_time)

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 def _scene(ycbv: Path | None, voxel: float):
@@ -45,7 +46,7 @@ def _scene(ycbv: Path | None, voxel: float):
 def main() -> None:
     from certpose.geometry.objects import object_from_points
     from certpose.model.likelihood import PoseLikelihood
-    from solvers.lie import make_transform, random_rotation, so3_exp
+    from solvers.lie import make_transform
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--ycbv", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv")
@@ -58,10 +59,10 @@ def main() -> None:
     obj = object_from_points(model_pts, bb, voxel_size=0.002).subsample(args.points, rng=0)
     lik = PoseLikelihood(scene, cls, obj)
     rng = np.random.default_rng(0)
-    near = np.stack([T_gt @ make_transform(so3_exp(rng.normal(scale=0.2, size=3)),
+    near = np.stack([T_gt @ make_transform(Rotation.from_rotvec(rng.normal(scale=0.2, size=3)).as_matrix(),
                                            rng.normal(scale=0.01, size=3)) for _ in range(10_000)])
     lo, hi = scene.bounds
-    anywhere = np.stack([make_transform(random_rotation(rng), rng.uniform(lo, hi)) for _ in range(10_000)])
+    anywhere = np.stack([make_transform(Rotation.random(random_state=rng).as_matrix(), rng.uniform(lo, hi)) for _ in range(10_000)])
     print(f"scene: {name}, grid {scene.shape}, {scene.counts()['occupied']} occupied voxels, "
           f"d = {scene.dim}; object: {len(obj)} points")
     lik(near[:32])

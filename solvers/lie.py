@@ -10,10 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
-    "hat",
-    "vee",
     "so3_exp",
-    "so3_log",
     "se3_exp",
     "se3_log",
     "make_transform",
@@ -23,62 +20,24 @@ __all__ = [
     "rotation_angle_deg",
     "rotation_error_deg",
     "translation_error",
-    "random_rotation",
 ]
+
+# Rotation vectors, quaternions and random rotations: scipy.spatial.transform.Rotation.
 
 _SMALL = 1e-10
 
 
-def hat(omega: ArrayLike) -> NDArray[np.float64]:
-    """Skew-symmetric matrix ``[omega]_x`` of a 3-vector, shape (3, 3)."""
-    w = np.asarray(omega, dtype=np.float64).reshape(3)
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def vee(omega_hat: ArrayLike) -> NDArray[np.float64]:
-    """Inverse of :func:`hat` (reads the skew part), shape (3,)."""
-    m = np.asarray(omega_hat, dtype=np.float64)
-    return 0.5 * np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
-
-
 def so3_exp(omega: ArrayLike) -> NDArray[np.float64]:
-    """Rotation matrix of the rotation vector ``omega`` (radians), Rodrigues' formula."""
-    w = np.asarray(omega, dtype=np.float64).reshape(3)
-    theta2 = float(w @ w)
-    K = hat(w)
-    if theta2 < _SMALL:
-        # Taylor expansion keeps accuracy near the identity.
-        return np.eye(3) + K + 0.5 * K @ K
-    theta = np.sqrt(theta2)
-    return np.eye(3) + (np.sin(theta) / theta) * K + ((1 - np.cos(theta)) / theta2) * K @ K
+    """Rotation matrix of the rotation vector ``omega`` (3,), radians (``Rotation.from_rotvec``)."""
+    from scipy.spatial.transform import Rotation  # scipy.spatial: not on `import solvers`
 
-
-def so3_log(R: ArrayLike) -> NDArray[np.float64]:
-    """Rotation vector (radians) of a rotation matrix; the inverse of :func:`so3_exp`."""
-    R = np.asarray(R, dtype=np.float64)
-    cos_t = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    # atan2 stays accurate near 0 and pi, where arccos alone loses digits.
-    theta = float(np.arctan2(0.5 * np.linalg.norm(vee(R - R.T)), cos_t))
-    if theta < 1e-6:
-        # vee(R - R^T) = 2 sin(theta) axis; theta / sin(theta) ~ 1 + theta^2 / 6 near zero.
-        return 0.5 * vee(R - R.T) * (1.0 + theta**2 / 6.0)
-    if np.pi - theta < 1e-4:
-        # Near pi the skew part vanishes: read the axis from the symmetric part.
-        # (R + R^T)/2 = cos(theta) I + (1 - cos(theta)) k k^T gives k k^T exactly.
-        B = (0.5 * (R + R.T) - cos_t * np.eye(3)) / (1.0 - cos_t)
-        k = int(np.argmax(np.diag(B)))
-        axis = B[:, k] / np.linalg.norm(B[:, k])
-        # Fix the sign using the (small) skew part, if any.
-        s = vee(R - R.T)
-        if s @ axis < 0:
-            axis = -axis
-        return axis * theta
-    return 0.5 * vee(R - R.T) * (theta / np.sin(theta))
+    return Rotation.from_rotvec(np.asarray(omega, dtype=np.float64).reshape(3)).as_matrix()
 
 
 def _left_jacobian(omega: NDArray[np.float64]) -> NDArray[np.float64]:
     theta2 = float(omega @ omega)
-    K = hat(omega)
+    x, y, z = omega
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     if theta2 < _SMALL:
         return np.eye(3) + 0.5 * K + K @ K / 6.0
     theta = np.sqrt(theta2)
@@ -101,8 +60,10 @@ def se3_exp(xi: ArrayLike) -> NDArray[np.float64]:
 
 def se3_log(T: ArrayLike) -> NDArray[np.float64]:
     """Twist ``[rho, omega]`` of a 4x4 transform; the inverse of :func:`se3_exp`."""
+    from scipy.spatial.transform import Rotation
+
     T = np.asarray(T, dtype=np.float64)
-    omega = so3_log(T[:3, :3])
+    omega = Rotation.from_matrix(T[:3, :3]).as_rotvec()
     rho = np.linalg.solve(_left_jacobian(omega), T[:3, 3])
     return np.concatenate([rho, omega])
 
@@ -149,17 +110,3 @@ def rotation_error_deg(R_est: ArrayLike, R_gt: ArrayLike) -> float:
 def translation_error(t_est: ArrayLike, t_gt: ArrayLike) -> float:
     """Euclidean translation error (same units as the inputs)."""
     return float(np.linalg.norm(np.asarray(t_est, dtype=np.float64) - np.asarray(t_gt)))
-
-
-def random_rotation(rng: np.random.Generator) -> NDArray[np.float64]:
-    """A rotation drawn uniformly from SO(3) (Haar measure)."""
-    q = rng.normal(size=4)
-    q /= np.linalg.norm(q)
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )

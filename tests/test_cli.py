@@ -8,10 +8,11 @@ import sys
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from certpose.cli import main
 from certpose.io.points import load_bunny
-from solvers.lie import random_rotation, rotation_error_deg, transform_points
+from solvers.lie import rotation_error_deg, transform_points
 from tests.conftest import require_data
 
 SIGMA = 0.01
@@ -25,7 +26,7 @@ def bunny_problem():
     pts = load_bunny(require_data("bunny", "bun_zipper_res3.ply"))
     src = pts[rng.choice(pts.shape[0], size=200, replace=False)]
     T = np.eye(4)
-    T[:3, :3] = random_rotation(rng)
+    T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
     T[:3, 3] = rng.uniform(-0.5, 0.5, size=3)
     dst = transform_points(T, src) + SIGMA * rng.normal(size=src.shape)
     out = rng.choice(200, size=60, replace=False)

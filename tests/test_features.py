@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from certpose.geometry.features import (
     ArrayBackbone,
@@ -16,7 +17,7 @@ from certpose.geometry.features import (
     describe_frame,
 )
 from certpose.geometry.rgbd import CameraIntrinsics, RGBDFrame
-from solvers.lie import make_transform, so3_exp
+from solvers.lie import make_transform
 
 
 def _plane(n, rng):
@@ -43,7 +44,7 @@ def test_fpfh_rows_are_unit_and_rigidly_invariant():
     d = bb.describe(p, normals=n)
     assert d.shape == (1500, 33)
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0)
-    T = make_transform(so3_exp([0.4, -1.0, 0.7]), [0.3, -0.2, 1.0])
+    T = make_transform(Rotation.from_rotvec([0.4, -1.0, 0.7]).as_matrix(), [0.3, -0.2, 1.0])
     d_moved = bb.describe(p @ T[:3, :3].T + T[:3, 3], normals=n @ T[:3, :3].T)
     np.testing.assert_allclose(d_moved, d, atol=1e-6)
 
@@ -117,7 +118,7 @@ def test_describe_frame_with_per_pixel_descriptors():
     depth[0, 0] = 0.0
     mask = np.zeros((4, 5), bool)
     mask[:2, :] = True
-    T = make_transform(so3_exp([0.0, 0.2, 0.0]), [0.0, 1.0, 0.0])
+    T = make_transform(Rotation.from_rotvec([0.0, 0.2, 0.0]).as_matrix(), [0.0, 1.0, 0.0])
     frame = RGBDFrame(np.zeros((4, 5, 3), np.uint8), depth, cam, T, mask)
     image = np.zeros((4, 5, 3))
     image[..., 0] = np.arange(5)[None, :] + 1.0  # depends on the column only

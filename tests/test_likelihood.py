@@ -6,12 +6,13 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from certpose.geometry.objects import ObjectModel
 from certpose.model.classifier import ClassifierStatus, ObjectClassification
 from certpose.model.likelihood import LikelihoodParams, PoseLikelihood, log_likelihood
 from certpose.model.scene import EMPTY, OCCUPIED, UNOBSERVED, SceneField
-from solvers.lie import make_transform, random_rotation
+from solvers.lie import make_transform
 
 
 def _unit_rows(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
@@ -62,7 +63,7 @@ def _reference(scene, cls, obj, T, params: LikelihoodParams) -> float:
 
 
 def _random_poses(rng, n, centre, spread):
-    return np.stack([make_transform(random_rotation(rng), centre + rng.uniform(-spread, spread, 3))
+    return np.stack([make_transform(Rotation.random(random_state=rng).as_matrix(), centre + rng.uniform(-spread, spread, 3))
                      for _ in range(n)])
 
 

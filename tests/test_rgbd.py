@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from certpose.geometry.rgbd import (
     CameraIntrinsics,
@@ -12,7 +13,7 @@ from certpose.geometry.rgbd import (
     backproject,
     load_rgbd,
 )
-from solvers.lie import make_transform, so3_exp
+from solvers.lie import make_transform
 
 K_SMALL = CameraIntrinsics(fx=2.0, fy=4.0, cx=1.0, cy=2.0, width=5, height=4)
 
@@ -128,7 +129,7 @@ def test_frame_backproject_world_and_colors():
     depth[1, 3] = 2.0
     color = _color()
     color[1, 3] = (255, 0, 51)
-    T = make_transform(so3_exp([0.1, -0.2, 0.3]), [1.0, 2.0, 3.0])
+    T = make_transform(Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix(), [1.0, 2.0, 3.0])
     frame = RGBDFrame(color, depth, K_SMALL, T)
     p_world, px = frame.backproject(world=True)
     expected = T[:3, :3] @ np.array([2.0, -0.5, 2.0]) + T[:3, 3]
@@ -183,7 +184,7 @@ def test_transform_and_open3d_round_trip():
     desc = rng.normal(size=(10, 4))
     colors = rng.uniform(size=(10, 3))
     cloud = StructuredPointCloud(pts, desc, colors)
-    T = make_transform(so3_exp([0.3, 0.2, -0.1]), [0.5, 0.0, -1.0])
+    T = make_transform(Rotation.from_rotvec([0.3, 0.2, -0.1]).as_matrix(), [0.5, 0.0, -1.0])
     moved = cloud.transform(T)
     np.testing.assert_allclose(moved.points, pts @ T[:3, :3].T + T[:3, 3])
     np.testing.assert_array_equal(moved.descriptors, desc)

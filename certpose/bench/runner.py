@@ -50,8 +50,9 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
-from solvers.lie import random_rotation, rotation_error_deg, translation_error
+from solvers.lie import rotation_error_deg, translation_error
 from solvers.validation import check_points, resolve_rng
 
 __all__ = [
@@ -283,7 +284,7 @@ def make_instance(
     gen = resolve_rng(rng)
     idx = gen.choice(shape.shape[0], size=n, replace=n > shape.shape[0])
     source = shape[idx]
-    R = random_rotation(gen)
+    R = Rotation.random(random_state=gen).as_matrix()
     t = _uniform_in_ball(gen, 1, 1.0)[0]
     target = source @ R.T + t + noise * gen.normal(size=(n, 3))
     n_out = int(math.floor(outlier_ratio * n + 1e-9))
