@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hypothesis import settings
-from scipy.spatial.transform import Rotation
+
+from certpose.data import instances
 
 # No per-example deadline: the first example of a property may load a compiled numba kernel, and
 # the machine is shared; timing belongs in benchmarks, not in tests.
@@ -37,23 +38,11 @@ def make_instance(
     sigma: float = 0.01,
     points: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The NOTES.md section 3 protocol: returns (source, target, R, t, is_inlier)."""
-    if points is None:
-        src = rng.uniform(-0.5, 0.5, size=(n, 3))
-    else:
-        src = points[rng.choice(points.shape[0], size=n, replace=False)]
-    R = Rotation.random(random_state=rng).as_matrix()
-    t = rng.normal(size=3)
-    t *= rng.uniform() ** (1 / 3) / np.linalg.norm(t)
-    dst = src @ R.T + t + rng.normal(0.0, sigma, size=(n, 3))
-    n_out = int(round(outlier_ratio * n))
-    out = rng.choice(n, size=n_out, replace=False)
-    d = rng.normal(size=(n_out, 3))
-    d *= 5.0 * rng.uniform(size=(n_out, 1)) ** (1 / 3) / np.linalg.norm(d, axis=1, keepdims=True)
-    dst[out] = d
-    inl = np.ones(n, dtype=bool)
-    inl[out] = False
-    return src, dst, R, t, inl
+    """:func:`certpose.data.instances.make_instance` on ``points`` (default: ``n`` points uniform
+    in the unit cube) as a tuple ``(source, target, R, t, is_inlier)``."""
+    shape = rng.uniform(-0.5, 0.5, size=(n, 3)) if points is None else points
+    inst = instances.make_instance(shape, n, outlier_ratio, noise=sigma, rng=rng)
+    return inst.source, inst.target, inst.rotation, inst.translation, ~inst.outliers
 
 
 @pytest.fixture

@@ -13,10 +13,10 @@ from certpose.bench.runner import (
     SUMMARY_COLUMNS,
     TRIAL_COLUMNS,
     BenchConfig,
-    make_instance,
     run_benchmark,
 )
 from certpose.cli import main
+from certpose.data.instances import make_instance
 from certpose.io.points import synthetic_shape
 
 PEERS = ["gnc", "gnc-only", "gtsam-gnc", "o3d-ransac", "o3d-fgr"]

@@ -50,18 +50,16 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
+from certpose.data.instances import NOISE_BOUND_FACTOR, BenchInstance, make_instance
 from solvers.lie import rotation_error_deg, translation_error
-from solvers.validation import check_points, resolve_rng
+from solvers.validation import check_points
 
 __all__ = [
     "SOLVERS",
     "DEFAULT_SOLVERS",
     "BenchConfig",
-    "BenchInstance",
     "BenchReport",
-    "make_instance",
     "run_benchmark",
     "summarize",
     "format_table",
@@ -71,8 +69,6 @@ log = logging.getLogger(__name__)
 
 ROTATION_TOL_DEG = 5.0
 TRANSLATION_TOL = 0.05
-NOISE_BOUND_FACTOR = 5.54
-OUTLIER_RADIUS = 5.0
 
 SUMMARY_COLUMNS = (
     "solver",
@@ -104,30 +100,6 @@ TRIAL_COLUMNS = (
     "relative_gap",
     "error",
 )
-
-
-@dataclass(frozen=True)
-class BenchInstance:
-    """One registration instance with its ground truth.
-
-    Attributes
-    ----------
-    source, target : (N, 3) ndarray
-        Corresponding points (dimensionless, the shape's unit cube).
-    rotation, translation : (3, 3), (3,) ndarray
-        Ground truth: ``target[k] = rotation @ source[k] + translation + noise`` for inliers.
-    outliers : (N,) ndarray of bool
-        Which target points were replaced by outliers.
-    noise_bound : float
-        ``beta = 5.54 sigma``.
-    """
-
-    source: NDArray[np.float64]
-    target: NDArray[np.float64]
-    rotation: NDArray[np.float64]
-    translation: NDArray[np.float64]
-    outliers: NDArray[np.bool_]
-    noise_bound: float
 
 
 @dataclass(frozen=True)
@@ -239,59 +211,6 @@ class BenchReport:
         if plot:
             written.extend(plot_report(self, out))
         return written
-
-
-# --------------------------------------------------------------------------- instances
-
-
-def _uniform_in_ball(rng: np.random.Generator, count: int, radius: float) -> NDArray[np.float64]:
-    d = rng.normal(size=(count, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return d * (radius * rng.uniform(size=(count, 1)) ** (1.0 / 3.0))
-
-
-def make_instance(
-    shape: NDArray[np.float64],
-    n: int,
-    outlier_ratio: float,
-    *,
-    noise: float,
-    rng: np.random.Generator | int | None = None,
-) -> BenchInstance:
-    """Draw one instance of the protocol of NOTES.md section 3.
-
-    Parameters
-    ----------
-    shape : (M, 3) ndarray
-        Points of the shape, already scaled into the unit cube.
-    n : int
-        Number of correspondences; drawn without replacement when ``n <= M``.
-    outlier_ratio : float
-        Fraction in ``[0, 1)`` of target points replaced by outliers (``floor(ratio * n)``).
-    noise : float
-        Standard deviation of the isotropic Gaussian noise on inlier targets.
-    rng : numpy.random.Generator, int or None
-
-    Returns
-    -------
-    BenchInstance
-    """
-    shape = check_points(shape, "shape", min_points=3)
-    if n < 3:
-        raise ValueError(f"`n` must be >= 3, got {n}.")
-    if not 0.0 <= outlier_ratio < 1.0:
-        raise ValueError(f"`outlier_ratio` must be in [0, 1), got {outlier_ratio}.")
-    gen = resolve_rng(rng)
-    idx = gen.choice(shape.shape[0], size=n, replace=n > shape.shape[0])
-    source = shape[idx]
-    R = Rotation.random(random_state=gen).as_matrix()
-    t = _uniform_in_ball(gen, 1, 1.0)[0]
-    target = source @ R.T + t + noise * gen.normal(size=(n, 3))
-    n_out = int(math.floor(outlier_ratio * n + 1e-9))
-    outliers = np.zeros(n, dtype=bool)
-    outliers[gen.choice(n, size=n_out, replace=False)] = True
-    target[outliers] = _uniform_in_ball(gen, n_out, OUTLIER_RADIUS)
-    return BenchInstance(source, target, R, t, outliers, NOISE_BOUND_FACTOR * noise)
 
 
 # --------------------------------------------------------------------------- solvers

@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _run_demo(args: argparse.Namespace) -> int:
     from certpose.api import register
-    from certpose.bench.runner import make_instance
+    from certpose.data.instances import make_instance
     from certpose.io.points import synthetic_shape
     from solvers.lie import rotation_error_deg, translation_error
 
