@@ -11,6 +11,7 @@ from certpose.geometry.rgbd import (
     RGBDFrame,
     StructuredPointCloud,
     backproject,
+    group_voxels,
     load_rgbd,
 )
 from solvers.lie import make_transform
@@ -161,6 +162,21 @@ def test_structured_cloud_validation():
         StructuredPointCloud(np.zeros((0, 3)), np.zeros((0, 4)))
     with pytest.raises(ValueError, match=r"within \[0, 1\]"):
         StructuredPointCloud(pts, np.zeros((3, 2)), colors=np.full((3, 3), 2.0))
+
+
+def test_group_voxels_matches_unique_rows():
+    rng = np.random.default_rng(3)
+    keys = rng.integers(-4, 4, size=(500, 3))
+    rows, inverse, counts = group_voxels(keys)
+    ref_rows, ref_inv, ref_counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    np.testing.assert_array_equal(rows, ref_rows)
+    np.testing.assert_array_equal(inverse, ref_inv.reshape(-1))
+    np.testing.assert_array_equal(counts, ref_counts)
+    # Keys so spread that flat codes would overflow int64 take the row-wise path.
+    far = np.array([[0, 0, 0], [2**40, -(2**40), 2**40], [0, 0, 0]])
+    rows, inverse, counts = group_voxels(far)
+    np.testing.assert_array_equal(rows[inverse], far)
+    assert counts.tolist() == [2, 1] and group_voxels(np.zeros((0, 3), int))[0].shape == (0, 3)
 
 
 def test_voxel_downsample_means():

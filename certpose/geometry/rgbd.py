@@ -30,6 +30,8 @@ __all__ = [
     "load_rgbd",
     "check_mask",
     "normalize_rows",
+    "group_voxels",
+    "sum_by_group",
 ]
 
 log = logging.getLogger(__name__)
@@ -43,6 +45,46 @@ def normalize_rows(x: NDArray[np.floating], *, eps: float = 1e-12) -> NDArray[np
     x = np.asarray(x, dtype=np.float64)
     norms = np.linalg.norm(x, axis=-1, keepdims=True)
     return np.divide(x, norms, out=np.zeros_like(x), where=norms > eps)
+
+
+def group_voxels(
+    keys: NDArray[np.integer],
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Group integer voxel keys: the distinct rows, each key's group, and the group sizes.
+
+    Parameters
+    ----------
+    keys : ndarray of int, shape (N, 3)
+        Voxel indices (any sign).
+
+    Returns
+    -------
+    rows : ndarray of int64, shape (M, 3)
+        The distinct keys in lexicographic order (as ``np.unique(keys, axis=0)``).
+    inverse : ndarray of int64, shape (N,)
+        ``rows[inverse] == keys``.
+    counts : ndarray of int64, shape (M,)
+    """
+    keys = np.asarray(keys, dtype=np.int64)
+    if keys.shape[0] == 0:
+        return np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    lo = keys.min(axis=0)
+    span = tuple(int(s) for s in keys.max(axis=0) - lo + 1)
+    if np.prod(np.asarray(span, dtype=np.float64)) >= 2.0**62:  # flat codes would overflow
+        rows, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+        return rows, inverse.reshape(-1), counts
+    # Rows encoded as flat indices (lexicographic order kept): a 1-D np.unique is much faster.
+    flat = np.ravel_multi_index((keys - lo).T, span)
+    uniq, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    rows = np.stack(np.unravel_index(uniq, span), axis=1).astype(np.int64) + lo
+    return rows, inverse.reshape(-1), counts
+
+
+def sum_by_group(inverse: NDArray[np.int64], values: NDArray[np.floating], m: int) -> NDArray[np.float64]:
+    """Row sums of ``values`` (N, d) per group ``inverse`` (N,) of :func:`group_voxels`, shape (m, d)."""
+    out = np.zeros((m, values.shape[1]))
+    np.add.at(out, inverse, values)
+    return out
 
 
 def check_mask(value: Any, name: str, shape: tuple[int, int], *, allow_empty: bool = False) -> NDArray[np.bool_]:
@@ -443,14 +485,11 @@ class StructuredPointCloud:
         if not (np.isfinite(voxel_size) and voxel_size > 0):
             raise ValueError(f"`voxel_size` must be positive and finite, got {voxel_size}.")
         keys = np.floor(self.points / voxel_size).astype(np.int64)
-        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-        inverse = inverse.reshape(-1)
+        _, inverse, counts = group_voxels(keys)
         m = counts.size
 
         def mean(values: NDArray[np.float64]) -> NDArray[np.float64]:
-            out = np.zeros((m, values.shape[1]))
-            np.add.at(out, inverse, values)
-            return out / counts[:, None]
+            return sum_by_group(inverse, values, m) / counts[:, None]
 
         return StructuredPointCloud(
             mean(self.points),

@@ -36,7 +36,13 @@ from certpose.geometry.features import (
     check_descriptors,
     resolve_backbone,
 )
-from certpose.geometry.rgbd import RGBDFrame, check_mask, normalize_rows
+from certpose.geometry.rgbd import (
+    RGBDFrame,
+    check_mask,
+    group_voxels,
+    normalize_rows,
+    sum_by_group,
+)
 from certpose.model.grid import EMPTY, OCCUPIED, UNOBSERVED
 from solvers.lie import invert_transform
 from solvers.validation import as_float_array, check_points
@@ -343,25 +349,6 @@ def _per_frame_backbones(backbone_or_descriptors: Any, n: int) -> list[Any]:
     return [backbone] * n
 
 
-def _group(
-    keys: NDArray[np.int64], shape: NDArray[np.int64]
-) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
-    """Unique rows of ``keys`` (non-negative, below ``shape``), the inverse map and the counts.
-
-    Rows are encoded as flat indices first: a 1-D ``np.unique`` is much faster than ``axis=0``.
-    """
-    flat = np.ravel_multi_index(keys.T, tuple(int(s) for s in shape))
-    uniq, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    rows = np.stack(np.unravel_index(uniq, tuple(int(s) for s in shape)), axis=1).astype(np.int64)
-    return rows, inverse.reshape(-1), counts
-
-
-def _sum_rows(inverse: NDArray[np.int64], values: NDArray[np.float64], m: int) -> NDArray[np.float64]:
-    out = np.zeros((m, values.shape[1]))
-    np.add.at(out, inverse, values)
-    return out
-
-
 def build_scene_field(
     frames: RGBDFrame | Sequence[RGBDFrame],
     backbone_or_descriptors: Any = None,
@@ -486,8 +473,8 @@ def build_scene_field(
     keys = np.concatenate(keys_all)
     if keys.shape[0] == 0:
         raise ValueError("No observed point falls inside the grid bounds.")
-    uniq, inverse, _ = _group(keys, shape_arr)
-    sums = _sum_rows(inverse, np.concatenate(sums_all), uniq.shape[0])
+    uniq, inverse, _ = group_voxels(keys)
+    sums = sum_by_group(inverse, np.concatenate(sums_all), uniq.shape[0])
     weight = np.bincount(inverse, weights=np.concatenate(counts_all), minlength=uniq.shape[0])
     fused = normalize_rows(sums / weight[:, None]) if sums.shape[1] else sums
     d = fused.shape[1]
@@ -585,20 +572,19 @@ def _frame_voxels(
             return _FrameVoxels(np.zeros((0, 3), np.int64), np.zeros(0, bool), np.zeros(0),
                                 descriptors=np.zeros((0, image.shape[2])))
         desc = check_descriptors(image[pixels[in_grid, 0], pixels[in_grid, 1]], "descriptors")
-        uniq, inverse, counts = _group(keys[in_grid], shape)
-        sums = _sum_rows(inverse, desc, uniq.shape[0])
+        uniq, inverse, counts = group_voxels(keys[in_grid])
+        sums = sum_by_group(inverse, desc, uniq.shape[0])
         return _FrameVoxels(uniq, np.ones(uniq.shape[0], bool), counts.astype(np.float64),
                             descriptors=sums / counts[:, None])
     # Point backbone: describe voxel-averaged points, with the backbone's support radius of
     # context around the grid so border voxels see their whole neighbourhood.
     pad = int(np.ceil(float(getattr(backbone, "radius", 0.0)) / voxel_size))
     near = np.all((keys >= -pad) & (keys < shape + pad), axis=1)
-    uniq, inverse, counts = _group(keys[near] + pad, shape + 2 * pad)
-    uniq -= pad
+    uniq, inverse, counts = group_voxels(keys[near])
     m = uniq.shape[0]
-    mean_cam = _sum_rows(inverse, p_cam[near], m) / counts[:, None]
+    mean_cam = sum_by_group(inverse, p_cam[near], m) / counts[:, None]
     colors = frame.colors_at(pixels[near])
-    mean_col = None if colors is None else np.clip(_sum_rows(inverse, colors, m) / counts[:, None], 0, 1)
+    mean_col = None if colors is None else np.clip(sum_by_group(inverse, colors, m) / counts[:, None], 0, 1)
     keep = np.all((uniq >= 0) & (uniq < shape), axis=1)
     if not keep.any():  # this frame does not see the grid
         return _FrameVoxels(np.zeros((0, 3), np.int64), np.zeros(0, bool), np.zeros(0),
