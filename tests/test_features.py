@@ -166,3 +166,21 @@ def test_dino_backbone_with_real_weights():
     out = bb.describe_image(image)
     assert out.shape[:2] == (120, 160)
     np.testing.assert_allclose(np.linalg.norm(out, axis=-1), 1.0, rtol=1e-5)
+
+
+def test_check_descriptors_rules():
+    from certpose.geometry.rgbd import check_descriptors
+
+    ok = np.array([[0.6, 0.8], [0.0, 0.0]])
+    np.testing.assert_array_equal(check_descriptors(ok, "z", 2), ok)
+    with pytest.raises(ValueError, match=r"Expected `z` to have shape \(3, d\), got \(2, 2\)"):
+        check_descriptors(ok, "z", 3)
+    with pytest.raises(ValueError, match="at least 1 column"):
+        check_descriptors(np.zeros((2, 0)), "z")
+    with pytest.raises(ValueError, match=r"NaN or inf values in 1 row"):
+        check_descriptors([[np.nan, 0.0], [1.0, 0.0]], "z")
+    with pytest.raises(ValueError, match="L2-normalised"):
+        check_descriptors([[1.0, 1.0]], "z")
+    # Raw histograms and plain containers opt out of the norm (and dimension) rule.
+    assert check_descriptors([[1.0, 1.0]], "h", unit_norm=False).shape == (1, 2)
+    assert check_descriptors(np.zeros((2, 0)), "d", min_dim=0, unit_norm=False).shape == (2, 0)

@@ -23,7 +23,12 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from certpose.geometry.rgbd import RGBDFrame, StructuredPointCloud, normalize_rows
+from certpose.geometry.rgbd import (
+    RGBDFrame,
+    StructuredPointCloud,
+    check_descriptors,
+    normalize_rows,
+)
 from solvers.lie import transform_points
 from solvers.validation import as_float_array, check_points
 
@@ -33,23 +38,10 @@ __all__ = [
     "ArrayBackbone",
     "DinoBackbone",
     "describe_frame",
-    "check_descriptors",
     "resolve_backbone",
 ]
 
 log = logging.getLogger(__name__)
-
-
-def check_descriptors(value: Any, name: str, n: int | None = None) -> NDArray[np.float64]:
-    """Validate an ``(N, d)`` array of finite descriptors (``N == n`` when given)."""
-    arr = as_float_array(value, name)
-    if arr.ndim != 2 or (n is not None and arr.shape[0] != n):
-        expected = f"({n}, d)" if n is not None else "(N, d)"
-        raise ValueError(f"Expected `{name}` to have shape {expected}, got {arr.shape}.")
-    if not np.all(np.isfinite(arr)):
-        bad = int(np.count_nonzero(~np.isfinite(arr).all(axis=1)))
-        raise ValueError(f"`{name}` contains NaN or inf values in {bad} row(s).")
-    return arr
 
 
 @runtime_checkable
@@ -191,7 +183,7 @@ class FPFHBackbone:
 
     def fit_center(self, histograms: ArrayLike) -> FPFHBackbone:
         """A copy whose ``center`` is the mean of ``histograms`` (from :meth:`histograms`)."""
-        h = check_descriptors(histograms, "histograms")
+        h = check_descriptors(histograms, "histograms", unit_norm=False)
         if h.shape[1] != _FPFH_BLOCKS * _FPFH_BINS or h.shape[0] == 0:
             raise ValueError(f"Expected `histograms` to have shape (N, 33) with N >= 1, got {h.shape}.")
         valid = h.any(axis=1)
@@ -200,7 +192,7 @@ class FPFHBackbone:
 
     def finish(self, histograms: ArrayLike, *, colors: ArrayLike | None = None) -> NDArray[np.float64]:
         """Descriptors from :meth:`histograms` output (steps 3-4 above), shape ``(N, dim)``."""
-        h = check_descriptors(histograms, "histograms")
+        h = check_descriptors(histograms, "histograms", unit_norm=False)
         n = h.shape[0]
         empty = ~h.any(axis=1)
         if self.center is None:

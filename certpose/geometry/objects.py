@@ -16,32 +16,15 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from certpose.geometry.rgbd import check_descriptors
 from solvers.validation import as_float_array, check_points, resolve_rng
 
 if TYPE_CHECKING:
     from certpose.geometry.rgbd import RGBDFrame
 
-__all__ = ["ObjectModel", "object_from_points", "object_from_views", "check_descriptors"]
+__all__ = ["ObjectModel", "object_from_points", "object_from_views"]
 
 log = logging.getLogger(__name__)
-
-
-def check_descriptors(value: Any, name: str, n: int) -> NDArray[np.float64]:
-    """Validate ``(n, d)`` finite descriptors whose rows have norm at most 1 (L2-normalised or 0)."""
-    arr = as_float_array(value, name)
-    if arr.ndim != 2 or arr.shape[0] != n:
-        raise ValueError(f"Expected `{name}` to have shape ({n}, d), got {arr.shape}.")
-    if arr.shape[1] == 0:
-        raise ValueError(f"Expected `{name}` to have at least one column, got shape {arr.shape}.")
-    if not np.all(np.isfinite(arr)):
-        bad = int(np.count_nonzero(~np.isfinite(arr).all(axis=1)))
-        raise ValueError(f"`{name}` contains NaN or inf values in {bad} row(s).")
-    norms = np.linalg.norm(arr, axis=1)
-    if norms.max() > 1.0 + 1e-6:
-        raise ValueError(
-            f"`{name}` rows must be L2-normalised (norm <= 1), got a maximum norm of {norms.max():.4g}."
-        )
-    return arr
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ __all__ = [
     "load_rgbd",
     "check_mask",
     "normalize_rows",
+    "check_descriptors",
     "group_voxels",
     "sum_by_group",
 ]
@@ -45,6 +46,32 @@ def normalize_rows(x: NDArray[np.floating], *, eps: float = 1e-12) -> NDArray[np
     x = np.asarray(x, dtype=np.float64)
     norms = np.linalg.norm(x, axis=-1, keepdims=True)
     return np.divide(x, norms, out=np.zeros_like(x), where=norms > eps)
+
+
+def check_descriptors(
+    value: Any, name: str, n: int | None = None, *, unit_norm: bool = True, min_dim: int = 1
+) -> NDArray[np.float64]:
+    """Validate an ``(N, d)`` float array of descriptors, ``N == n`` when given.
+
+    Rows must be finite; with ``unit_norm`` (the default: what eq. (1) assumes) their L2 norm
+    must be at most 1 (normalised rows, or 0 for "no information"); ``d >= min_dim``.
+    """
+    arr = as_float_array(value, name)
+    if arr.ndim != 2 or (n is not None and arr.shape[0] != n):
+        expected = f"({n}, d)" if n is not None else "(N, d)"
+        raise ValueError(f"Expected `{name}` to have shape {expected}, got {arr.shape}.")
+    if arr.shape[1] < min_dim:
+        raise ValueError(f"Expected `{name}` to have at least {min_dim} column(s), got shape {arr.shape}.")
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.count_nonzero(~np.isfinite(arr).all(axis=1)))
+        raise ValueError(f"`{name}` contains NaN or inf values in {bad} row(s).")
+    if unit_norm and arr.size:
+        top = float(np.linalg.norm(arr, axis=1).max())
+        if top > 1.0 + 1e-6:
+            raise ValueError(
+                f"`{name}` rows must be L2-normalised (norm <= 1), got a maximum norm of {top:.4g}."
+            )
+    return arr
 
 
 def group_voxels(
@@ -448,12 +475,8 @@ class StructuredPointCloud:
     def __post_init__(self) -> None:
         points = check_points(self.points, "points")
         n = points.shape[0]
-        desc = as_float_array(self.descriptors, "descriptors")
-        if desc.ndim != 2 or desc.shape[0] != n:
-            raise ValueError(f"Expected `descriptors` to have shape ({n}, d), got {desc.shape}.")
-        if not np.all(np.isfinite(desc)):
-            bad = int(np.count_nonzero(~np.isfinite(desc).all(axis=1)))
-            raise ValueError(f"`descriptors` contains NaN or inf values in {bad} row(s).")
+        # A container: any finite descriptors, also none (d = 0); eq. (1)'s users check norms.
+        desc = check_descriptors(self.descriptors, "descriptors", n, unit_norm=False, min_dim=0)
         for arr in (points, desc):
             arr.setflags(write=False)
         object.__setattr__(self, "points", points)

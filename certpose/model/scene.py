@@ -33,11 +33,11 @@ from numpy.typing import ArrayLike, NDArray
 from certpose.geometry.features import (
     ArrayBackbone,
     FPFHBackbone,
-    check_descriptors,
     resolve_backbone,
 )
 from certpose.geometry.rgbd import (
     RGBDFrame,
+    check_descriptors,
     check_mask,
     group_voxels,
     normalize_rows,
