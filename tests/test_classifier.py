@@ -16,7 +16,8 @@ from certpose.model.classifier import (
     classify_best_buddies,
     classify_from_mask,
 )
-from certpose.model.scene import EMPTY, OCCUPIED, UNOBSERVED, SceneField, build_scene_field
+from certpose.model.grid import EMPTY, OCCUPIED, UNOBSERVED
+from certpose.model.scene import SceneField, build_scene_field
 
 CAM = CameraIntrinsics(100.0, 100.0, 31.5, 23.5, 64, 48)
 

@@ -10,8 +10,9 @@ from scipy.spatial.transform import Rotation
 
 from certpose.geometry.objects import ObjectModel
 from certpose.model.classifier import ClassifierStatus, ObjectClassification
+from certpose.model.grid import EMPTY, OCCUPIED, UNOBSERVED
 from certpose.model.likelihood import LikelihoodParams, PoseLikelihood, log_likelihood
-from certpose.model.scene import EMPTY, OCCUPIED, UNOBSERVED, SceneField
+from certpose.model.scene import SceneField
 from solvers.lie import make_transform
 
 

@@ -20,8 +20,9 @@ from certpose.estimation.mle import (
 )
 from certpose.geometry.objects import ObjectModel
 from certpose.model.classifier import ClassifierStatus, ObjectClassification
+from certpose.model.grid import EMPTY, OCCUPIED
 from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
-from certpose.model.scene import EMPTY, OCCUPIED, SceneField
+from certpose.model.scene import SceneField
 from solvers.lie import make_transform, rotation_error_deg
 
 

@@ -9,7 +9,8 @@ import pytest
 
 from certpose.geometry.features import ArrayBackbone, FPFHBackbone
 from certpose.geometry.rgbd import CameraIntrinsics, RGBDFrame
-from certpose.model.scene import EMPTY, OCCUPIED, UNOBSERVED, SceneField, build_scene_field
+from certpose.model.grid import EMPTY, OCCUPIED, UNOBSERVED
+from certpose.model.scene import SceneField, build_scene_field
 from solvers.lie import make_transform
 from tests.conftest import require_data
 
@@ -298,3 +299,19 @@ def test_save_and_load_round_trip(tmp_path):
     (tmp_path / "bad.npz").write_bytes(b"garbage")
     with pytest.raises(ValueError, match="bad.npz"):
         SceneField.load(tmp_path / "bad.npz")
+
+
+def test_grid_spec_is_the_scene_geometry():
+    from certpose.model.grid import GridSpec
+
+    g = GridSpec(np.array([1.0, -2.0, 0.5]), 0.25, (4, 3, 2), 0.5)
+    ijk = np.array([[0, 0, 0], [3, 2, 1]])
+    c = g.centres(ijk)
+    np.testing.assert_allclose(c, [[1.125, -1.875, 0.625], [1.875, -1.375, 0.875]])
+    np.testing.assert_allclose(g.to_grid(c), ijk, atol=1e-12)
+    np.testing.assert_array_equal(g.voxel_of(c), ijk)
+    # A voxel's lower faces belong to it, its upper faces to the next one.
+    np.testing.assert_array_equal(g.voxel_of(g.origin[None] + 0.25), [[1, 1, 1]])
+    assert g.inside(np.array([[3, 2, 1], [4, 0, 0], [0, -1, 0]])).tolist() == [True, False, False]
+    assert [a.shape for a in g.axes()] == [(4,), (3,), (2,)]
+    np.testing.assert_allclose(g.axes()[0], g.centres(np.c_[np.arange(4), np.zeros((4, 2))])[:, 0])

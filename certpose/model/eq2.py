@@ -137,7 +137,7 @@ def build_eq2_problem(
     ValueError
         Mismatched descriptor dimensions, NaN descriptors, fewer than 3 occupied voxels.
     """
-    from certpose.model.grid import scene_grid_spec
+    from certpose.model.grid import OCCUPIED, scene_grid_spec
     from certpose.model.likelihood import LikelihoodParams
     from solvers import WeightedTLSProblem
 
@@ -145,7 +145,7 @@ def build_eq2_problem(
     beta = (likelihood_params or LikelihoodParams()).beta
     grid = scene_grid_spec(scene)
     state = np.asarray(scene.state)
-    occ = np.argwhere(state == 2)
+    occ = np.argwhere(state == OCCUPIED)
     if occ.shape[0] < 3:
         raise ValueError(f"The scene has {occ.shape[0]} occupied voxel(s); eq. (2) needs at least 3.")
     desc = np.asarray(scene.descriptors)

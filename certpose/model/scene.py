@@ -43,14 +43,11 @@ from certpose.geometry.rgbd import (
     normalize_rows,
     sum_by_group,
 )
-from certpose.model.grid import EMPTY, OCCUPIED, UNOBSERVED
+from certpose.model.grid import EMPTY, OCCUPIED, UNOBSERVED, VOXEL_CENTRE_OFFSET, GridSpec
 from solvers.lie import invert_transform
 from solvers.validation import as_float_array, check_points
 
 __all__ = [
-    "UNOBSERVED",
-    "EMPTY",
-    "OCCUPIED",
     "SceneField",
     "build_scene_field",
     "bounds_from_points",
@@ -144,6 +141,11 @@ class SceneField:
         return int(np.prod(self.shape))
 
     @property
+    def grid(self) -> GridSpec:
+        """The grid's geometry (voxel centres, continuous coordinates)."""
+        return GridSpec(self.origin, self.voxel_size, self.shape, VOXEL_CENTRE_OFFSET)
+
+    @property
     def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """World-frame box ``(min (3,), max (3,))`` covered by the grid, metres."""
         return self.origin.copy(), self.origin + np.asarray(self.shape) * self.voxel_size
@@ -155,21 +157,19 @@ class SceneField:
 
     def world_to_grid(self, points: ArrayLike) -> NDArray[np.float64]:
         """Continuous grid coordinates ``(N, 3)``; voxel centres map to integers."""
-        p = check_points(points, "points", min_points=0)
-        return (p - self.origin) / self.voxel_size - 0.5
+        return self.grid.to_grid(check_points(points, "points", min_points=0))
 
     def grid_to_world(self, ijk: ArrayLike) -> NDArray[np.float64]:
         """World coordinates ``(N, 3)`` of (continuous) grid coordinates; inverse of :meth:`world_to_grid`."""
         g = as_float_array(ijk, "ijk")
         if g.ndim != 2 or g.shape[1] != 3:
             raise ValueError(f"Expected `ijk` to have shape (N, 3), got {g.shape}.")
-        return self.origin + (g + 0.5) * self.voxel_size
+        return self.grid.centres(g)
 
     def voxel_index(self, points: ArrayLike) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
         """Integer index ``(N, 3)`` of the voxel containing each point, and whether it is in the grid."""
-        ijk = np.floor(self.world_to_grid(points) + 0.5).astype(np.int64)
-        inside = np.all((ijk >= 0) & (ijk < np.asarray(self.shape)), axis=1)
-        return ijk, inside
+        ijk = self.grid.voxel_of(check_points(points, "points", min_points=0))
+        return ijk, self.grid.inside(ijk)
 
     # ---------------------------------------------------------------- queries
     def state_at(self, points: ArrayLike) -> NDArray[np.int8]:
@@ -439,12 +439,11 @@ def build_scene_field(
             f"The grid would have shape {shape} ({n_vox} voxels > max_voxels={max_voxels}); crop it "
             "with `bounds` or `roi_mask`, or use a larger `voxel_size`."
         )
-    origin = lo
-    shape_arr = np.asarray(shape)
+    grid = GridSpec(lo, float(voxel_size), shape, VOXEL_CENTRE_OFFSET)
 
     # --- occupied voxels: mean descriptor of their points, fused over frames
     per_frame = [
-        _frame_voxels(f, b, p_cam, p_w, px, origin, shape_arr, voxel_size)
+        _frame_voxels(f, b, p_cam, p_w, px, grid)
         for f, b, (p_cam, p_w, px) in zip(frames, backbones, clouds, strict=True)
     ]
     shared = backbones[0]
@@ -485,19 +484,17 @@ def build_scene_field(
     # --- free space: project every voxel centre into every frame (vectorised)
     empty = np.zeros(shape, dtype=bool)
     for f in frames:
-        empty |= _in_front_of_surface(f, origin, shape, voxel_size, free_space_margin)
+        empty |= _in_front_of_surface(f, grid, free_space_margin)
     state[empty] = EMPTY
     state[uniq[:, 0], uniq[:, 1], uniq[:, 2]] = OCCUPIED  # a measured point wins over free space
-    scene = SceneField(voxel_size, origin, shape, descriptors, state, backbone=backbones[0])
+    scene = SceneField(voxel_size, grid.origin, shape, descriptors, state, backbone=backbones[0])
     log.debug("scene field %s: %s", shape, scene.counts())
     return scene
 
 
 def _in_front_of_surface(
     frame: RGBDFrame,
-    origin: NDArray[np.float64],
-    shape: tuple[int, int, int],
-    voxel_size: float,
+    grid: GridSpec,
     margin: float,
 ) -> NDArray[np.bool_]:
     """Whether each voxel centre lies in front of the frame's measured surface by more than ``margin``.
@@ -508,7 +505,8 @@ def _in_front_of_surface(
     """
     T = invert_transform(frame.T_world_camera)
     R, t = T[:3, :3], T[:3, 3]
-    axes = [origin[a] + (np.arange(shape[a]) + 0.5) * voxel_size for a in range(3)]
+    axes = grid.axes()
+    shape = grid.shape
     K = frame.intrinsics
     depth = frame.depth.reshape(-1)
     out = np.zeros(shape, dtype=bool)
@@ -554,12 +552,11 @@ def _frame_voxels(
     p_cam: NDArray[np.float64],
     p_world: NDArray[np.float64],
     pixels: NDArray[np.int64],
-    origin: NDArray[np.float64],
-    shape: NDArray[np.int64],
-    voxel_size: float,
+    grid: GridSpec,
 ) -> _FrameVoxels:
     """Group one frame's points by voxel (means of points, colours or per-pixel descriptors)."""
-    keys = np.floor((p_world - origin) / voxel_size).astype(np.int64)
+    keys = grid.voxel_of(p_world)
+    shape, voxel_size = np.asarray(grid.shape), grid.voxel_size
     image_backbone = hasattr(backbone, "describe_image") and getattr(backbone, "per_pixel", True)
     if image_backbone:
         image = np.asarray(backbone.describe_image(frame.color, frame.shape))
