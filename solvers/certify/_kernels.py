@@ -73,3 +73,178 @@ def identity_frame_projection(M, S0, th, c):  # pragma: no cover - compiled
                     out[oi + a, oi + 3] += ua
                     out[oi + 3, oi + a] += ua
     return out
+
+
+@njit(cache=True)
+def _horn_lambda_max(H, upper):  # pragma: no cover - compiled
+    """An upper bound on ``max_{R in SO(3)} tr(R H)`` (tight to about 1e-12 relative).
+
+    The maximum is the largest eigenvalue of Horn's 4 x 4 matrix ``N(H)``. Its characteristic
+    polynomial ``x^4 + c2 x^2 + c1 x + c0`` is convex beyond the largest root, so Newton's
+    method started above it (at ``upper``, e.g. ``(G_a + G_b) / 2``) decreases monotonically to
+    it: every iterate is an upper bound (Theobald's QCP), at a fraction of an SVD's cost. A
+    margin of ``1e-7 upper`` covers rounding near double roots.
+    """
+    sxx, sxy, sxz = H[0, 0], H[0, 1], H[0, 2]
+    syx, syy, syz = H[1, 0], H[1, 1], H[1, 2]
+    szx, szy, szz = H[2, 0], H[2, 1], H[2, 2]
+    N = np.empty((4, 4))
+    N[0, 0] = sxx + syy + szz
+    N[0, 1] = syz - szy
+    N[0, 2] = szx - sxz
+    N[0, 3] = sxy - syx
+    N[1, 1] = sxx - syy - szz
+    N[1, 2] = sxy + syx
+    N[1, 3] = szx + sxz
+    N[2, 2] = -sxx + syy - szz
+    N[2, 3] = syz + szy
+    N[3, 3] = -sxx - syy + szz
+    for i in range(4):
+        for j in range(i):
+            N[i, j] = N[j, i]
+    c2 = -2.0 * (H * H).sum()
+    c1 = -8.0 * (sxx * (syy * szz - syz * szy) - sxy * (syx * szz - syz * szx)
+                 + sxz * (syx * szy - syy * szx))
+    # det(N) by cofactors along the first row.
+    c0 = 0.0
+    for j in range(4):
+        m = np.empty((3, 3))
+        for r in range(3):
+            cc = 0
+            for c in range(4):
+                if c != j:
+                    m[r, cc] = N[r + 1, c]
+                    cc += 1
+        minor = (m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
+                 - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+                 + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
+        c0 += (-1.0) ** j * N[0, j] * minor
+    x = upper
+    for _ in range(60):
+        x2 = x * x
+        p = x2 * x2 + c2 * x2 + c1 * x + c0
+        dp = 4.0 * x2 * x + 2.0 * c2 * x + c1
+        if dp <= 0.0:
+            break  # not above the largest root any more (rounding): keep the last upper bound
+        step = p / dp
+        if step <= 1e-13 * abs(x):
+            break
+        x -= step
+    # Near a double root (clustered singular values) rounding limits the root's accuracy to
+    # about sqrt(eps) relative: the margin keeps the result an upper bound.
+    return x + 1e-7 * upper
+
+
+@njit(cache=True)
+def _ls_bound(s):  # pragma: no cover - compiled
+    """A lower bound (tight to rounding) on the least-squares optimum from running sums ``s``."""
+    sw = s[0]
+    if sw <= 0.0:
+        return 0.0
+    ca = s[1:4] / sw
+    cb = s[4:7] / sw
+    H = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            H[i, j] = s[7 + 3 * i + j] - sw * ca[i] * cb[j]
+    ga = s[16] - sw * (ca @ ca)
+    gb = s[17] - sw * (cb @ cb)
+    lam = _horn_lambda_max(H, 0.5 * (abs(ga) + abs(gb)) * (1.0 + 1e-9) + 1e-300)
+    return max(ga + gb - 2.0 * lam, 0.0)
+
+
+@njit(cache=True)
+def _ls_value(s):  # pragma: no cover - compiled
+    """Least-squares optimum and pose (centred frame) from running sums ``s``, by SVD."""
+    sw = s[0]
+    R = np.eye(3)
+    tp = np.zeros(3)
+    if sw <= 0.0:
+        return 0.0, R, tp
+    ca = s[1:4] / sw
+    cb = s[4:7] / sw
+    H = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            H[i, j] = s[7 + 3 * i + j] - sw * ca[i] * cb[j]
+    U, sv, Vt = np.linalg.svd(H)
+    d = 1.0 if np.linalg.det(U @ Vt) > 0 else -1.0
+    val = (s[16] - sw * (ca @ ca)) + (s[17] - sw * (cb @ cb)) - 2.0 * (sv[0] + sv[1] + d * sv[2])
+    D = np.eye(3)
+    D[2, 2] = d
+    R = Vt.T @ D @ U.T
+    tp = cb - R @ ca
+    return max(val, 0.0), R, tp
+
+
+@njit(cache=True)
+def clique_bnb(a, b, v, wout, upper, allowance, max_nodes):  # pragma: no cover - compiled
+    """Depth-first branch and bound of ``min_S [LS_S^* + sum_{k not in S} wout_k]``.
+
+    ``a``, ``b`` (K, 3) centred points in branching order, ``v`` (K,) least-squares weights
+    ``w / beta^2``, ``wout`` (K,) outlier costs ``cbar2 w``. A node's state is the running sums
+    of its forced-in set ``[sw, sum v a (3), sum v b (3), sum v a b^T (9), sum v|a|^2,
+    sum v|b|^2]`` and its forced-out cost; its bound is ``LS_I^* + out`` (Horn's eigenvalue by
+    QCP Newton from above, :func:`_horn_lambda_max`). Returns ``(best, R, t, complete, nodes,
+    found)``: the best leaf value (``upper`` when none beat it), its least-squares pose in the
+    centred frame (SVD), whether the search finished within ``max_nodes``, the nodes visited,
+    and whether a leaf beat ``upper``.
+    """
+    K = a.shape[0]
+    state = np.zeros((K + 1, 18))
+    out = np.zeros(K + 1)
+    phase = np.zeros(K + 1, dtype=np.int64)  # 0: visit node, 1: "in" child next, 2: "out" next
+    best = upper
+    bestR = np.eye(3)
+    bestt = np.zeros(3)
+    found = False
+    nodes = 0
+    depth = 0
+    while depth >= 0:
+        if phase[depth] == 0:
+            nodes += 1
+            if nodes > max_nodes:
+                return best, bestR, bestt, False, nodes, found
+            bound = _ls_bound(state[depth]) + out[depth]
+            if bound - allowance >= best:
+                depth -= 1
+                continue
+            if depth == K:
+                val, R, tp = _ls_value(state[depth])
+                val += out[depth]
+                if val < best or not found:
+                    best = min(val, best)
+                    bestR = R
+                    bestt = tp
+                    found = True
+                depth -= 1
+                continue
+            phase[depth] = 1
+        if phase[depth] == 1:
+            phase[depth] = 2
+            k = depth
+            s = state[depth + 1]
+            s[:] = state[depth]
+            vk = v[k]
+            s[0] += vk
+            for i in range(3):
+                s[1 + i] += vk * a[k, i]
+                s[4 + i] += vk * b[k, i]
+                for j in range(3):
+                    s[7 + 3 * i + j] += vk * a[k, i] * b[k, j]
+                s[16] += vk * a[k, i] * a[k, i]
+                s[17] += vk * b[k, i] * b[k, i]
+            out[depth + 1] = out[depth]
+            phase[depth + 1] = 0
+            depth += 1
+            continue
+        if phase[depth] == 2:
+            phase[depth] = 3
+            state[depth + 1, :] = state[depth]
+            out[depth + 1] = out[depth] + wout[depth]
+            phase[depth + 1] = 0
+            depth += 1
+            continue
+        phase[depth] = 0
+        depth -= 1
+    return best, bestR, bestt, True, nodes, found

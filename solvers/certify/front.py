@@ -99,8 +99,8 @@ by ``np.allclose``'s default relative tolerance) was once "certified" with ``upp
 MAX_CLIQUES = 5000
 """Most maximal cliques the clique decomposition bounds before giving up (uncertified)."""
 
-BNB_MAX_NODES = 100_000
-"""Node budget of the exact branch and bound on one clique (about 5 s); beyond it the clique
+BNB_MAX_NODES = 50_000_000
+"""Node budget of the exact branch and bound on one clique (about 25 s); beyond it the clique
 subproblem goes to the joint dual search."""
 
 Scope = Literal["auto", "full", "pruned", "rotation"]
