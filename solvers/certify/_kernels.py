@@ -85,9 +85,13 @@ def _horn_lambda_max(H, upper):  # pragma: no cover - compiled
     it: every iterate is an upper bound (Theobald's QCP), at a fraction of an SVD's cost. A
     margin of ``1e-7 upper`` covers rounding near double roots.
     """
-    sxx, sxy, sxz = H[0, 0], H[0, 1], H[0, 2]
-    syx, syy, syz = H[1, 0], H[1, 1], H[1, 2]
-    szx, szy, szz = H[2, 0], H[2, 1], H[2, 2]
+    hm = max(np.abs(H).max(), 1e-300)
+    Hn = H / hm  # the quartic's powers would under/overflow at extreme scales
+    # tr(R H) <= ||H||_* <= 3 sqrt(3) max|H_ij|: a start that cannot overflow.
+    un = min(upper / hm, 5.2)
+    sxx, sxy, sxz = Hn[0, 0], Hn[0, 1], Hn[0, 2]
+    syx, syy, syz = Hn[1, 0], Hn[1, 1], Hn[1, 2]
+    szx, szy, szz = Hn[2, 0], Hn[2, 1], Hn[2, 2]
     N = np.empty((4, 4))
     N[0, 0] = sxx + syy + szz
     N[0, 1] = syz - szy
@@ -102,7 +106,7 @@ def _horn_lambda_max(H, upper):  # pragma: no cover - compiled
     for i in range(4):
         for j in range(i):
             N[i, j] = N[j, i]
-    c2 = -2.0 * (H * H).sum()
+    c2 = -2.0 * (Hn * Hn).sum()
     c1 = -8.0 * (sxx * (syy * szz - syz * szy) - sxy * (syx * szz - syz * szx)
                  + sxz * (syx * szy - syy * szx))
     # det(N) by cofactors along the first row.
@@ -119,7 +123,7 @@ def _horn_lambda_max(H, upper):  # pragma: no cover - compiled
                  - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
                  + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
         c0 += (-1.0) ** j * N[0, j] * minor
-    x = upper
+    x = un
     for _ in range(60):
         x2 = x * x
         p = x2 * x2 + c2 * x2 + c1 * x + c0
@@ -132,7 +136,7 @@ def _horn_lambda_max(H, upper):  # pragma: no cover - compiled
         x -= step
     # Near a double root (clustered singular values) rounding limits the root's accuracy to
     # about sqrt(eps) relative: the margin keeps the result an upper bound.
-    return x + 1e-7 * upper
+    return (x + 1e-7 * un) * hm
 
 
 @njit(cache=True)
@@ -205,15 +209,18 @@ def clique_bnb(a, b, v, wout, upper, allowance, max_nodes):  # pragma: no cover 
             nodes += 1
             if nodes > max_nodes:
                 return best, bestR, bestt, False, nodes, found
-            bound = _ls_bound(state[depth]) + out[depth]
+            bound = _ls_bound(state[depth])
+            if not bound >= 0.0:  # NaN: least squares is non-negative, nothing more is known
+                bound = 0.0
+            bound += out[depth]
             if bound - allowance >= best:
                 depth -= 1
                 continue
             if depth == K:
                 val, R, tp = _ls_value(state[depth])
                 val += out[depth]
-                if val < best or not found:
-                    best = min(val, best)
+                if val < best:
+                    best = val
                     bestR = R
                     bestt = tp
                     found = True

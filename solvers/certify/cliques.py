@@ -223,9 +223,12 @@ def clique_optimum(
     order = np.arange(K) if order is None else np.asarray(order, dtype=np.int64)
     # Each term in units of its noise bound: w/beta^2 |R a + t - b|^2 = |R a' + t' - b'|^2 * w/beta^2
     # does not factor (per-term beta), so the sums carry v = w / beta^2 explicitly.
-    v = (problem.weights / problem.noise_bound**2)[order]
-    a = problem.source[order]
-    b = problem.target[order]
+    # Units of the median noise bound: least-squares values are unchanged, the sums stay
+    # far from overflow and underflow at any scale of the points.
+    unit = float(np.median(problem.noise_bound))
+    v = (problem.weights / (problem.noise_bound / unit) ** 2)[order]
+    a = problem.source[order] / unit
+    b = problem.target[order] / unit
     # Centre for accuracy of the running-sum formula (a rigid shift keeps LS values).
     ca = (v @ a) / max(v.sum(), 1e-300)
     cb = (v @ b) / max(v.sum(), 1e-300)
@@ -243,7 +246,7 @@ def clique_optimum(
         np.ascontiguousarray(a), np.ascontiguousarray(b), np.ascontiguousarray(v),
         np.ascontiguousarray(wout), float(upper), float(allowance), int(max_nodes))
     if found:
-        t = cb - R @ ca + tp
+        t = (cb - R @ ca + tp) * unit
         best_cost = float(best)
     else:
         R, t, best_cost = np.eye(3), np.zeros(3), np.inf
