@@ -9,7 +9,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solvers import RegistrationResult, WeightedTLSProblem, solve_registration
-from solvers.validation import resolve_rng
 
 __all__ = ["register", "as_points"]
 
@@ -37,7 +36,6 @@ def register(
     weights: NDArray[np.float64] | None = None,
     solver: Solver = "gnc",
     certify: bool = False,
-    rng: np.random.Generator | int | None = None,
     prune: Literal["auto", "always", "never"] = "auto",
     cbar2: float = 1.0,
     scope: Literal["auto", "full", "pruned", "rotation"] = "auto",
@@ -60,8 +58,6 @@ def register(
         Black-Rangarajan SDP relaxation's own rounded pose, with its certificate.
     certify : bool
         Attach a duality-gap certificate to the returned pose (``solver="gnc"``).
-    rng : numpy.random.Generator, int or None
-        Randomness for the solvers that use it (seeded runs are reproducible).
     prune : {"auto", "always", "never"}
         Whether to prune with the pairwise-consistency max clique before GNC.
     cbar2 : float
@@ -93,7 +89,6 @@ def register(
         weights=weights,
         cbar2=cbar2,
     )
-    resolve_rng(rng)
     if solver not in ("gnc", "sdp"):
         raise ValueError(f"`solver` must be 'gnc' or 'sdp', got {solver!r}.")
     if prune not in ("auto", "always", "never"):

@@ -6,8 +6,9 @@ pose. Prints, per K and outlier ratio and per method, the certified fraction, th
 gap and the median time:
 
 * ``joint``: :func:`solvers.certify.joint_dual.joint_dual_certificate` (this benchmark's subject);
-* ``dual``: :func:`solvers.certify.sdp_dual.dual_certificate` on the joint lifting (the generic
-  Douglas-Rachford search; ``certify_pose(scope="full", method="dual")`` now runs ``joint``);
+* ``dual baseline`` (table only): the generic Douglas-Rachford search on the joint lifting that
+  ``certify_pose(scope="full", method="dual")`` ran before ``joint``; it lost everywhere and was
+  removed from the code, its figures are kept here for the record;
 * ``dense``: ``certify_pose(..., scope="full", method="dense")`` (interior point, small K only).
 
 Measured (2-core machine shared with other jobs, load average 3-4, so times are noisy;
@@ -37,7 +38,7 @@ all of them, and neither search gets close.
 Usage::
 
     python examples/bench_joint_dual.py [--ks 10 20 50] [--ratios 0 0.5 0.8] [--reps 5]
-        [--methods joint dual] [--time-limit 60]
+        [--methods joint dense] [--time-limit 60]
 """
 
 from __future__ import annotations
@@ -75,24 +76,6 @@ def run_one(method: str, p, R, t, tol: float, time_limit: float) -> tuple[bool, 
         upper = p.cost(R, t)
         gap = relative_gap(upper, res.lower_bound)
         return bool(gap <= tol), float(gap), time.perf_counter() - t0, res.iterations
-    if method == "dual":
-        # The generic Douglas-Rachford search of solvers.certify.sdp_dual on the same lifting (what
-        # certify_pose(scope="full", method="dual") ran before it switched to joint_dual).
-        from threadpoolctl import threadpool_limits
-
-        from solvers.certify.relaxation import joint_lifting
-        from solvers.certify.sdp_dual import dual_certificate
-
-        lift = joint_lifting(p)
-        tn = (t + R @ lift.src_center - lift.dst_center) / lift.scale
-        y = np.concatenate([[1.0], R.ravel(order="F"), tn])
-        theta = np.where(p.inliers(R, t), 1.0, -1.0)
-        x = np.concatenate([y, (theta[:, None] * y[None, :]).ravel()])
-        with threadpool_limits(1):
-            res = dual_certificate(lift, x, tol=tol, max_iterations=3000, time_limit=time_limit,
-                                   relaxation=1.99)
-        gap = relative_gap(p.cost(R, t), res.lower_bound)
-        return bool(gap <= tol), float(gap), time.perf_counter() - t0, res.iterations
     import re
 
     from solvers.certify import certify_pose
@@ -108,7 +91,7 @@ def main() -> None:
     ap.add_argument("--ks", type=int, nargs="+", default=[10, 20, 50])
     ap.add_argument("--ratios", type=float, nargs="+", default=[0.0, 0.5, 0.8])
     ap.add_argument("--reps", type=int, default=5)
-    ap.add_argument("--methods", nargs="+", default=["joint", "dual"])
+    ap.add_argument("--methods", nargs="+", default=["joint"])
     ap.add_argument("--time-limit", type=float, default=60.0)
     ap.add_argument("--tol", type=float, default=1e-3)
     ap.add_argument("--seed", type=int, default=0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -28,6 +29,16 @@ def require_data(*parts: str) -> Path:
             pytest.fail(msg)
         pytest.skip(msg)
     return path
+
+
+def strict_json(text: str) -> object:
+    """Parse JSON as the standard says: ``NaN`` and ``Infinity`` (which Python writes and reads by
+    default) are errors."""
+
+    def reject(token: str) -> object:
+        raise ValueError(f"invalid JSON constant {token!r}")
+
+    return json.loads(text, parse_constant=reject)
 
 
 def make_instance(

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 
@@ -13,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from certpose.cli import main
 from certpose.io.points import load_bunny
 from solvers.lie import rotation_error_deg, transform_points
-from tests.conftest import require_data
+from tests.conftest import require_data, strict_json
 
 SIGMA = 0.01
 BETA = 5.54 * SIGMA
@@ -52,7 +51,7 @@ def _write(path, pts: np.ndarray) -> None:
 
 
 def _check_pose(json_path, T_gt: np.ndarray) -> dict:
-    data = json.loads(json_path.read_text())
+    data = strict_json(json_path.read_text())
     res = data["result"]
     T = np.array(res["T_target_source"])
     assert res["success"] and res["status"] == "converged"
@@ -120,7 +119,7 @@ def test_register_demo(tmp_path, capsys):
     assert main(["register", "--demo", "--json", str(out)]) == 0
     stdout = capsys.readouterr().out
     assert "rotation error" in stdout and "translation error" in stdout and "ms" in stdout
-    data = json.loads(out.read_text())
+    data = strict_json(out.read_text())
     assert data["inputs"]["demo"] and data["inputs"]["outlier_ratio"] == 0.8
     T = np.array(data["result"]["T_target_source"])
     T_gt = np.array(data["ground_truth"]["T_target_source"])

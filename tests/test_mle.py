@@ -154,7 +154,7 @@ def test_estimate_mle_and_coarse_search_on_a_hand_built_scene():
 def test_estimate_mle_without_object_evidence():
     rng = np.random.default_rng(4)
     obj = _box_object(rng)
-    scene, cls = _scene_with_object(obj, np.eye(4) + np.diag([0, 0, 0, 0]))
+    scene, cls = _scene_with_object(obj, np.eye(4))
     none = ObjectClassification(np.full(cls.log_p.shape, -5.0), np.zeros(cls.log_p.shape, bool),
                                 -5.0, "test", ClassifierStatus.NO_POSITIVES, "nothing")
     res = estimate_mle(scene, none, obj)

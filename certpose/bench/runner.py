@@ -229,7 +229,7 @@ def _certpose(**kwargs: Any) -> Callable[[BenchInstance], _Outcome]:
     def run(inst: BenchInstance) -> _Outcome:
         from certpose.api import register
 
-        res = register(inst.source, inst.target, noise_bound=inst.noise_bound, rng=0, **kwargs)
+        res = register(inst.source, inst.target, noise_bound=inst.noise_bound, **kwargs)
         cert = res.certificate
         return _Outcome(
             res.T_target_source,
@@ -316,19 +316,6 @@ SOLVERS: dict[str, Callable[[BenchInstance], _Outcome]] = {
 DEFAULT_SOLVERS: tuple[str, ...] = ("gnc", "gnc-only", "gtsam-gnc", "o3d-ransac", "o3d-fgr")
 """Solvers run when none are named (the SDP-based ones are slow and opt-in)."""
 
-_NEEDS_CERTIFY = ("gnc+certify", "sdp")
-
-
-def _availability(name: str) -> str | None:
-    """Why solver ``name`` cannot run here, or ``None``."""
-    if name in _NEEDS_CERTIFY:
-        try:
-            import solvers.certify  # noqa: F401
-        except ImportError as exc:
-            return f"solvers.certify is not available ({exc})"
-    return None
-
-
 def _seed_peers(seed: int) -> None:
     import open3d as o3d
 
@@ -374,15 +361,7 @@ def run_benchmark(
     shape = check_points(shape, "shape", min_points=3)
 
     skipped: dict[str, str] = {}
-    solvers: list[str] = []
-    for name in config.solvers:
-        why = _availability(name)
-        if why is None:
-            solvers.append(name)
-        else:
-            skipped[name] = why
-            log.warning("skipping solver %s: %s", name, why)
-
+    solvers = list(config.solvers)
     _warm_up(solvers, shape, config, skipped)
     solvers = [s for s in solvers if s not in skipped]
 

@@ -4,10 +4,10 @@ For the dense (QUASAR) relaxation of an arrowhead :class:`~solvers.certify.relax
 rank-one candidate ``x = [y; theta_1 y; ...; theta_K y]``, a dual certificate is a dual matrix
 ``S = C - blkdiag(D_0..D_K) - W`` (``W`` with skew off-diagonal blocks, ``sum_k D_k`` in the span
 of the pose constraints) with ``S x = 0`` and ``S >= 0``. The affine conditions form a set ``A``;
-Douglas-Rachford alternates the projection onto ``A`` (a least-norm correction whose normal
-matrix is factored once per candidate) and onto the PSD cone (one eigendecomposition). This
-follows the idea of TEASER++'s certifier (Yang, Shi, Carlone 2020), written for any arrowhead
-lifting.
+Douglas-Rachford alternates the projection onto ``A`` and onto the PSD cone (one
+eigendecomposition); :func:`_drs_iterates` is the iteration, shared with
+:mod:`solvers.certify.joint_dual` (the joint rotation-translation lifting). This follows the idea
+of TEASER++'s certifier (Yang, Shi, Carlone 2020).
 
 :func:`rotation_dual_certificate` specialises the search to the quaternion lifting, as TEASER++'s
 certifier does. The target vectors are first rotated by ``R^T`` so that the candidate is the
@@ -44,15 +44,15 @@ from solvers.certify.relaxation import (
 from solvers.certify.sdp_relaxation import bound_from_dense_dual
 from solvers.lie import project_to_so3
 
-__all__ = ["DualCertificateResult", "dual_certificate", "rotation_dual_certificate"]
+__all__ = ["DualCertificateResult", "rotation_dual_certificate"]
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class DualCertificateResult:
-    """Outcome of a dual certificate search (:func:`dual_certificate`,
-    :func:`rotation_dual_certificate`, :func:`solvers.certify.joint_dual.joint_dual_certificate`).
+    """Outcome of a dual certificate search (:func:`rotation_dual_certificate`,
+    :func:`solvers.certify.joint_dual.joint_dual_certificate`).
 
     Attributes
     ----------
@@ -80,16 +80,6 @@ class DualCertificateResult:
     rotation: NDArray[np.float64] | None = None
 
 
-def _sym_basis(d: int) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]]:
-    """Orthonormal basis of symmetric d x d matrices: (m, d, d) and the index pairs."""
-    ia, ib = np.triu_indices(d)
-    E = np.zeros((ia.size, d, d))
-    s = np.where(ia == ib, 1.0, 1 / np.sqrt(2))
-    E[np.arange(ia.size), ia, ib] = s
-    E[np.arange(ia.size), ib, ia] = s
-    return E, ia, ib
-
-
 def _psd_part(M: NDArray[np.float64]) -> NDArray[np.float64]:
     """Projection onto the PSD cone.
 
@@ -102,137 +92,6 @@ def _psd_part(M: NDArray[np.float64]) -> NDArray[np.float64]:
         return M
     Vn = V[:, neg]
     return M - (Vn * w[neg]) @ Vn.T
-
-
-class _AffineProjector:
-    """Projection onto ``{S = S_base + sum z_m E_m : L z = r}`` for one candidate."""
-
-    def __init__(self, lift: Lifting, x: NDArray[np.float64]) -> None:
-        import scipy.sparse as sp
-
-        K, d = lift.K, lift.d
-        nb = K + 1
-        self.K, self.d, self.nb = K, d, nb
-        n = d * nb
-        xb = x.reshape(nb, d)
-        Es, ia, ib = _sym_basis(d)
-        ms = Es.shape[0]
-        self.ia, self.ib = ia, ib
-        self.sym_scale = np.where(ia == ib, 1.0, np.sqrt(2))
-        # Skew pairs (a < b) and block pairs (i < j).
-        sa, sb = np.triu_indices(d, 1)
-        self.sa, self.sb = sa, sb
-        bi, bj = np.triu_indices(nb, 1)
-        self.bi, self.bj = bi, bj
-        mw = sa.size
-        # Base: C off-diagonal blocks (symmetric) and C_00.
-        S0 = lift.dense_cost()
-        self.S_base = S0
-        rows, cols, vals = [], [], []
-        # P_i coordinates: column index i * ms + m; E_m x_i lands in block row i.
-        Ex = np.einsum("mab,ib->ima", Es, xb)  # (nb, ms, d)
-        ii, mm, aa = np.meshgrid(np.arange(nb), np.arange(ms), np.arange(d), indexing="ij")
-        rows.append((ii * d + aa).ravel())
-        cols.append((ii * ms + mm).ravel())
-        vals.append(Ex.ravel())
-        off = nb * ms
-        # W_ij coordinate (a, b): block (i, j) gets (e_ab - e_ba) / 2, block (j, i) the negative.
-        # Row block i: 0.5 (e_ab - e_ba) x_j ; row block j: -0.5 (e_ab - e_ba) x_i.
-        npair = bi.size
-        p_idx = np.arange(npair)[:, None]
-        s_idx = np.arange(mw)[None, :]
-        col = off + p_idx * mw + s_idx  # (npair, mw)
-        for blk_row, other, sign in ((bi, bj, 0.5), (bj, bi, -0.5)):
-            xo = xb[other]  # (npair, d)
-            # (e_ab - e_ba) x: entry a gets x_b, entry b gets -x_a.
-            rows.append((blk_row[:, None] * d + sa[None, :]).ravel())
-            cols.append(col.ravel())
-            vals.append((sign * xo[:, sb]).ravel())
-            rows.append((blk_row[:, None] * d + sb[None, :]).ravel())
-            cols.append(col.ravel())
-            vals.append((-sign * xo[:, sa]).ravel())
-        # Product constraints <A_l, Z_ij> = 0 (homogeneous pose constraints): their multipliers
-        # add a symmetric part spanned by an orthonormal basis H of those A_l to each pair block.
-        hom = lift.eq_mats[lift.eq_rhs == 0].reshape(-1, d * d)
-        if hom.shape[0]:
-            u, sv, _ = np.linalg.svd(hom.T, full_matrices=False)
-            H = u[:, sv > sv.max() * 1e-10].T.reshape(-1, d, d)
-        else:
-            H = np.zeros((0, d, d))
-        mh = H.shape[0]
-        self.H, self.mh = H, mh
-        offh = off + npair * mw
-        if mh:
-            colh = offh + p_idx * mh + np.arange(mh)[None, :]  # (npair, mh)
-            for blk_row, other in ((bi, bj), (bj, bi)):
-                Hx = np.einsum("mab,pb->pma", H, xb[other]) / np.sqrt(2)  # (npair, mh, d)
-                rows.append(np.broadcast_to((blk_row[:, None, None] * d
-                                             + np.arange(d)[None, None, :]), Hx.shape).ravel())
-                cols.append(np.broadcast_to(colh[:, :, None], Hx.shape).ravel())
-                vals.append(Hx.ravel())
-        nvar = offh + npair * mh
-        self.offh = offh
-        self.nvar, self.off, self.ms, self.mw = nvar, off, ms, mw
-        Lx = sp.csr_matrix(
-            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, nvar)
-        )
-        # sum_k P_k must lie in span(eq_mats): its component orthogonal to the span vanishes.
-        A = np.einsum("lab,mab->lm", lift.eq_mats, Es)  # svec coordinates of the span
-        Q, _ = np.linalg.qr(np.concatenate([A.T, np.eye(ms)], axis=1))
-        rank = np.linalg.matrix_rank(A) if A.size else 0
-        U = Q[:, rank:ms]  # orthonormal complement, (ms, ms - rank)
-        Ls = sp.csr_matrix(np.tile(U.T, (1, nb)))
-        Ls = sp.hstack([Ls, sp.csr_matrix((U.shape[1], nvar - off))])
-        self.L = sp.vstack([Lx, Ls]).tocsr()
-        # Right-hand side: S_base x + L z = 0 and U^T svec(C_00 + sum P) = 0.
-        self.r = np.concatenate([-(S0 @ x), np.zeros(U.shape[1])])
-        G = (self.L @ self.L.T).toarray()
-        w, V = np.linalg.eigh(G)
-        keep = w > w.max() * 1e-12
-        self.Ginv_V = V[:, keep] / w[keep]
-        self.V = V[:, keep]
-        self.Es = Es
-
-    def coords(self, M: NDArray[np.float64]) -> NDArray[np.float64]:
-        d, nb = self.d, self.nb
-        blk = M.reshape(nb, d, nb, d).transpose(0, 2, 1, 3)
-        diag = blk[np.arange(nb), np.arange(nb)]  # (nb, d, d)
-        base_diag = self.S_base[:d, :d]
-        diag = diag.copy()
-        diag[0] -= base_diag
-        zp = 0.5 * (diag[:, self.ia, self.ib] + diag[:, self.ib, self.ia]) * self.sym_scale
-        ob = blk[self.bi, self.bj]  # (npair, d, d)
-        zw = ob[:, self.sa, self.sb] - ob[:, self.sb, self.sa]
-        # <E_w, M> with E_w = (e_ab - e_ba)/2 in block (i,j) and its negative transposed in (j,i)
-        if not self.mh:
-            return np.concatenate([zp.ravel(), zw.ravel()])
-        cb = self.S_base.reshape(nb, d, nb, d).transpose(0, 2, 1, 3)[self.bi, self.bj]
-        zh = np.sqrt(2) * np.einsum("mab,pab->pm", self.H, ob - cb)
-        return np.concatenate([zp.ravel(), zw.ravel(), zh.ravel()])
-
-    def matrix(self, z: NDArray[np.float64]) -> NDArray[np.float64]:
-        d, nb = self.d, self.nb
-        S = self.S_base.copy()
-        blk = S.reshape(nb, d, nb, d).transpose(0, 2, 1, 3)  # view
-        zp = z[: self.off].reshape(nb, self.ms)
-        P = np.einsum("im,mab->iab", zp, self.Es)
-        idx = np.arange(nb)
-        blk[idx, idx] += P
-        zw = z[self.off:self.offh].reshape(-1, self.mw) / 2
-        W = np.zeros((self.bi.size, d, d))
-        W[:, self.sa, self.sb] = zw
-        W[:, self.sb, self.sa] = -zw
-        if self.mh:
-            W += np.einsum("pm,mab->pab", z[self.offh:].reshape(-1, self.mh), self.H) / np.sqrt(2)
-        blk[self.bi, self.bj] += W
-        blk[self.bj, self.bi] += np.swapaxes(W, 1, 2)
-        return S
-
-    def project(self, M: NDArray[np.float64]) -> NDArray[np.float64]:
-        z = self.coords(M)
-        res = self.L @ z - self.r
-        z = z - self.L.T @ (self.Ginv_V @ (self.V.T @ res))
-        return self.matrix(z)
 
 
 def _drs_iterates(
@@ -275,73 +134,6 @@ def _drs_iterates(
                 dG.pop(0)
         M, g, S = M_new, g_new, S_new
         yield it, S
-
-
-def dual_certificate(
-    lift: Lifting,
-    x: NDArray[np.float64],
-    *,
-    tol: float = 1e-3,
-    max_iterations: int = 500,
-    check_every: int = 10,
-    time_limit: float | None = None,
-    relaxation: float = 1.0,
-    anderson: int = 0,
-) -> DualCertificateResult:
-    """Search a dual certificate of the rank-one candidate ``x`` (length ``d (K + 1)``).
-
-    Parameters
-    ----------
-    lift : Lifting
-    x : (d (K + 1),) ndarray
-        Lifted candidate; ``x[:d]`` must satisfy the pose constraints.
-    tol : float
-        Target relative gap ``(x^T C x - lb) / (1 + |x^T C x| + |lb|)``.
-    max_iterations : int
-        Douglas-Rachford iterations.
-    check_every : int
-        Iterations between two (eigendecomposition-costly) bound evaluations.
-    time_limit : float or None
-        Seconds after which the iteration stops.
-    relaxation : float
-        Over-relaxation of the Douglas-Rachford step, in (0, 2).
-    anderson : int
-        Memory of the Anderson acceleration (0: off).
-    """
-    t0 = time.perf_counter()
-    C = lift.dense_cost()
-    f = float(x @ C @ x)
-
-    def rel(lb: float) -> float:
-        return (f - lb) / (1 + abs(f) + abs(lb))
-
-    proj = _AffineProjector(lift, x)
-
-    def step(M: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """One relaxed Douglas-Rachford step: the residual T(M) - M and the affine point."""
-        P = _psd_part(M)
-        S = proj.project(2 * P - M)
-        return relaxation * (S - P), S
-
-    best_lb, best_eig, it, conv = -np.inf, np.nan, 0, False
-    for it, S in _drs_iterates(step, proj.project(np.zeros_like(C)), max_iterations, anderson):
-        if it and (it % check_every == 0 or it == max_iterations):
-            lb, lam = bound_from_dense_dual(lift, S)
-            if lb > best_lb:
-                best_lb, best_eig = lb, lam
-            if rel(best_lb) <= tol:
-                conv = True
-                break
-            if time_limit is not None and time.perf_counter() - t0 > time_limit:
-                break
-    return DualCertificateResult(
-        lower_bound=float(best_lb),
-        upper_bound=f,
-        min_eig=float(best_eig),
-        iterations=it,
-        converged=conv,
-        solve_time=time.perf_counter() - t0,
-    )
 
 
 def _hat(v: NDArray[np.float64]) -> NDArray[np.float64]:
