@@ -74,6 +74,7 @@ def _read_csv(path):
         return reader.fieldnames, list(reader)
 
 
+@pytest.mark.slow  # over 3 s
 def test_bench_cli_tiny_grid_all_peers(tmp_path, capsys):
     out = tmp_path / "bench"
     rc = main(["bench", "--n", "20", "30", "--outlier-ratios", "0", "0.5", "--trials", "2",

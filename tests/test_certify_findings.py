@@ -138,7 +138,7 @@ def test_gap_does_not_depend_on_the_weights_units(scope: str, weight: float) -> 
 
 
 # 5 ----------------------------------------------------------------------------------------
-@pytest.mark.parametrize("scope", ["full", "rotation"])
+@pytest.mark.parametrize("scope", ["full", pytest.param("rotation", marks=pytest.mark.slow)])
 def test_bounds_stay_below_the_exact_minimum_when_ill_conditioned(scope: str) -> None:
     """|a| / beta about 2.5e4: every bound is at most the exact minimum (rounding allowance)."""
     rng = np.random.default_rng(9)
@@ -157,6 +157,7 @@ def test_bounds_stay_below_the_exact_minimum_when_ill_conditioned(scope: str) ->
 
 
 # 6 ----------------------------------------------------------------------------------------
+@pytest.mark.slow  # over 3 s
 def test_the_bounded_problem_is_rebuilt_from_the_record() -> None:
     rng = np.random.default_rng(4)
     src, dst, *_ = make_instance(rng, 40, 0.6)

@@ -99,6 +99,7 @@ def test_register_weights_and_prune_never(tmp_path, bunny_problem):
     assert data["result"]["cost"] == pytest.approx(float(w @ np.minimum(r2, 1.0)), rel=1e-9)
 
 
+@pytest.mark.slow  # over 3 s
 def test_register_subprocess(tmp_path, bunny_problem):
     src, dst, T_gt, _ = bunny_problem
     _write(tmp_path / "s.ply", src)

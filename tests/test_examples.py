@@ -9,8 +9,10 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import DATA_DIR, require_data
+
 ROOT = Path(__file__).resolve().parents[1]
-YCBV = ROOT.parent / "shared" / "data" / "ycbv"
+YCBV = DATA_DIR / "ycbv"
 
 
 def _run(script: str, *args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
@@ -61,10 +63,7 @@ def test_pose_from_rgbd_demo() -> None:
 
 @pytest.mark.slow
 def test_pose_from_rgbd_real_frame() -> None:
-    if not (YCBV / "0000").is_dir():
-        if os.environ.get("CI"):
-            pytest.fail(f"test data {YCBV} is missing")
-        pytest.skip(f"test data {YCBV} is missing")
+    require_data("ycbv", "0000")
     proc = _run("pose_from_rgbd.py", "--ycbv", str(YCBV), "--frame", "0000/000001",
                 "--object", "025_mug")
     assert proc.returncode == 0, proc.stdout + proc.stderr

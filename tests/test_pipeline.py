@@ -19,6 +19,7 @@ from solvers.lie import make_transform
 from tests.conftest import require_data, strict_json
 
 
+@pytest.mark.slow  # over 3 s
 def test_demo_recovers_the_mug_pose():
     res = run_demo(rng=0)
     assert res.success, res.message
@@ -35,6 +36,7 @@ def test_demo_recovers_the_mug_pose():
     json.dumps(d, allow_nan=False)
 
 
+@pytest.mark.slow  # over 3 s
 def test_real_ycbv_frame_mug():
     root = require_data("ycbv")
     require_data("ycbv", "0000", "000001-meta.mat")
