@@ -1,6 +1,6 @@
 """certpose: certifiable robust registration and probabilistic object pose estimation.
 
-Heavy modules (numba, cvxpy, open3d, gtsam) load on first use, so ``import certpose`` is quick.
+Heavy modules (numba, cvxpy, open3d; gtsam for the bench) load on first use, so ``import certpose`` is quick.
 """
 
 from __future__ import annotations

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import sys
 
 import numpy as np
 import pytest
@@ -162,3 +163,10 @@ def test_bench_cli_errors(capsys):
     with pytest.raises(SystemExit):  # argparse rejects unknown solver names
         main(["bench", "--solvers", "teaser"])
     assert set(SOLVERS) >= set(PEERS)
+
+
+def test_bench_names_the_extra_when_it_is_missing(monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "tqdm", None)  # as if the bench extra were not installed
+    assert main(["bench", "--n", "10", "--trials", "1", "--solvers", "gnc"]) == 1
+    err = capsys.readouterr().err
+    assert "needs tqdm" in err and "pip install 'certpose[bench]'" in err

@@ -242,8 +242,19 @@ def _certpose(**kwargs: Any) -> Callable[[BenchInstance], _Outcome]:
     return run
 
 
+def _bench_extra(module: str, what: str) -> Any:
+    """Import ``module`` of the ``bench`` extra, or say how to install it."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise ImportError(f"{what} needs {module.split('.')[0]}, part of the bench extra: "
+                          f"pip install 'certpose[bench]'") from exc
+
+
 def _gtsam_gnc(inst: BenchInstance) -> _Outcome:
-    import gtsam
+    gtsam = _bench_extra("gtsam", "the gtsam-gnc peer")
 
     graph = gtsam.NonlinearFactorGraph()
     model = gtsam.noiseModel.Isotropic.Sigma(3, inst.noise_bound)
@@ -352,7 +363,7 @@ def run_benchmark(
         instance is recorded as a failed trial with the error; a solver whose backend is
         missing is listed in ``skipped``.
     """
-    from tqdm import tqdm
+    tqdm = _bench_extra("tqdm", "certpose bench").tqdm
 
     if shape is None:
         from certpose.io.points import synthetic_shape
@@ -542,8 +553,7 @@ def _fmt_time(ms: float) -> str:
 def plot_report(report: BenchReport, out_dir: str | Path) -> list[Path]:
     """Write ``bench.png`` (success and time vs outlier ratio) and, when certificates exist,
     ``tightness.png`` (relative gap vs outlier ratio)."""
-    import matplotlib
-
+    matplotlib = _bench_extra("matplotlib", "the benchmark plots")
     matplotlib.use("Agg")  # files only, no display
     import matplotlib.pyplot as plt
 
