@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -23,6 +24,7 @@ from solvers.validation import check_points, check_transform, resolve_rng
 
 if TYPE_CHECKING:
     from certpose.estimation.mle import MLEResult
+    from certpose.geometry.appearance import BuiltObjectModel
     from certpose.geometry.objects import ObjectModel
     from certpose.geometry.rgbd import RGBDFrame
     from certpose.model.classifier import ObjectClassification
@@ -36,6 +38,7 @@ __all__ = [
     "estimate_pose",
     "run_ycbv",
     "run_demo",
+    "build_ycbv_object_model",
     "YCBV_SYMMETRY_AXES",
 ]
 
@@ -327,6 +330,7 @@ def run_ycbv(
     params: PoseParams | None = None,
     backbone: Any = None,
     rng: np.random.Generator | int | None = 0,
+    object_model: BuiltObjectModel | None = None,
 ) -> PoseResult:
     """Estimate one object's pose in one YCB-Video frame (mask classifier from ``label.png``).
 
@@ -344,6 +348,9 @@ def run_ycbv(
     backbone : FeatureBackbone, optional
         Default :class:`~certpose.geometry.features.FPFHBackbone`.
     rng : numpy Generator, int or None
+    object_model : BuiltObjectModel, optional
+        A ready object model (e.g. with appearance, :func:`build_ycbv_object_model`); the scene
+        is then described with its backbone, and ``model_path`` only serves ADD/ADD-S.
 
     Returns
     -------
@@ -365,6 +372,18 @@ def run_ycbv(
     from certpose.io.ycbv import load_model_points, load_ycbv_frame
 
     params = params or PoseParams()
+    if object_model is not None:
+        if backbone is not None and backbone != object_model.backbone:
+            raise ValueError("`backbone` differs from `object_model.backbone`: object and scene "
+                             "descriptors would not be comparable.")
+        backbone = object_model.backbone
+        if not math.isclose(object_model.voxel_size, params.voxel_size, rel_tol=1e-6):
+            log.warning("object model voxel size %g m differs from the scene's %g m",
+                        object_model.voxel_size, params.voxel_size)
+        if frame.split("/")[0] in object_model.scenes:
+            log.warning("object model %r was built from views of scene %s: evaluating it on "
+                        "that scene is not independent", object_model.model.name,
+                        frame.split("/")[0])
     backbone = backbone or FPFHBackbone()
     root = Path(root)
     model_path = Path(model_path) if model_path is not None else root / "models" / object_name / "points.xyz"
@@ -377,7 +396,11 @@ def run_ycbv(
     scene = _scene_for(yf.frame, mask, params, backbone)
     t_scene = time.perf_counter() - t
     t = time.perf_counter()
-    obj = object_from_points(model_points, backbone, voxel_size=params.voxel_size, name=object_name)
+    if object_model is not None:
+        obj = object_model.model
+    else:
+        obj = object_from_points(model_points, backbone, voxel_size=params.voxel_size,
+                                 name=object_name)
     t_obj = time.perf_counter() - t
     result = estimate_pose(
         scene, obj, classifier="mask", frame=yf.frame.with_mask(mask), params=params, rng=rng,
@@ -386,6 +409,63 @@ def run_ycbv(
     )
     result.timings.update({"load": t_load, "scene": t_scene, "object": t_obj})
     return result
+
+
+def build_ycbv_object_model(
+    root: str | Path,
+    frames: Sequence[str],
+    object_name: str,
+    model_path: str | Path | None = None,
+    *,
+    backbone: Any = None,
+    voxel_size: float = 0.005,
+    unseen: str = "zero",
+) -> BuiltObjectModel:
+    """An object model with appearance from YCB-Video frames (their ground-truth poses and labels).
+
+    Parameters
+    ----------
+    root : path
+        The YCB-Video folder.
+    frames : sequence of str
+        ``"<scene>/<frame>"`` views of the object.
+    object_name : str
+    model_path : path, optional
+        Model points (default ``<root>/models/<object_name>/points.xyz``).
+    backbone : AppearanceBackbone or FPFHBackbone, optional
+        Default :class:`~certpose.geometry.appearance.AppearanceBackbone`.
+    voxel_size : float, optional
+        Metres (use the scene's).
+    unseen : {"zero", "shape"}, optional
+        See :func:`~certpose.geometry.appearance.object_from_posed_views`.
+
+    Raises
+    ------
+    ValueError
+        No frames, or the object is not annotated (has no pose) or not visible in any of them.
+    """
+    from certpose.geometry.appearance import object_from_posed_views
+    from certpose.io.ycbv import load_model_points, load_ycbv_frame
+
+    root = Path(root)
+    if len(frames) == 0:
+        raise ValueError("`frames` is empty: at least one posed view of the object is needed.")
+    model_path = Path(model_path) if model_path is not None else root / "models" / object_name / "points.xyz"
+    points = load_model_points(model_path)
+    views, absent = [], []
+    for name in frames:
+        yf = load_ycbv_frame(root, name)
+        try:
+            views.append(yf.posed_view(object_name))
+        except (KeyError, ValueError):  # not annotated (no pose) or no labelled pixel
+            absent.append(name)
+    if not views:
+        raise ValueError(f"Object {object_name!r} has no pose and no labelled pixel in any of the "
+                         f"frames {', '.join(frames)}.")
+    if absent:
+        log.warning("object %s is absent from %s (skipped)", object_name, ", ".join(absent))
+    return object_from_posed_views(points, views, backbone, voxel_size=voxel_size,
+                                   name=object_name, unseen=unseen)
 
 
 def run_demo(

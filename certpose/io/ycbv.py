@@ -13,12 +13,16 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from certpose.geometry.rgbd import CameraIntrinsics, RGBDFrame, load_rgbd
 from solvers.lie import make_transform, project_to_so3
+
+if TYPE_CHECKING:
+    from certpose.geometry.appearance import PosedView
 
 __all__ = ["YCBVFrame", "load_ycbv_frame", "load_model_points", "load_class_names"]
 
@@ -70,6 +74,17 @@ class YCBVFrame:
         if not mask.any():
             raise ValueError(f"Object {name!r} has no labelled pixel in frame {self.name}.")
         return mask
+
+    def posed_view(self, name: str) -> PosedView:
+        """The view of object ``name`` in this frame: its mask and ground-truth ``T_camera_object``.
+
+        Raises ``KeyError`` for an object not annotated in the frame (no pose) and
+        ``ValueError`` if it has no labelled pixel.
+        """
+        from certpose.geometry.appearance import PosedView
+
+        mask = self.object_mask(name)
+        return PosedView(self.frame, mask, self.poses[name], self.name)
 
 
 def load_class_names(root: str | Path) -> list[str]:
