@@ -188,3 +188,50 @@ def test_mle_params_validation():
         MLEParams(num_rotations=-1)
     with pytest.raises(ValueError, match="coarse_points"):
         MLEParams(coarse_points=2)
+
+
+def test_an_exception_inside_estimate_mle_leaves_no_certifier_thread(monkeypatch):
+    import threading
+    import time
+
+    import certpose.estimation.mle as mle_mod
+
+    rng = np.random.default_rng(3)
+    obj = _box_object(rng)
+    T = make_transform(so3_exp([1.0, -0.5, 2.0]), [0.01, 0.02, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    started = threading.Event()
+    real_certify = mle_mod.certify_eq2
+
+    def slow_certify(*args, **kwargs):
+        started.set()
+        time.sleep(0.5)  # still running when the search below fails
+        return real_certify(*args, **kwargs)
+
+    def failing_search(*args, **kwargs):
+        assert started.wait(5.0)
+        raise RuntimeError("search failed")
+
+    monkeypatch.setattr(mle_mod, "certify_eq2", slow_certify)
+    monkeypatch.setattr(mle_mod, "coarse_search", failing_search)
+    with pytest.raises(RuntimeError, match="search failed"):
+        estimate_mle(scene, cls, obj, params=MLEParams(certify=True, num_rotations=64), rng=0)
+    assert started.is_set()
+    alive = [t.name for t in threading.enumerate()
+             if t.name.startswith(mle_mod._Certifier.THREAD_PREFIX)]
+    assert alive == []
+
+
+def test_estimate_mle_records_its_hypotheses():
+    rng = np.random.default_rng(3)
+    obj = _box_object(rng)
+    T = make_transform(so3_exp([1.0, -0.5, 2.0]), [0.01, 0.02, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    res = estimate_mle(scene, cls, obj, params=MLEParams(certify=False, num_rotations=128), rng=0)
+    sources = [h.source for h in res.hypotheses]
+    assert "eq2" in sources and any(s.startswith("coarse:") for s in sources)
+    lik = PoseLikelihood(scene, cls, obj)
+    for h in res.hypotheses:
+        assert h.score == pytest.approx(float(lik(h.pose)), abs=1e-6)
+    # The polished winner is at least as good as every refined hypothesis.
+    assert res.log_likelihood >= max(h.score for h in res.hypotheses) - 1e-9

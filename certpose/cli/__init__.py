@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 from certpose._version import __version__
 
-_COMMANDS = ("certpose.cli.register", "certpose.cli.bench", "certpose.cli.pose")
+_COMMANDS = ("certpose.cli.register", "certpose.cli.bench", "certpose.cli.pose", "certpose.cli.object")
 
 
 class CLIError(Exception):

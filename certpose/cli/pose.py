@@ -41,6 +41,10 @@ def add_parser(subparsers: Any) -> None:
                    help="YCB-Video object name (default: 025_mug)")
     p.add_argument("--model", metavar="POINTS", default=None,
                    help="object model points, metres (default: DIR/models/NAME/points.xyz)")
+    p.add_argument("--object-model", metavar="MODEL.npz", default=None,
+                   help="object model with appearance from `certpose object build` (default: "
+                        "geometry only, from the model points); the scene is described with its "
+                        "descriptors")
     p.add_argument("--voxel-size", type=float, default=0.005, metavar="M",
                    help="scene/object voxel size in metres (default: 0.005)")
     p.add_argument("--no-certify", action="store_true", help="skip the eq. (2) certificate")
@@ -77,9 +81,20 @@ def run(args: argparse.Namespace) -> int:
         if args.model is not None and not Path(args.model).is_file():
             raise CLIError(f"--model {args.model} does not exist")
         title = f"YCB-Video {args.frame}, {args.object}"
+        built = None
+        if args.object_model is not None:
+            from certpose.geometry.appearance import BuiltObjectModel
+
+            if not Path(args.object_model).is_file():
+                raise CLIError(f"--object-model {args.object_model} does not exist")
+            built = BuiltObjectModel.load(args.object_model)
+            if built.model.name and built.model.name != args.object:
+                raise CLIError(f"--object-model {args.object_model} is a model of "
+                               f"{built.model.name}, not of --object {args.object}")
+            title += f" (appearance model from {', '.join(built.views) or 'unnamed views'})"
         try:
             result = run_ycbv(root, args.frame, args.object, args.model, params=params,
-                              rng=args.seed)
+                              rng=args.seed, object_model=built)
         except KeyError as exc:
             raise CLIError(str(exc.args[0]) if exc.args else str(exc)) from exc
     print(f"pose of {title}")
@@ -111,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None:
         out = Path(args.json)
         payload = {"input": {"demo": bool(args.demo), "ycbv": args.ycbv, "frame": args.frame,
-                             "object": args.object, "model": args.model, "seed": args.seed},
+                             "object": args.object, "model": args.model,
+                             "object_model": args.object_model, "seed": args.seed},
                    **result.to_dict()}
         out.write_text(json.dumps(payload, indent=2))
         print(f"wrote {out}")

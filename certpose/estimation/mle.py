@@ -46,6 +46,7 @@ __all__ = [
     "MLEParams",
     "MLEResult",
     "MLEStatus",
+    "Hypothesis",
     "refine_pose",
     "coarse_search",
     "estimate_mle",
@@ -313,6 +314,8 @@ class MLEResult:
         search and refinement, ``eq2_certify_wait`` is the time spent waiting for it after.
     status : MLEStatus
     message : str
+    hypotheses : tuple of Hypothesis
+        The hypotheses refined on the exact eq. (1), before the winner's polish.
     """
 
     T_scene_object: NDArray[np.float64]
@@ -326,6 +329,7 @@ class MLEResult:
     timings: dict[str, float]
     status: MLEStatus
     message: str
+    hypotheses: tuple[Hypothesis, ...] = ()
 
     @property
     def success(self) -> bool:
@@ -350,6 +354,176 @@ def _distinct_top(poses: NDArray[np.float64], values: NDArray[np.float64], m: in
         if len(chosen) == m:
             break
     return chosen
+
+
+@dataclass(frozen=True, eq=False)
+class Hypothesis:
+    """One candidate pose of :func:`estimate_mle` and how it scores.
+
+    Attributes
+    ----------
+    pose : (4, 4) ndarray
+        ``T_scene_object``.
+    score : float
+        Eq. (1) at ``pose`` on the likelihood of the step that produced it (nats; ``nan`` when
+        not scored yet).
+    source : str
+        ``"eq2"``, ``"coarse:<rank>"``, ``"centroid"`` or ``"turn:<k>"``.
+    """
+
+    pose: NDArray[np.float64]
+    score: float
+    source: str
+
+
+class _Certifier:
+    """The eq. (2) certifier in a worker thread beside the eq. (1) search (a context manager).
+
+    The certifier (cvxpy/clarabel, scipy) runs while eq. (1) is searched, which releases the GIL
+    in its numba kernels, so on 2 cores the two overlap. Leaving the ``with`` block, normally or
+    by an exception, shuts the pool down and waits for the thread (its time limit bounds the
+    wait), so no certifier outlives the call.
+    """
+
+    THREAD_PREFIX = "certpose-eq2-certify"
+
+    def __init__(self) -> None:
+        self._pool: Any = None
+        self._future: Any = None
+
+    def __enter__(self) -> _Certifier:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._pool is not None:
+            if self._future is not None:
+                self._future.cancel()
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def submit(self, eq2: Any, result: RegistrationResult, time_limit: float | None) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=self.THREAD_PREFIX)
+        self._future = self._pool.submit(certify_eq2, eq2, result, time_limit=time_limit)
+
+    @property
+    def running(self) -> bool:
+        return self._future is not None
+
+    def result(self) -> RegistrationResult:
+        return self._future.result()
+
+
+@dataclass
+class _Search:
+    """State shared by the steps of :func:`estimate_mle`."""
+
+    full: PoseLikelihood
+    small: PoseLikelihood
+    small_model: ObjectModel
+    scale: float
+    params: MLEParams
+    timings: dict[str, float] = field(default_factory=dict)
+    n_eval: int = 0
+
+    def refine(self, likelihood: PoseLikelihood, T0: NDArray[np.float64], **kw: Any) -> tuple[NDArray[np.float64], float]:
+        T, v, nf = refine_pose(likelihood, T0, scale=self.scale, **kw)
+        self.n_eval += nf
+        return T, v
+
+
+def _build_likelihoods(scene: Any, classification: ObjectClassification, object_model: ObjectModel,
+                       params: MLEParams, lparams: LikelihoodParams,
+                       gen: np.random.Generator) -> _Search:
+    """Step 0: the exact eq. (1) and the coarse one (object subsample, eroded free space)."""
+    from dataclasses import replace
+
+    from certpose.model.likelihood import PoseLikelihood
+
+    t = time.perf_counter()
+    full = PoseLikelihood(scene, classification, object_model, params=lparams)
+    small_model = object_model.subsample(int(params.coarse_points), rng=gen)
+    small = PoseLikelihood(scene, classification, small_model,
+                           params=replace(lparams, free_space_erosion=int(params.coarse_erosion)))
+    search = _Search(full, small, small_model, object_model.radius, params)
+    search.timings["compile"] = time.perf_counter() - t
+    return search
+
+
+def _eq2_hypothesis(search: _Search, scene: Any, classification: ObjectClassification,
+                    object_model: ObjectModel, lparams: LikelihoodParams, gen: np.random.Generator,
+                    certifier: _Certifier) -> tuple[Any, RegistrationResult | None, Hypothesis | None]:
+    """Step 1: eq. (2), the certifiable approximation, solved; its certifier started."""
+    params = search.params
+    t = time.perf_counter()
+    try:
+        eq2 = build_eq2_problem(scene, classification, object_model, params=params.eq2,
+                                likelihood_params=lparams, rng=gen)
+    except ValueError as exc:
+        log.warning("eq. (2) skipped: %s", exc)
+        search.timings["eq2_build"] = time.perf_counter() - t
+        return None, None, None
+    search.timings["eq2_build"] = time.perf_counter() - t
+    t = time.perf_counter()
+    result = solve_eq2(eq2, certify=False)
+    search.timings["eq2_solve"] = time.perf_counter() - t
+    if params.certify:
+        certifier.submit(eq2, result, params.certify_time_limit)
+    T = result.T_target_source
+    search.n_eval += 1
+    return eq2, result, Hypothesis(T, float(search.full(T)), "eq2")
+
+
+def _coarse_hypotheses(search: _Search, centre: NDArray[np.float64],
+                       view: NDArray[np.float64] | None, gen: np.random.Generator) -> list[Hypothesis]:
+    """Step 2: the batched coarse search of eq. (1) around the classifier's positives."""
+    params = search.params
+    if params.num_rotations <= 0:
+        return []
+    t = time.perf_counter()
+    poses, values = coarse_search(search.small, search.small_model, centre,
+                                  num_rotations=params.num_rotations, offsets=params.offsets,
+                                  viewing_direction=view, rng=gen)
+    search.n_eval += values.size
+    top = _distinct_top(poses, values, params.num_refine_coarse, 0.5 * search.scale,
+                        math.radians(20))
+    search.timings["coarse_search"] = time.perf_counter() - t
+    return [Hypothesis(poses[i], float(values[i]), f"coarse:{r}") for r, i in enumerate(top)]
+
+
+def _refine_hypotheses(search: _Search, hyps: list[Hypothesis]) -> list[Hypothesis]:
+    """Step 3: refine every hypothesis on the coarse eq. (1), rank them on the exact one, and
+    refine the best few (and the eq. (2) one) on it."""
+    params = search.params
+    if not hyps:
+        return []
+    t = time.perf_counter()
+    coarse = [search.refine(search.small, h.pose, maxiter=params.coarse_maxiter)[0]
+              for h in hyps[: params.num_refine_coarse + 1]]
+    # Rank on the exact eq. (1) of the whole object: the coarse (eroded) model can prefer a
+    # wrong mode (measured: an upside-down synthetic mug).
+    exact = np.asarray(search.full(np.stack(coarse)))
+    search.n_eval += exact.size
+    ranked = sorted(zip(exact, hyps, coarse, strict=False), key=lambda r: -r[0])
+    fine = {h.source for _, h, _ in ranked[: params.num_refine_fine]} | {"eq2"}
+    out = []
+    for _, h, T1 in ranked:
+        if h.source in fine:
+            T2, v2 = search.refine(search.full, T1, max_step=0.1, maxiter=params.refine_maxiter)
+            out.append(Hypothesis(T2, v2, h.source))
+    search.timings["refine"] = time.perf_counter() - t
+    return out
+
+
+def _polish(search: _Search, best: Hypothesis) -> Hypothesis:
+    """Step 5: derivative-free polish of the winner (the finite-difference gradient stalls on
+    the piecewise-linear objective near the optimum)."""
+    t = time.perf_counter()
+    T, v = search.refine(search.full, best.pose, max_step=0.05, method="Powell",
+                         maxiter=search.params.refine_maxiter)
+    search.timings["polish"] = time.perf_counter() - t
+    return Hypothesis(T, v, best.source)
 
 
 def estimate_mle(
@@ -381,139 +555,60 @@ def estimate_mle(
         ``success`` is False (with the identity pose) when the classifier found no object voxel.
     """
     from certpose.model.grid import scene_grid_spec
-    from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
+    from certpose.model.likelihood import LikelihoodParams
 
     params = params or MLEParams()
     lparams = likelihood_params or LikelihoodParams()
     gen = resolve_rng(rng)
     t_start = time.perf_counter()
-    timings: dict[str, float] = {}
     if not classification.success:
         return MLEResult(np.eye(4), float("nan"), "none", None, float("nan"), float("nan"), None,
-                         0, timings, MLEStatus.NO_OBJECT_EVIDENCE, classification.message)
+                         0, {}, MLEStatus.NO_OBJECT_EVIDENCE, classification.message)
 
-    t = time.perf_counter()
-    full = PoseLikelihood(scene, classification, object_model, params=lparams)
-    small_model = object_model.subsample(int(params.coarse_points), rng=gen)
-    from dataclasses import replace as _replace
-
-    small = PoseLikelihood(scene, classification, small_model,
-                           params=_replace(lparams, free_space_erosion=int(params.coarse_erosion)))
-    timings["compile"] = time.perf_counter() - t
-    n_eval = 0
-    scale = object_model.radius
-    hyps: list[tuple[str, NDArray[np.float64]]] = []
-
-    # 1. Eq. (2): the certifiable approximation.
-    t = time.perf_counter()
-    eq2_result = None
-    eq2_ll = float("nan")
-    cert_future = None
-    pool = None
-    try:
-        eq2 = build_eq2_problem(scene, classification, object_model, params=params.eq2,
-                                likelihood_params=lparams, rng=gen)
-        timings["eq2_build"] = time.perf_counter() - t
-        t = time.perf_counter()
-        eq2_result = solve_eq2(eq2, certify=False)
-        timings["eq2_solve"] = time.perf_counter() - t
-        if params.certify:
-            # The certifier (cvxpy/clarabel, scipy) runs beside the eq. (1) search, which
-            # releases the GIL in its numba kernels: on 2 cores the two overlap.
-            from concurrent.futures import ThreadPoolExecutor
-
-            pool = ThreadPoolExecutor(max_workers=1)
-            cert_future = pool.submit(certify_eq2, eq2, eq2_result,
-                                      time_limit=params.certify_time_limit)
-        T_eq2 = eq2_result.T_target_source
-        eq2_ll = float(full(T_eq2))
-        n_eval += 1
-        hyps.append(("eq2", T_eq2))
-    except ValueError as exc:
-        log.warning("eq. (2) skipped: %s", exc)
-        timings["eq2_build"] = time.perf_counter() - t
-
-    # 2. Coarse batched search of eq. (1) around the classifier's positives.
-    t = time.perf_counter()
+    search = _build_likelihoods(scene, classification, object_model, params, lparams, gen)
+    timings = search.timings
     grid = scene_grid_spec(scene)
-    pos = grid.centres(np.argwhere(np.asarray(classification.positive)))
-    centre = pos.mean(axis=0)
+    centre = grid.centres(np.argwhere(np.asarray(classification.positive))).mean(axis=0)
     view = None if viewpoint is None else centre - np.asarray(viewpoint, dtype=np.float64).reshape(3)
-    if params.num_rotations > 0:
-        poses, values = coarse_search(small, small_model, centre,
-                                      num_rotations=params.num_rotations,
-                                      offsets=params.offsets,
-                                      viewing_direction=view, rng=gen)
-        n_eval += values.size
-        top = _distinct_top(poses, values, params.num_refine_coarse, 0.5 * scale, math.radians(20))
-        hyps += [(f"coarse:{r}", poses[i]) for r, i in enumerate(top)]
-    timings["coarse_search"] = time.perf_counter() - t
-
-    # 3. Refine every hypothesis on the subsampled object, the best ones on the whole object.
-    t = time.perf_counter()
-    refined = []
-    for name, T0 in hyps[: params.num_refine_coarse + 1]:
-        T1, v1, nf = refine_pose(small, T0, scale=scale, maxiter=params.coarse_maxiter)
-        n_eval += nf
-        refined.append((v1, name, T1))
-    if refined:
-        # Rank on the exact eq. (1) of the whole object: the coarse (eroded) model can prefer
-        # a wrong mode (measured: an upside-down synthetic mug).
-        exact = np.asarray(full(np.stack([r[2] for r in refined])))
-        n_eval += exact.size
-        refined = [(float(v), name, T1) for v, (_, name, T1) in zip(exact, refined, strict=True)]
-    refined.sort(key=lambda r: -r[0])
-    finals = []
     eq2_refined_ll = float("nan")
-    fine_names = {r[1] for r in refined[: params.num_refine_fine]} | {"eq2"}
-    for _, name, T1 in refined:
-        if name not in fine_names:
-            continue
-        T2, v2, nf = refine_pose(full, T1, scale=scale, max_step=0.1,
-                                 maxiter=params.refine_maxiter)
-        n_eval += nf
-        finals.append((v2, name, T2))
-        if name == "eq2":
-            eq2_refined_ll = v2
-    timings["refine"] = time.perf_counter() - t
-    if cert_future is not None and pool is not None:
-        t = time.perf_counter()
-        certified = cert_future.result()
-        pool.shutdown()
-        timings["eq2_certify_wait"] = time.perf_counter() - t
-        timings["eq2_certify"] = float(certified.info.get("certify_time", 0.0))
-        if not np.allclose(certified.T_target_source, eq2_result.T_target_source, atol=1e-9):
-            # The certifier found a better eq. (2) pose: it is one more hypothesis.
-            T2, v2, nf = refine_pose(full, certified.T_target_source, scale=scale,
-                                     maxiter=params.refine_maxiter)
-            n_eval += nf + 1
-            eq2_ll = float(full(certified.T_target_source))
-            finals.append((v2, "eq2", T2))
-            eq2_refined_ll = max(v2, eq2_refined_ll) if math.isfinite(eq2_refined_ll) else v2
-        eq2_result = certified
+    with _Certifier() as certifier:
+        eq2, eq2_result, h_eq2 = _eq2_hypothesis(search, scene, classification, object_model,
+                                                 lparams, gen, certifier)
+        eq2_ll = float("nan") if h_eq2 is None else h_eq2.score
+        hyps = ([] if h_eq2 is None else [h_eq2]) + _coarse_hypotheses(search, centre, view, gen)
+        finals = _refine_hypotheses(search, hyps)
+        eq2_refined_ll = max((h.score for h in finals if h.source == "eq2"), default=float("nan"))
+        if certifier.running:
+            # Step 4: the certificate; a better eq. (2) pose from the certifier is one more
+            # hypothesis.
+            t = time.perf_counter()
+            certified = certifier.result()
+            timings["eq2_certify_wait"] = time.perf_counter() - t
+            timings["eq2_certify"] = float(certified.info.get("certify_time", 0.0))
+            if not np.allclose(certified.T_target_source, eq2_result.T_target_source, atol=1e-9):
+                T2, v2 = search.refine(search.full, certified.T_target_source,
+                                       maxiter=params.refine_maxiter)
+                eq2_ll = float(search.full(certified.T_target_source))
+                search.n_eval += 1
+                finals.append(Hypothesis(T2, v2, "eq2"))
+                eq2_refined_ll = v2 if not math.isfinite(eq2_refined_ll) else max(v2, eq2_refined_ll)
+            eq2_result = certified
     if not finals:  # no hypothesis at all (eq. (2) failed and the coarse search is disabled)
         T0 = np.eye(4)
         T0[:3, 3] = centre - object_model.centroid
-        T2, v2, nf = refine_pose(full, T0, scale=scale, maxiter=params.refine_maxiter)
-        n_eval += nf
-        finals.append((v2, "centroid", T2))
-    v_best, name_best, T_best = max(finals, key=lambda r: r[0])
-    # Derivative-free polish of the winner: the finite-difference gradient stalls on the
-    # piecewise-linear objective near the optimum.
-    t = time.perf_counter()
-    T_best, v_best, nf = refine_pose(full, T_best, scale=scale, max_step=0.05, method="Powell",
-                                     maxiter=params.refine_maxiter)
-    n_eval += nf
-    if name_best == "eq2":
-        eq2_refined_ll = v_best
-    timings["polish"] = time.perf_counter() - t
+        T2, v2 = search.refine(search.full, T0, maxiter=params.refine_maxiter)
+        finals.append(Hypothesis(T2, v2, "centroid"))
+    best = _polish(search, max(finals, key=lambda h: h.score))
+    if best.source == "eq2":
+        eq2_refined_ll = best.score
     timings["total"] = time.perf_counter() - t_start
     cert = None if eq2_result is None else eq2_result.certificate
-    msg = (f"best of {len(finals)} refined hypotheses on eq. (1): {name_best}; "
-           f"eq. (2) pose scores {eq2_ll:.1f} ({eq2_refined_ll:.1f} refined) vs {v_best:.1f}")
+    msg = (f"best of {len(finals)} refined hypotheses on eq. (1): {best.source}; "
+           f"eq. (2) pose scores {eq2_ll:.1f} ({eq2_refined_ll:.1f} refined) vs {best.score:.1f}")
     log.info("MLE: %s", msg)
-    return MLEResult(T_best, float(v_best), name_best, eq2_result, eq2_ll, eq2_refined_ll, cert,
-                     int(n_eval), timings, MLEStatus.CONVERGED, msg)
+    return MLEResult(best.pose, float(best.score), best.source, eq2_result, eq2_ll,
+                     eq2_refined_ll, cert, int(search.n_eval), timings, MLEStatus.CONVERGED, msg,
+                     tuple(finals))
 
 
 def global_search(
