@@ -235,3 +235,59 @@ def test_estimate_mle_records_its_hypotheses():
         assert h.score == pytest.approx(float(lik(h.pose)), abs=1e-6)
     # The polished winner is at least as good as every refined hypothesis.
     assert res.log_likelihood >= max(h.score for h in res.hypotheses) - 1e-9
+
+
+def test_certificate_says_what_it_covers():
+    from dataclasses import replace
+
+    rng = np.random.default_rng(3)
+    obj = _box_object(rng)
+    T = make_transform(so3_exp([1.0, -0.5, 2.0]), [0.01, 0.02, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    res = estimate_mle(scene, cls, obj, params=MLEParams(num_rotations=128), rng=0)
+    assert res.certificate is not None and res.eq2_result is not None
+    scope = res.certificate_scope()
+    assert res.certificate.problem in scope
+    # The returned pose was refined on eq. (1): it is not the certified eq. (2) minimiser.
+    assert not np.allclose(res.T_scene_object, res.eq2_result.T_target_source, atol=1e-9)
+    assert not res.pose_is_certified
+    if res.certificate.certified:
+        assert "CERTIFIED" in scope and "NOT the returned pose" in scope
+    else:
+        assert "CERTIFIED" not in scope and "no pose is certified" in scope
+    at_eq2 = replace(res, T_scene_object=res.eq2_result.T_target_source)
+    assert at_eq2.pose_is_certified == res.certificate.certified
+    assert ("covers the returned pose" in at_eq2.certificate_scope()) == res.certificate.certified
+    uncertified = estimate_mle(scene, cls, obj, params=MLEParams(certify=False, num_rotations=64),
+                               rng=0)
+    assert not uncertified.pose_is_certified
+    assert uncertified.certificate_scope().startswith("no certificate")
+
+
+def test_ties_of_a_symmetric_box_are_reported_as_modes():
+    # Equal descriptors on a 4 x 3 x 2 cm box: its 180-degree turns about the axes tie on eq. (1).
+    size = np.array([0.04, 0.03, 0.02])
+    faces = []
+    for axis in range(3):  # a grid on each face, symmetric about the centre
+        u, v = [np.linspace(-0.5, 0.5, int(round(size[a] / 0.004)) + 1) * size[a]
+                for a in range(3) if a != axis]
+        uu, vv = np.meshgrid(u, v, indexing="ij")
+        for sign in (-0.5, 0.5):
+            f = np.zeros((uu.size, 3))
+            f[:, [a for a in range(3) if a != axis]] = np.c_[uu.ravel(), vv.ravel()]
+            f[:, axis] = sign * size[axis]
+            faces.append(f)
+    pts = np.unique(np.round(np.concatenate(faces), 9), axis=0)
+    obj = ObjectModel(pts, np.tile(np.eye(6)[0], (len(pts), 1)))
+    T = make_transform(so3_exp([0.3, -0.2, 0.4]), [0.0, 0.01, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    res = estimate_mle(scene, cls, obj, params=MLEParams(certify=False, num_rotations=128,
+                                                          mode_window=5.0), rng=0)
+    assert len(res.modes) >= 2
+    assert res.modes[0].log_likelihood == pytest.approx(res.log_likelihood)
+    assert all(res.log_likelihood - m.log_likelihood <= 5.0 for m in res.modes)
+    assert any(m.rotation_from_best_deg > 150.0 for m in res.modes[1:])
+    assert "modes within" in res.message
+    off = estimate_mle(scene, cls, obj, params=MLEParams(certify=False, num_rotations=128,
+                                                          explore_modes=False), rng=0)
+    assert len(off.modes) == 1

@@ -37,6 +37,7 @@ from solvers.lie import project_to_so3, se3_exp
 from solvers.validation import check_transform, resolve_rng
 
 if TYPE_CHECKING:
+    from certpose.estimation.modes import PoseMode
     from certpose.geometry.objects import ObjectModel
     from certpose.model.classifier import ObjectClassification
     from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
@@ -261,6 +262,13 @@ class MLEParams:
         Iteration limit of each refinement on the subsampled object.
     refine_maxiter : int
         Iteration limit of each refinement on the whole object (see :func:`refine_pose`).
+    explore_modes : bool
+        Try the winner's near-symmetric turns (:func:`~certpose.estimation.modes.explore_modes`:
+        the 180-degree flips of boxes and cans, where the coarse search misses basins); a turn
+        that scores better on eq. (1) becomes the winner.
+    mode_window : float
+        Local maxima of eq. (1) within this many nats of the best are reported as competing
+        modes (:attr:`MLEResult.modes`).
     """
 
     eq2: Eq2Params = field(default_factory=Eq2Params)
@@ -274,8 +282,12 @@ class MLEParams:
     num_refine_fine: int = 3
     coarse_maxiter: int = 30
     refine_maxiter: int = 60
+    explore_modes: bool = True
+    mode_window: float = 5.0
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.mode_window) and self.mode_window >= 0):
+            raise ValueError(f"`mode_window` must be >= 0 nats, got {self.mode_window}.")
         if int(self.num_rotations) < 0:
             raise ValueError(f"`num_rotations` must be >= 0, got {self.num_rotations}.")
         if int(self.coarse_points) < 3:
@@ -316,6 +328,10 @@ class MLEResult:
     message : str
     hypotheses : tuple of Hypothesis
         The hypotheses refined on the exact eq. (1), before the winner's polish.
+    modes : tuple of PoseMode
+        Local maxima of eq. (1) within ``mode_window`` nats of the best, best first (the
+        returned pose first); more than one means eq. (1) barely tells them apart (e.g. a box's
+        flips without appearance).
     """
 
     T_scene_object: NDArray[np.float64]
@@ -330,10 +346,42 @@ class MLEResult:
     status: MLEStatus
     message: str
     hypotheses: tuple[Hypothesis, ...] = ()
+    modes: tuple[PoseMode, ...] = ()
 
     @property
     def success(self) -> bool:
         return self.status.success
+
+    @property
+    def pose_is_certified(self) -> bool:
+        """Whether :attr:`certificate` certifies :attr:`T_scene_object` itself.
+
+        The certificate bounds eq. (2) at the eq. (2) minimiser; the returned pose maximises
+        eq. (1) and is refined away from it (even when it started there), so this is False
+        unless the returned pose is that minimiser.
+        """
+        return (self.certificate is not None and bool(self.certificate.certified)
+                and self.eq2_result is not None
+                and np.allclose(self.T_scene_object, self.eq2_result.T_target_source, atol=1e-9))
+
+    def certificate_scope(self) -> str:
+        """One line: what the certificate bounds, its verdict, and whether it covers the pose."""
+        if self.certificate is None:
+            why = "" if self.eq2_result is None else str(
+                self.eq2_result.info.get("certificate_message", ""))
+            return f"no certificate{': ' + why if why else ''}; eq. (1), which the pose maximises, has none"
+        c = self.certificate
+        verdict = "CERTIFIED globally optimal" if c.certified else f"not certified ({c.status.value})"
+        if self.pose_is_certified:
+            covers = "it covers the returned pose"
+        elif c.certified:
+            covers = ("it covers the eq. (2) minimiser, NOT the returned pose (which maximises "
+                      f"eq. (1), winner {self.hypothesis}; no certificate bounds eq. (1))")
+        else:
+            covers = (f"no pose is certified, the returned one (winner {self.hypothesis}, which "
+                      "maximises eq. (1)) neither")
+        return (f"eq. (2) minimiser {verdict} for the problem {c.problem} ({c.num_terms} TLS terms, "
+                f"gap {c.relative_gap:.3g}); {covers}")
 
 
 def _distinct_top(poses: NDArray[np.float64], values: NDArray[np.float64], m: int,
@@ -526,6 +574,29 @@ def _polish(search: _Search, best: Hypothesis) -> Hypothesis:
     return Hypothesis(T, v, best.source)
 
 
+def _modes(search: _Search, best: Hypothesis, object_model: ObjectModel) -> tuple[Hypothesis, tuple[PoseMode, ...]]:
+    """Step 6: the winner's near-symmetric turns; a better one wins, those within the window
+    are reported."""
+    from certpose.estimation.modes import PoseMode, explore_modes
+
+    params = search.params
+    if not params.explore_modes:
+        return best, (PoseMode(best.pose, best.score, best.source),)
+    t = time.perf_counter()
+    for _ in range(3):  # a better turn may itself have better turns
+        modes = explore_modes(search.full, best.pose, object_model,
+                              coarse_likelihood=search.small, maxiter=params.refine_maxiter)
+        top = modes[0]
+        if not top.log_likelihood > best.score + 1e-6:
+            break
+        log.info("a near-symmetric turn (%s) beats the search's winner by %.1f nats",
+                 top.origin, top.log_likelihood - best.score)
+        best = Hypothesis(top.T_scene_object, float(top.log_likelihood), top.origin)
+    kept = tuple(m for m in modes if m.log_likelihood >= top.log_likelihood - params.mode_window)
+    search.timings["modes"] = time.perf_counter() - t
+    return best, kept
+
+
 def estimate_mle(
     scene: Any,
     classification: ObjectClassification,
@@ -601,14 +672,24 @@ def estimate_mle(
     best = _polish(search, max(finals, key=lambda h: h.score))
     if best.source == "eq2":
         eq2_refined_ll = best.score
+    best, modes = _modes(search, best, object_model)
+    if best.source.startswith("turn:"):
+        from certpose.estimation.modes import PoseMode
+
+        best = _polish(search, best)
+        modes = (PoseMode(best.pose, best.score, best.source),) + modes[1:]
     timings["total"] = time.perf_counter() - t_start
     cert = None if eq2_result is None else eq2_result.certificate
     msg = (f"best of {len(finals)} refined hypotheses on eq. (1): {best.source}; "
            f"eq. (2) pose scores {eq2_ll:.1f} ({eq2_refined_ll:.1f} refined) vs {best.score:.1f}")
+    if len(modes) > 1:
+        msg += (f"; {len(modes)} modes within {params.mode_window:g} nats (rotations "
+                + ", ".join(f"{m.rotation_from_best_deg:.0f}" for m in modes[1:])
+                + " deg from the best)")
     log.info("MLE: %s", msg)
     return MLEResult(best.pose, float(best.score), best.source, eq2_result, eq2_ll,
                      eq2_refined_ll, cert, int(search.n_eval), timings, MLEStatus.CONVERGED, msg,
-                     tuple(finals))
+                     tuple(finals), modes)
 
 
 def global_search(

@@ -174,6 +174,17 @@ class PoseResult:
         Certificate of the eq. (2) solution (bounds eq. (2), not eq. (1)); ``None`` when no
         certifier ran (see ``certificate_message``).
     certificate_message : str
+    certificate_scope : str
+        What the certificate bounds (which problem, at which pose) and whether it covers
+        ``T_camera_object`` (see ``pose_is_certified``).
+    pose_is_certified : bool
+        True only when the certificate certifies ``T_camera_object`` itself (the returned pose
+        maximises eq. (1), which no certificate bounds, so this is normally False).
+    modes : tuple of dict
+        Local maxima of eq. (1) within ``PoseParams.mle.mode_window`` nats of the best, best
+        first: ``T_camera_object``, ``log_likelihood``, ``origin``, ``rotation_from_best_deg``
+        (and ``errors`` against the ground truth, when given). More than one: eq. (1) barely
+        tells them apart.
     hypothesis : str
         Which hypothesis won on eq. (1) (``"eq2"`` or ``"coarse:<rank>"``).
     eq2_log_likelihood : float
@@ -202,6 +213,9 @@ class PoseResult:
     status: str
     message: str
     mle: MLEResult | None = field(default=None, repr=False)
+    certificate_scope: str = ""
+    pose_is_certified: bool = False
+    modes: tuple[dict[str, Any], ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary."""
@@ -210,6 +224,11 @@ class PoseResult:
             "log_likelihood": _finite_or_none(self.log_likelihood),
             "certificate": None if self.certificate is None else self.certificate.to_dict(),
             "certificate_message": self.certificate_message,
+            "certificate_scope": self.certificate_scope,
+            "pose_is_certified": self.pose_is_certified,
+            "certified_pose": self._certified_pose(),
+            "modes": [dict(m, T_camera_object=np.asarray(m["T_camera_object"]).tolist())
+                      for m in self.modes],
             "hypothesis": self.hypothesis,
             "eq2_log_likelihood": _finite_or_none(self.eq2_log_likelihood),
             "eq2_refined_log_likelihood": _finite_or_none(self.eq2_refined_log_likelihood),
@@ -219,6 +238,16 @@ class PoseResult:
             "status": self.status,
             "message": self.message,
         }
+
+
+    def _certified_pose(self) -> dict[str, Any] | None:
+        """The pose the certificate covers (the eq. (2) minimiser), camera frame."""
+        if self.certificate is None or self.mle is None or self.mle.eq2_result is None:
+            return None
+        T = self.T_camera_object @ np.linalg.inv(self.mle.T_scene_object) @ \
+            self.mle.eq2_result.T_target_source
+        return {"T_camera_object": T.tolist(), "problem": self.certificate.problem,
+                "certified": bool(self.certificate.certified)}
 
 
 def _finite_or_none(x: float) -> float | None:
@@ -307,9 +336,22 @@ def estimate_pose(
         if mle.certificate is not None:
             cert_msg = mle.certificate.message
     msg = f"classifier: {cls.message}; {mle.message}"
+    T_cw = invert_transform(T_world_camera)
+    modes = []
+    for m in mle.modes:
+        Tm = T_cw @ m.T_scene_object
+        d: dict[str, Any] = {"T_camera_object": Tm, "log_likelihood": float(m.log_likelihood),
+                             "origin": m.origin,
+                             "rotation_from_best_deg": float(m.rotation_from_best_deg)}
+        if T_camera_object_gt is not None:
+            pts = object_model.points if gt_model_points is None else gt_model_points
+            d["errors"] = pose_errors(Tm, T_camera_object_gt, pts,
+                                      symmetry_axis=symmetry_axis).to_dict()
+        modes.append(d)
     return PoseResult(T, mle.log_likelihood, mle.certificate, cert_msg, mle.hypothesis,
                       mle.eq2_log_likelihood, mle.eq2_refined_log_likelihood, timings, errors,
-                      mle.success, mle.status.value, msg, mle)
+                      mle.success, mle.status.value, msg, mle, mle.certificate_scope(),
+                      mle.pose_is_certified, tuple(modes))
 
 
 def _scene_for(frame: RGBDFrame, mask: NDArray[np.bool_], params: PoseParams, backbone: Any) -> Any:
@@ -419,7 +461,7 @@ def build_ycbv_object_model(
     *,
     backbone: Any = None,
     voxel_size: float = 0.005,
-    unseen: str = "zero",
+    unseen: str = "prior",
 ) -> BuiltObjectModel:
     """An object model with appearance from YCB-Video frames (their ground-truth poses and labels).
 
@@ -436,7 +478,7 @@ def build_ycbv_object_model(
         Default :class:`~certpose.geometry.appearance.AppearanceBackbone`.
     voxel_size : float, optional
         Metres (use the scene's).
-    unseen : {"zero", "shape"}, optional
+    unseen : {"prior", "shape", "zero"}, optional
         See :func:`~certpose.geometry.appearance.object_from_posed_views`.
 
     Raises
