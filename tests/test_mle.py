@@ -198,7 +198,7 @@ def test_an_exception_inside_estimate_mle_leaves_no_certifier_thread(monkeypatch
 
     rng = np.random.default_rng(3)
     obj = _box_object(rng)
-    T = make_transform(so3_exp([1.0, -0.5, 2.0]), [0.01, 0.02, 0.5])
+    T = make_transform(Rotation.from_rotvec([1.0, -0.5, 2.0]).as_matrix(), [0.01, 0.02, 0.5])
     scene, cls = _scene_with_object(obj, T)
     started = threading.Event()
     real_certify = mle_mod.certify_eq2
@@ -225,7 +225,7 @@ def test_an_exception_inside_estimate_mle_leaves_no_certifier_thread(monkeypatch
 def test_estimate_mle_records_its_hypotheses():
     rng = np.random.default_rng(3)
     obj = _box_object(rng)
-    T = make_transform(so3_exp([1.0, -0.5, 2.0]), [0.01, 0.02, 0.5])
+    T = make_transform(Rotation.from_rotvec([1.0, -0.5, 2.0]).as_matrix(), [0.01, 0.02, 0.5])
     scene, cls = _scene_with_object(obj, T)
     res = estimate_mle(scene, cls, obj, params=MLEParams(certify=False, num_rotations=128), rng=0)
     sources = [h.source for h in res.hypotheses]
@@ -242,7 +242,7 @@ def test_certificate_says_what_it_covers():
 
     rng = np.random.default_rng(3)
     obj = _box_object(rng)
-    T = make_transform(so3_exp([1.0, -0.5, 2.0]), [0.01, 0.02, 0.5])
+    T = make_transform(Rotation.from_rotvec([1.0, -0.5, 2.0]).as_matrix(), [0.01, 0.02, 0.5])
     scene, cls = _scene_with_object(obj, T)
     res = estimate_mle(scene, cls, obj, params=MLEParams(num_rotations=128), rng=0)
     assert res.certificate is not None and res.eq2_result is not None
@@ -279,7 +279,7 @@ def test_ties_of_a_symmetric_box_are_reported_as_modes():
             faces.append(f)
     pts = np.unique(np.round(np.concatenate(faces), 9), axis=0)
     obj = ObjectModel(pts, np.tile(np.eye(6)[0], (len(pts), 1)))
-    T = make_transform(so3_exp([0.3, -0.2, 0.4]), [0.0, 0.01, 0.5])
+    T = make_transform(Rotation.from_rotvec([0.3, -0.2, 0.4]).as_matrix(), [0.0, 0.01, 0.5])
     scene, cls = _scene_with_object(obj, T)
     res = estimate_mle(scene, cls, obj, params=MLEParams(certify=False, num_rotations=128,
                                                           mode_window=5.0), rng=0)

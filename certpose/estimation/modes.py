@@ -137,7 +137,6 @@ def explore_modes(
         Best first; the winner itself is among them (origin ``"mle"``), possibly not first.
     """
     from certpose.estimation.batch import refine_poses
-    from certpose.estimation.mle import refine_pose
 
     T0 = check_transform(T_scene_object, "T_scene_object", atol=1e-3)
     coarse = coarse_likelihood or likelihood
@@ -158,10 +157,10 @@ def explore_modes(
     exact = np.asarray(likelihood(T_pre))
     order = np.argsort(-exact)[: int(num_refine)]
     modes = [PoseMode(T0, float(likelihood(T0)), "mle")]
-    for i in order:
-        _, k, T1 = pre[i]
-        T2, v2, _ = refine_pose(likelihood, T1, scale=scale, max_step=0.1, maxiter=maxiter)
-        modes.append(PoseMode(T2, v2, f"turn:{k}"))
+    T_fine, v_fine = refine_poses(likelihood, T_pre[order], scale=scale, max_iter=maxiter,
+                                  max_step=0.1)
+    for j, i in enumerate(order):
+        modes.append(PoseMode(T_fine[j], float(v_fine[j]), f"turn:{pre[i][1]}"))
     modes.sort(key=lambda m: -m.log_likelihood)
     kept: list[PoseMode] = []
     for m in modes:
