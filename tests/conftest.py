@@ -41,6 +41,18 @@ def strict_json(text: str) -> object:
     return json.loads(text, parse_constant=reject)
 
 
+def box_surface(rng: np.random.Generator, size: np.ndarray, per_face: int) -> np.ndarray:
+    """Points uniform on each face of an axis-aligned box of ``size`` (3,) centred at 0, shape
+    ``(6 * per_face, 3)``."""
+    pts = []
+    for axis in range(3):
+        for sign in (-0.5, 0.5):
+            uv = rng.uniform(-0.5, 0.5, size=(per_face, 3)) * size
+            uv[:, axis] = sign * size[axis]
+            pts.append(uv)
+    return np.concatenate(pts)
+
+
 def make_instance(
     rng: np.random.Generator,
     n: int,

@@ -24,6 +24,7 @@ from certpose.model.grid import EMPTY, OCCUPIED
 from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 from certpose.model.scene import SceneField
 from solvers.lie import make_transform, rotation_error_deg
+from tests.conftest import box_surface
 
 
 def _unit_rows(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
@@ -33,14 +34,7 @@ def _unit_rows(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
 
 def _box_object(rng: np.random.Generator, d: int = 6) -> ObjectModel:
     """Points on the surface of an asymmetric box (4 x 3 x 2 cm) with distinct descriptors."""
-    pts = []
-    size = np.array([0.04, 0.03, 0.02])
-    for axis in range(3):
-        for sign in (-0.5, 0.5):
-            uv = rng.uniform(-0.5, 0.5, size=(40, 3)) * size
-            uv[:, axis] = sign * size[axis]
-            pts.append(uv)
-    p = np.concatenate(pts)
+    p = box_surface(rng, np.array([0.04, 0.03, 0.02]), 40)
     return ObjectModel(p, _unit_rows(rng, p.shape[0], d))
 
 

@@ -16,7 +16,7 @@ from certpose.geometry.features import ArrayBackbone, FPFHBackbone
 from certpose.geometry.objects import ObjectModel, object_from_points, object_from_views
 from certpose.geometry.rgbd import CameraIntrinsics, RGBDFrame
 from solvers.lie import make_transform
-from tests.conftest import require_data, strict_json
+from tests.conftest import box_surface, require_data, strict_json
 
 
 @pytest.mark.slow  # over 3 s
@@ -71,21 +71,15 @@ def test_pose_errors_judge_the_symmetry_axis_only():
 def test_object_from_points_and_views():
     rng = np.random.default_rng(1)
     # A 6 x 4 x 3 cm box surface.
-    pts = []
-    size = np.array([0.06, 0.04, 0.03])
-    for axis in range(3):
-        for sign in (-0.5, 0.5):
-            uv = rng.uniform(-0.5, 0.5, size=(800, 3)) * size
-            uv[:, axis] = sign * size[axis]
-            pts.append(uv)
-    obj = object_from_points(np.concatenate(pts), FPFHBackbone(), voxel_size=0.005, name="box")
+    pts = box_surface(rng, np.array([0.06, 0.04, 0.03]), 800)
+    obj = object_from_points(pts, FPFHBackbone(), voxel_size=0.005, name="box")
     assert isinstance(obj, ObjectModel) and obj.name == "box"
     assert obj.descriptors.shape == (len(obj), 33)
     np.testing.assert_allclose(np.linalg.norm(obj.normals, axis=1), 1.0, atol=1e-6)
     # Outward normals: they point away from the centre.
     assert np.mean(np.einsum("ij,ij->i", obj.normals, obj.points - obj.centroid) > 0) > 0.9
     with pytest.raises(ValueError, match="voxel_size"):
-        object_from_points(np.concatenate(pts), FPFHBackbone(), voxel_size=0.0)
+        object_from_points(pts, FPFHBackbone(), voxel_size=0.0)
     with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
         object_from_points(np.zeros((10, 2)), FPFHBackbone(), voxel_size=0.005)
     # Views: a fronto-parallel wall seen by a camera; the mask picks its middle.
