@@ -53,25 +53,17 @@ BETA = 5.54 * SIGMA
 
 
 def load_bunny() -> np.ndarray:
-    import open3d as o3d
+    from certpose.io import load_bunny
 
-    pts = np.asarray(o3d.io.read_point_cloud(str(DATA)).points, dtype=np.float64)
-    pts -= pts.min(axis=0)
-    return pts / pts.max()  # into the unit cube
+    return load_bunny(DATA)  # into the unit cube
 
 
 def instance(rng: np.random.Generator, bunny: np.ndarray, n: int, ratio: float):  # noqa: ANN201
-    src = bunny[rng.choice(bunny.shape[0], size=n, replace=n > bunny.shape[0])]
-    R = Rotation.random(random_state=rng).as_matrix()
-    t = rng.normal(size=3)
-    t *= rng.uniform() ** (1 / 3) / np.linalg.norm(t)
-    dst = src @ R.T + t + rng.normal(0, SIGMA, (n, 3))
-    n_out = int(round(ratio * n))
-    out = rng.choice(n, size=n_out, replace=False)
-    d = rng.normal(size=(n_out, 3))
-    d *= 5.0 * rng.uniform(size=(n_out, 1)) ** (1 / 3) / np.linalg.norm(d, axis=1, keepdims=True)
-    dst[out] = d
-    return WeightedTLSProblem(src, dst, noise_bound=BETA), R, t
+    from certpose.data.instances import make_instance
+
+    inst = make_instance(bunny, n, ratio, noise=SIGMA, rng=rng)
+    return (WeightedTLSProblem(inst.source, inst.target, noise_bound=BETA), inst.rotation,
+            inst.translation)
 
 
 def run_registration(bunny: np.ndarray, ns: list[int], ratios: dict[int, list[float]], reps: int,

@@ -27,18 +27,12 @@ BUNNY = Path(__file__).resolve().parents[2] / "shared" / "data" / "bunny" / "bun
 
 
 def make_problem(n: int, outliers: float, rng: np.random.Generator) -> WeightedTLSProblem:
-    from certpose.io import load_bunny, scale_to_unit_cube, synthetic_shape
+    from certpose.data.instances import make_instance
+    from certpose.io import load_bunny, synthetic_shape
 
-    cloud = scale_to_unit_cube(load_bunny(BUNNY)) if BUNNY.exists() else synthetic_shape(2000)
-    src = cloud[rng.choice(cloud.shape[0], n, replace=False)]
-    R = Rotation.random(random_state=rng).as_matrix()
-    t = rng.normal(size=3)
-    t *= rng.random() / np.linalg.norm(t)
-    dst = src @ R.T + t + rng.normal(0.0, 0.01, src.shape)
-    bad = rng.random(n) < outliers
-    d = rng.normal(size=(int(bad.sum()), 3))
-    dst[bad] = 5.0 * d / np.linalg.norm(d, axis=1, keepdims=True) * rng.random((d.shape[0], 1)) ** (1 / 3)
-    return WeightedTLSProblem(src, dst, noise_bound=5.54 * 0.01)
+    cloud = load_bunny(BUNNY) if BUNNY.exists() else synthetic_shape(2000)
+    inst = make_instance(cloud, n, outliers, noise=0.01, rng=rng)
+    return WeightedTLSProblem(inst.source, inst.target, noise_bound=inst.noise_bound)
 
 
 def main() -> int:

@@ -29,24 +29,19 @@ BUNNY = Path(__file__).resolve().parents[2] / "shared" / "data" / "bunny" / "bun
 def write_demo_pair(folder: Path, *, rng: np.random.Generator) -> tuple[Path, Path, np.ndarray]:
     """Write a source/target PLY pair with 70% outliers; return their paths and T_target_source."""
     import open3d as o3d
-    from scipy.spatial.transform import Rotation
 
+    from certpose.data.instances import make_instance
     from certpose.io import load_bunny, synthetic_shape
+    from solvers.lie import make_transform
 
     cloud = load_bunny(BUNNY) if BUNNY.exists() else synthetic_shape(2000)
-    src = cloud[rng.choice(cloud.shape[0], 200, replace=False)]
-    T = np.eye(4)
-    T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
-    T[:3, 3] = rng.uniform(-0.5, 0.5, 3)
-    dst = src @ T[:3, :3].T + T[:3, 3] + rng.normal(0.0, 0.005, src.shape)
-    outliers = rng.random(src.shape[0]) < 0.7
-    dst[outliers] = rng.uniform(-2.0, 2.0, (int(outliers.sum()), 3))
+    inst = make_instance(cloud, 200, 0.7, noise=0.005, rng=rng)
     paths = []
-    for name, pts in (("source.ply", src), ("target.ply", dst)):
+    for name, pts in (("source.ply", inst.source), ("target.ply", inst.target)):
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
         o3d.io.write_point_cloud(str(folder / name), pcd, write_ascii=True)
         paths.append(folder / name)
-    return paths[0], paths[1], T
+    return paths[0], paths[1], make_transform(inst.rotation, inst.translation)
 
 
 def main() -> int:
