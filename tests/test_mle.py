@@ -209,7 +209,7 @@ def test_an_exception_inside_estimate_mle_leaves_no_certifier_thread(monkeypatch
     monkeypatch.setattr(mle_mod, "certify_eq2", slow_certify)
     monkeypatch.setattr(mle_mod, "coarse_search", failing_search)
     with pytest.raises(RuntimeError, match="search failed"):
-        estimate_mle(scene, cls, obj, params=MLEParams(certify=True, num_rotations=64), rng=0)
+        estimate_mle(scene, cls, obj, params=MLEParams(certify=True, num_rotations=16), rng=0)
     assert started.is_set()
     alive = [t.name for t in threading.enumerate()
              if t.name.startswith(mle_mod._Certifier.THREAD_PREFIX)]
@@ -231,6 +231,7 @@ def test_estimate_mle_records_its_hypotheses():
     assert res.log_likelihood >= max(h.score for h in res.hypotheses) - 1e-9
 
 
+@pytest.mark.slow
 def test_certificate_says_what_it_covers():
     from dataclasses import replace
 
