@@ -130,12 +130,12 @@ def main() -> None:
 
     print("\ncolumns: errors (t cm, symmetry axis deg, rotation deg, ADD-S cm); MLE s = wall time of the whole MLE; cert s = time of "
           "(the eq. (2) certifier, run in a thread beside the eq. (1) search); winner = hypothesis that won on eq. (1); eq2 ADD-S = error of the "
-          "eq. (2) minimiser; L = eq. (1) of the MLE pose, of the eq. (2) minimiser, of it refined"
+          "eq. (2) minimiser; eq2 ok = whether that minimiser (not the MLE pose) is certified for eq. (2); L = eq. (1) of the MLE pose, of the eq. (2) minimiser, of it refined"
           + ("; of the global search's best; of the ground truth" if args.global_budget else ""))
     print(f"YCB-Video scene 0000, {len(args.frames)} frames x {len(args.objects)} objects "
           "(targets: t <= 1 cm, axis <= 5 deg, ADD-S <= 1 cm, MLE <= 2 s)")
     print(f"{'frame':7s} {'object':16s} {'t cm':>6s} {'axis':>6s} {'rot':>6s} {'ADD-S':>6s} "
-          f"{'MLE s':>6s} {'cert':>5s} {'scene':>6s} {'winner':>9s} {'eq2 ADD-S':>9s} {'cert':>6s} "
+          f"{'MLE s':>6s} {'cert':>5s} {'scene':>6s} {'winner':>9s} {'eq2 ADD-S':>9s} {'eq2 ok':>6s} "
           f"{'L(MLE)':>9s} {'L(eq2)':>9s} {'L(eq2,r)':>9s}" + (f" {'L(glob)':>9s} {'L(gt)':>9s}"
                                                             if args.global_budget else ""))
     for r in rows:

@@ -49,6 +49,15 @@ def test_real_ycbv_frame_mug():
     # The certifier ran on eq. (2) (it may run out of time, but it must say so in a certificate).
     assert res.certificate is not None, res.certificate_message
     assert res.certificate.message and np.isfinite(res.certificate.upper_bound)
+    # It bounds eq. (2) at its minimiser; the returned pose was refined on eq. (1).
+    assert not res.pose_is_certified
+    assert res.certificate.problem in res.certificate_scope
+    assert ("NOT the returned pose" in res.certificate_scope
+            or "no pose is certified" in res.certificate_scope)
+    data = res.to_dict()
+    assert data["certified_pose"]["problem"] == res.certificate.problem
+    assert not np.allclose(data["certified_pose"]["T_camera_object"], res.T_camera_object)
+    assert data["modes"][0]["log_likelihood"] == pytest.approx(res.log_likelihood)
 
 
 def test_pose_errors_judge_the_symmetry_axis_only():
@@ -139,3 +148,5 @@ def test_cli_ycbv_writes_json(tmp_path, capsys):
     assert np.asarray(data["T_camera_object"]).shape == (4, 4)
     assert data["errors"]["add_s"] <= 0.01
     assert data["certificate"] is None and data["certificate_message"] == "not requested"
+    assert data["pose_is_certified"] is False and data["certified_pose"] is None
+    assert "certificate: no certificate" in text and "CERTIFIED" not in text
