@@ -3,7 +3,9 @@
 Prints, per N and outlier ratio: fraction certified, median relative gap, median time and
 success (rotation error < 5 deg and translation error < 0.05), for
 
-* ``gnc+certify``: :func:`solvers.solve_registration` then :func:`solvers.certify.certify_result`;
+* ``gnc+certify``: :func:`solvers.solve_registration` then :func:`solvers.certify.certify_result`
+  with ``--scope`` (default ``rotation``, the scope of the figures below; the full problem's
+  certificate has its own benchmark, ``examples/bench_full_certificate.py``);
 * ``sdp``: :func:`solvers.certify.solve_sdp` (the relaxation's own pose);
 
 then the rotation subproblem over TIMs (what TEASER++'s certifier bounds) at K = 20/50/100,
@@ -50,6 +52,7 @@ from solvers.problem import WeightedTLSProblem
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
 SIGMA = 0.01
 BETA = 5.54 * SIGMA
+SCOPE = "rotation"
 
 
 def load_bunny() -> np.ndarray:
@@ -81,7 +84,7 @@ def run_registration(bunny: np.ndarray, ns: list[int], ratios: dict[int, list[fl
                     if pipe == "sdp":
                         res = solve_sdp(p)
                     else:
-                        res = certify_result(p, solve_registration(p))
+                        res = certify_result(p, solve_registration(p), scope=SCOPE)
                     tt.append(time.perf_counter() - t0)
                     c = res.certificate
                     cert.append(bool(c is not None and c.certified))
@@ -176,7 +179,10 @@ def main() -> None:
     ap.add_argument("--rot-k", type=int, nargs="+", default=[20, 50, 100])
     ap.add_argument("--rot-ratios", type=float, nargs="+", default=[0.0, 0.5, 0.8])
     ap.add_argument("--skip", nargs="*", default=[], choices=["reg", "big", "rot"])
+    ap.add_argument("--scope", default="rotation", choices=["rotation", "full", "pruned"])
     args = ap.parse_args()
+    global SCOPE
+    SCOPE = args.scope
     reps = 3 if args.quick else args.reps
     rng = np.random.default_rng(args.seed)
     bunny = load_bunny()

@@ -239,8 +239,14 @@ def test_sdp_failure_is_reported_not_raised() -> None:
     src, dst, *_ = make_instance(rng, 8, 0.25)
     p = WeightedTLSProblem(src, dst, noise_bound=0.05)
     res = solve_sdp(p, max_iter=1)
-    assert not res.success
-    assert res.certificate is not None and not res.certificate.certified
+    assert not res.success and "did not reach its tolerances" in res.message
+    # The rounded pose's certificate comes from its own dual search, independent of the failed
+    # interior-point solve: valid whatever the verdict.
+    cert = res.certificate
+    assert cert is not None and cert.method == "dual_drs"
+    from solvers.certify import rebuild_bounded_problem
+
+    assert cert.lower_bound <= rotation_optimum(rebuild_bounded_problem(p, cert)) + 1e-9
 
 
 def test_refine_rotation_never_increases_cost() -> None:

@@ -801,11 +801,9 @@ def _round_rotation(Z00: NDArray[np.float64] | None) -> NDArray[np.float64] | No
 def _vote_translation(
     problem: WeightedTLSProblem, R: NDArray[np.float64], idx: NDArray[np.int64]
 ) -> NDArray[np.float64]:
-    from solvers.registration.pruning import scalar_tls
+    from solvers.registration.pruning import vote_translation
 
-    resid = problem.target[idx] - problem.source[idx] @ R.T
-    return np.array([scalar_tls(resid[:, k], problem.noise_bound[idx], problem.weights[idx],
-                                problem.cbar2)[0] for k in range(3)])
+    return vote_translation(problem, R, idx)
 
 
 def solve_sdp(
@@ -821,13 +819,16 @@ def solve_sdp(
 ) -> RegistrationResult:
     """Solve a weighted TLS problem through its SDP relaxation, with a certificate.
 
-    The relaxation's moment matrix is rounded (leading eigenvector, projection to SO(3)) and the
-    pose refined locally (inlier selection and weighted Procrustes). With ``scope="rotation"``
-    (the default, what TEASER++ solves) the rotation comes from the TIM rotation relaxation over
-    the max-clique survivors and the translation from exact per-axis TLS voting. With
-    ``scope="full"``/``"pruned"`` the joint relaxation gives the whole pose (``K <= dense_max``
-    densely, else the loose chordal relaxation). The certificate is computed for the *returned*
-    pose on the bounded problem; the relaxation's own bound is one of its lower bounds.
+    The relaxation's moment matrix is rounded (leading eigenvector, projection to SO(3)) and
+    refined locally on the bounded problem. With ``scope="rotation"`` (the default, what TEASER++
+    solves) the rotation is the TIM rotation subproblem's (over the max-clique survivors) and the
+    translation comes from exact per-axis TLS voting; it is not refined on the full problem,
+    which would leave the certified optimum (``info["refined_full_cost"]`` says what refining
+    would reach; :func:`certify_result` of a GNC pose gives the full problem's certificate).
+    With ``scope="full"``/``"pruned"`` the joint relaxation gives the whole pose (``K <=
+    dense_max`` densely, else the loose chordal relaxation), refined on the full problem. The
+    certificate is computed for the *returned* pose on the bounded problem; the relaxation's own
+    bound is one of its lower bounds.
 
     Parameters
     ----------
@@ -864,9 +865,13 @@ def solve_sdp(
             cert, status=sol.status, backend_status=sol.backend_status, method=sol.method))
     _, V = np.linalg.eigh((sol.Z00 + sol.Z00.T) / 2)
     if rot:
+        # TEASER++'s pose: the subproblem's rotation, translation voted exactly. Refining it on
+        # the full problem would leave the subproblem's optimum, which is what is certified.
         R = refine_rotation(pn, _round_rotation(sol.Z00))
         idx = scoped.indices if scoped.indices is not None else np.arange(problem.n)
-        R, t = refine_pose(problem, R, _vote_translation(problem, R, idx))
+        t = _vote_translation(problem, R, idx)
+        Rr, tr = refine_pose(problem, R, t)
+        info["refined_full_cost"] = problem.cost(Rr, tr)
     else:
         R, t = lift.pose_from_vector(V[:, -1])
         R, t = refine_pose(problem, *refine_pose(pn, R, t))
