@@ -1,5 +1,5 @@
-"""Solver benchmarking: problem instances, the runner (certpose and its peers on the same
-instances), and reports (tables, JSON, plots).
+"""Solver benchmarking: the runner (certpose and its peers on the same instances, drawn by
+:mod:`certpose.data.instances`) and reports (tables, JSON, plots).
 
 May import every other part of certpose and :mod:`solvers`' public names; only the CLI imports it.
 """
