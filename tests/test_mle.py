@@ -286,3 +286,4 @@ def test_ties_of_a_symmetric_box_are_reported_as_modes():
     off = estimate_mle(scene, cls, obj, params=MLEParams(certify=False, num_rotations=128,
                                                           explore_modes=False), rng=0)
     assert len(off.modes) == 1
+
