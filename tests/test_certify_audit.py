@@ -130,7 +130,8 @@ def audit(p: WeightedTLSProblem, cert, R: np.ndarray, t: np.ndarray) -> list[str
     return bad
 
 
-def _run_family(family: str, seeds: range, scopes: tuple[str, ...]) -> tuple[int, list[str]]:
+def _run_family(family: str, seeds: range, scopes: tuple[str, ...],
+                time_limit: float = 20.0) -> tuple[int, list[str]]:
     n_certs, violations = 0, []
     for seed in seeds:
         rng = np.random.default_rng(1000 * FAMILIES.index(family) + seed)
@@ -142,11 +143,11 @@ def _run_family(family: str, seeds: range, scopes: tuple[str, ...]) -> tuple[int
                  ("180deg", _rotate(R0, 180.0, rng), t0)]
         for scope in scopes:
             for name, R, t in cands:
-                cert = certify_pose(p, R, t, scope=scope, time_limit=20)
+                cert = certify_pose(p, R, t, scope=scope, time_limit=time_limit)
                 n_certs += 1
                 for v in audit(p, cert, R, t):
                     violations.append(f"{family} seed {seed} K={k} {scope} {name}: {v}")
-            out = certify_result(p, res, scope=scope, time_limit=20)
+            out = certify_result(p, res, scope=scope, time_limit=time_limit)
             n_certs += 1
             if out.cost > res.cost + 1e-9 * (1 + abs(res.cost)):
                 violations.append(f"{family} seed {seed} {scope}: certify_result raised the cost "
@@ -166,9 +167,10 @@ def test_audit_full_and_rotation_scopes(family: str) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("family", ["uniform", "uneven", "tiny_weights", "scaled_large"])
+@pytest.mark.parametrize("family", ["uneven", "tiny_weights"])
 def test_audit_pruned_scope(family: str) -> None:
-    n, violations = _run_family(family, range(4), ("pruned",))
+    """The joint relaxation's dual search: stopped early (wrong poses) its bound stays valid."""
+    n, violations = _run_family(family, range(3), ("pruned",), time_limit=3.0)
     assert not violations, "\n".join(violations[:20])
 
 
