@@ -157,11 +157,15 @@ def refine_pose(
         res = minimize(penalised, np.zeros(6), jac=True, method="BFGS",
                        options={"maxiter": int(maxiter), "gtol": 1e-3})
     res.x = np.clip(res.x, -max_step, max_step)
-    if not -res.fun > f0:  # no improvement: keep the start
-        return T0, f0, count[0]
     T = _twist_to_pose(T0, res.x, scale) if method == "Powell" else _twists_to_poses(
         T0, res.x[None], scale)[0]
-    return T, float(-res.fun), count[0]
+    # Score the pose returned: BFGS's value includes the wall's penalty when it ended outside
+    # the box, and clipping moved it.
+    value = float(likelihood(T))
+    count[0] += 1
+    if not value > f0:  # no improvement: keep the start
+        return T0, f0, count[0]
+    return T, value, count[0]
 
 
 def coarse_search(
