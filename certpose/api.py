@@ -18,14 +18,20 @@ Solver = Literal["gnc", "sdp"]
 
 
 def as_points(value: Any, name: str) -> Any:
-    """Return ``value`` as an (N, 3) array when it is an ``open3d.geometry.PointCloud``.
+    """Return ``value`` as an (N, 3) float64 array when it is an Open3D point cloud.
 
-    Other inputs pass through unchanged (validated by the problem type).
+    Both the legacy ``open3d.geometry.PointCloud`` and the tensor
+    ``open3d.t.geometry.PointCloud`` (on any device) are accepted. Other inputs pass through
+    unchanged (validated by the problem type).
     """
     cls = type(value)
-    if cls.__name__ == "PointCloud" and cls.__module__.startswith("open3d"):
-        return np.asarray(value.points, dtype=np.float64)
-    return value
+    if cls.__name__ != "PointCloud" or not cls.__module__.startswith("open3d"):
+        return value
+    if ".t." in f".{cls.__module__}.":  # tensor API: positions live in the point attributes
+        if "positions" not in value.point:
+            raise ValueError(f"`{name}` is an Open3D tensor point cloud without positions.")
+        return np.asarray(value.point.positions.cpu().numpy(), dtype=np.float64)
+    return np.asarray(value.points, dtype=np.float64)
 
 
 def register(
@@ -46,7 +52,7 @@ def register(
 
     Parameters
     ----------
-    source, target : (N, 3) array_like or open3d.geometry.PointCloud
+    source, target : (N, 3) array_like, open3d.geometry.PointCloud or open3d.t.geometry.PointCloud
         Corresponding points: row ``k`` of ``source`` matches row ``k`` of ``target``.
     noise_bound : float or (N,) array_like
         Inlier noise bound ``beta`` (units of the points); e.g. ``5.54 * sigma`` for isotropic
@@ -81,6 +87,9 @@ def register(
     ------
     ValueError, TypeError
         On malformed input (shapes, NaN/inf, negative weights, non-positive noise bound).
+    MemoryError
+        ``prune="always"`` with more correspondences than memory's N^2-byte consistency graph
+        holds (raised before allocating).
     """
     problem = WeightedTLSProblem(
         as_points(source, "source"),

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from enum import Enum
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -69,8 +70,11 @@ class RegistrationResult:
         Optimality certificate, when certification was requested.
     solver : str
         Name of the method that produced the pose.
-    info : dict
-        Solver-specific diagnostics (e.g. the max-clique size).
+    info : mapping
+        Solver-specific diagnostics (e.g. the max-clique size), read-only.
+
+    Results are immutable: the arrays are read-only copies, so a caller cannot change
+    ``rotation`` by writing into ``T_target_source``.
     """
 
     T_target_source: NDArray[np.float64]
@@ -83,6 +87,18 @@ class RegistrationResult:
     certificate: Certificate | None = None
     solver: str = ""
     info: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name, dtype in (("T_target_source", np.float64), ("inliers", np.bool_)):
+            arr = np.array(getattr(self, name), dtype=dtype)  # a copy the caller cannot reach
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+        object.__setattr__(self, "info", MappingProxyType(dict(self.info)))
+
+    def __reduce__(self) -> tuple[Any, ...]:  # pickling (e.g. to a Dask worker)
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values["info"] = dict(self.info)
+        return (_rebuild_result, (values,))
 
     @property
     def rotation(self) -> NDArray[np.float64]:
@@ -119,6 +135,10 @@ class RegistrationResult:
             "info": {k: _jsonable(v) for k, v in self.info.items()},
         }
         return out
+
+
+def _rebuild_result(values: dict[str, Any]) -> RegistrationResult:
+    return RegistrationResult(**values)
 
 
 def _jsonable(v: Any) -> Any:

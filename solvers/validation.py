@@ -14,6 +14,8 @@ __all__ = [
     "check_rotation",
     "check_transform",
     "check_correspondences",
+    "check_count",
+    "check_limit",
     "resolve_rng",
 ]
 
@@ -92,6 +94,26 @@ def check_transform(value: Any, name: str = "T", *, atol: float = 1e-6) -> NDArr
         raise ValueError(f"The last row of `{name}` must be [0, 0, 0, 1], got {arr[3].tolist()}.")
     check_rotation(arr[:3, :3], f"{name}[:3, :3]", atol=atol)
     return arr
+
+
+def check_count(value: Any, name: str, *, minimum: int = 0) -> int:
+    """Validate an integer count (iterations, sizes): an ``int`` (not ``bool``) ``>= minimum``."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"`{name}` must be an integer, got {value!r}.")
+    if value < minimum:
+        raise ValueError(f"`{name}` must be >= {minimum}, got {value}.")
+    return int(value)
+
+
+def check_limit(value: Any, name: str, *, allow_none: bool = True) -> float | None:
+    """Validate a non-negative finite limit (e.g. a time limit in seconds), or ``None``."""
+    if value is None and allow_none:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)):
+        raise TypeError(f"`{name}` must be a number, got {value!r}.")
+    if not np.isfinite(value) or value < 0:
+        raise ValueError(f"`{name}` must be a non-negative finite number, got {value}.")
+    return float(value)
 
 
 def resolve_rng(rng: np.random.Generator | int | None) -> np.random.Generator:

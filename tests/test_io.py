@@ -128,7 +128,7 @@ def _bad_files(tmp_path):
         "garbage.npy": ("not a numpy file", ValueError, "not a valid .npy"),
         "nan.npy": (nan, ValueError, "NaN or inf values in 1 row"),
         "wrong.npy": (np.ones((3, 4)), ValueError, r"shape \(N, 3\), got \(3, 4\)"),
-        "garbage.ply": ("ply\nformat nonsense\n", ValueError, "holds no points"),
+        "garbage.ply": ("ply\nformat nonsense\n", ValueError, "not a valid PLY file"),
         "points.obj": ("v 1 2 3\n", ValueError, "unsupported suffix"),
         "binary.csv": (b"\xff\xfe\x00\x81", ValueError, "not a text file"),
     }

@@ -52,7 +52,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (CLIError, ValueError, TypeError, OSError, ImportError) as exc:
+    except (CLIError, ValueError, TypeError, OSError, ImportError, MemoryError) as exc:
         print(f"certpose {args.command}: error: {exc}", file=sys.stderr)
         return 1
 

@@ -53,6 +53,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.plot and args.out is None:
         raise CLIError("--plot needs --out DIR (where to write the PNG files)")
+    if args.out is not None:
+        from certpose.io.output import check_output_dir
+
+        check_output_dir(args.out, what="--out folder")
     config = BenchConfig(
         n_values=tuple(args.n),
         outlier_ratios=tuple(args.outlier_ratios),

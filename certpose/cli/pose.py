@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -65,7 +64,10 @@ def run(args: argparse.Namespace) -> int:
     from certpose.cli import CLIError
     from certpose.estimation.mle import MLEParams
     from certpose.estimation.pipeline import PoseParams, run_demo, run_ycbv
+    from certpose.io.output import check_output_path, write_json
 
+    if args.json is not None:
+        check_output_path(args.json, what="--json output")
     if not (math.isfinite(args.voxel_size) and args.voxel_size > 0):
         raise CLIError(f"--voxel-size must be positive, got {args.voxel_size}")
     params = PoseParams(voxel_size=args.voxel_size)
@@ -130,12 +132,10 @@ def run(args: argparse.Namespace) -> int:
           f"{_fmt(t.get('scene'), 1, ' s')}, object model {_fmt(t.get('object'), 1, ' s')})")
     print(f"details: {result.message}")
     if args.json is not None:
-        out = Path(args.json)
         payload = {"input": {"demo": bool(args.demo), "ycbv": args.ycbv, "frame": args.frame,
                              "object": args.object, "model": args.model,
                              "object_model": args.object_model, "seed": args.seed},
                    **result.to_dict()}
-        out.write_text(json.dumps(payload, indent=2))
-        print(f"wrote {out}")
+        print(f"wrote {write_json(args.json, payload)}")
     sys.stdout.flush()
     return 0 if result.success else 1

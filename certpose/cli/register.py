@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -50,7 +48,10 @@ def add_parser(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from certpose.cli import CLIError
+    from certpose.io.output import check_output_path
 
+    if args.json:
+        check_output_path(args.json, what="--json output")
     if args.demo:
         if args.source or args.target:
             raise CLIError("give either SRC DST or --demo, not both")
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
             "solver": args.solver, "certify": args.certify, "prune": args.prune,
         }
         _write_json(args.json, {"inputs": inputs, "result": result.to_dict()})
-    return 0
+    return 0 if result.success else 1
 
 
 def _run_demo(args: argparse.Namespace) -> int:
@@ -120,7 +121,7 @@ def _run_demo(args: argparse.Namespace) -> int:
             "errors": {"rotation_deg": rot_err, "translation": trans_err},
             "result": result.to_dict(),
         })
-    return 0
+    return 0 if result.success else 1
 
 
 def _matrix(T: np.ndarray) -> str:
@@ -153,9 +154,6 @@ def _summary(result: Any) -> str:
 
 
 def _write_json(path: str, payload: dict[str, Any]) -> None:
-    out = Path(path)
-    try:
-        out.write_text(json.dumps(payload, indent=2) + "\n", encoding="utf-8")
-    except OSError as exc:
-        raise OSError(f"cannot write JSON file '{out}': {exc.strerror or exc}.") from None
-    print(f"wrote {out}")
+    from certpose.io.output import write_json
+
+    print(f"wrote {write_json(path, payload)}")

@@ -5,6 +5,7 @@ silently wrong array). May import :mod:`certpose.geometry` (frames) and :mod:`so
 names; nothing in here builds a model or estimates a pose.
 """
 
+from certpose.io.output import check_output_path, to_json, write_json
 from certpose.io.points import (
     POINT_SUFFIXES,
     WEIGHT_SUFFIXES,
@@ -21,6 +22,7 @@ __all__ = [
     "POINT_SUFFIXES",
     "WEIGHT_SUFFIXES",
     "YCBVFrame",
+    "check_output_path",
     "load_bunny",
     "load_class_names",
     "load_model_points",
@@ -30,4 +32,6 @@ __all__ = [
     "read_weights",
     "scale_to_unit_cube",
     "synthetic_shape",
+    "to_json",
+    "write_json",
 ]

@@ -5,8 +5,9 @@ Supported point formats (chosen by the file suffix):
 - ``.npy``: a float array of shape (N, 3);
 - ``.csv``, ``.txt``: three numeric columns separated by commas or whitespace, with an
   optional header line and ``#`` comments;
-- ``.xyz``: three whitespace-separated columns per line;
-- ``.ply``, ``.pcd``: point clouds read with Open3D (vertex positions only).
+- ``.xyz``: three whitespace-separated columns per line (e.g. YCB-Video's ``points.xyz``);
+- ``.ply``: vertex positions read with ``plyfile``, which rejects truncated files;
+- ``.pcd``: point clouds read with Open3D (positions only).
 
 Every reader raises ``OSError`` (missing or unreadable file) or ``ValueError`` (empty,
 unparsable, wrong shape, NaN/inf) with a one-line message naming the file.
@@ -43,7 +44,7 @@ PathType = str | PathLike[str]
 def _check_file(path: PathType, what: str) -> Path:
     p = Path(path)
     if not p.exists():
-        raise OSError(f"{what} file '{p}' does not exist.")
+        raise FileNotFoundError(f"{what} file '{p}' does not exist.")
     if not p.is_file():
         raise OSError(f"{what} file '{p}' is not a regular file.")
     return p
@@ -103,6 +104,29 @@ def _read_npy(p: Path, what: str) -> NDArray[np.float64]:
     return np.asarray(arr, dtype=np.float64)
 
 
+def _read_ply(p: Path, what: str) -> NDArray[np.float64]:
+    from plyfile import PlyData, PlyParseError
+
+    # plyfile checks the header's element counts against the body, so a truncated file is an
+    # error rather than uninitialised rows.
+    try:
+        ply = PlyData.read(str(p))
+    except PlyParseError as exc:
+        raise ValueError(f"{what} file '{p}' is not a valid PLY file: {exc}") from None
+    except (ValueError, EOFError, IndexError, UnicodeDecodeError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else "truncated or malformed"
+        raise ValueError(f"{what} file '{p}' is not a valid PLY file: {reason}") from None
+    except OSError as exc:
+        raise OSError(f"cannot read {what} file '{p}': {exc.strerror or exc}.") from None
+    if "vertex" not in ply:
+        raise ValueError(f"{what} file '{p}' has no 'vertex' element.")
+    vertex = ply["vertex"].data
+    names = vertex.dtype.names or ()
+    if not all(axis in names for axis in "xyz"):
+        raise ValueError(f"{what} file '{p}' has no x, y, z vertex properties (found {names}).")
+    return np.column_stack([np.asarray(vertex[axis], dtype=np.float64) for axis in "xyz"])
+
+
 def _read_open3d(p: Path, what: str) -> NDArray[np.float64]:
     import open3d as o3d  # heavy: imported on demand
 
@@ -155,7 +179,9 @@ def read_points(path: PathType, *, name: str = "points") -> NDArray[np.float64]:
         arr = _read_text_table(p, name, allow_header=True)
     elif suffix == ".xyz":
         arr = _read_text_table(p, name, allow_header=False)
-    elif suffix in (".ply", ".pcd"):
+    elif suffix == ".ply":
+        arr = _read_ply(p, name)
+    elif suffix == ".pcd":
         arr = _read_open3d(p, name)
     else:
         raise ValueError(

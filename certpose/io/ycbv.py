@@ -171,17 +171,10 @@ def load_ycbv_frame(root: str | Path, frame: str = "0000/000001") -> YCBVFrame:
 
 
 def load_model_points(path: str | Path) -> NDArray[np.float64]:
-    """Read model points (``points.xyz``: one ``x y z`` per line, metres), shape ``(N, 3)``."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"The model points file {path} does not exist.")
-    try:
-        pts = np.loadtxt(path, dtype=np.float64, ndmin=2)
-    except ValueError as exc:
-        raise ValueError(f"Cannot parse {path} as rows of 'x y z': {exc}") from exc
-    if pts.ndim != 2 or pts.shape[1] < 3 or pts.shape[0] == 0:
-        raise ValueError(f"Expected {path} to hold rows of 3 coordinates, got an array of shape {pts.shape}.")
-    pts = pts[:, :3]
-    if not np.all(np.isfinite(pts)):
-        raise ValueError(f"{path} contains NaN or inf coordinates.")
-    return np.ascontiguousarray(pts)
+    """Read model points (``points.xyz``: one ``x y z`` per line, metres), shape ``(N, 3)``.
+
+    Any format of :func:`certpose.io.points.read_points`, with its checks.
+    """
+    from certpose.io.points import read_points
+
+    return read_points(path, name="model points")

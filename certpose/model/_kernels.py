@@ -8,7 +8,7 @@ unobserved space; corners outside the grid count as unobserved.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 EMPTY_CODE = -1
 UNOBSERVED_CODE = -2
@@ -78,21 +78,14 @@ def _pose_total(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offs
     return total
 
 
-@njit(parallel=True, fastmath=True, cache=True, nogil=True)
+@njit(fastmath=True, cache=True, nogil=True)
 def eq1_batch(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
               c_unobs):  # pragma: no cover - compiled
-    """Sum of per-point log-localisation terms for each of the ``B`` poses ``T`` (threads over B)."""
-    out = np.empty(T.shape[0])
-    for b in prange(T.shape[0]):
-        out[b] = _pose_total(T[b], points, zdesc, index, cells, desc, logp, origin, inv_vs, offset,
-                             beta, c_empty, c_unobs)
-    return out
+    """Sum of per-point log-localisation terms for each of the ``B`` poses ``T`` (B, 4, 4).
 
-
-@njit(fastmath=True, cache=True, nogil=True)
-def eq1_batch_serial(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta,
-                     c_empty, c_unobs):  # pragma: no cover - compiled
-    """:func:`eq1_batch` on one thread: small batches do not pay the thread wake-up."""
+    The one eq. (1) kernel. It releases the GIL, so :mod:`certpose.model.likelihood` runs
+    large batches as chunks on a thread pool: no ``parallel=True`` second copy to compile.
+    """
     out = np.empty(T.shape[0])
     for b in range(T.shape[0]):
         out[b] = _pose_total(T[b], points, zdesc, index, cells, desc, logp, origin, inv_vs, offset,

@@ -27,9 +27,11 @@ above at empty and unobserved voxels), and the objective is continuous in the po
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
-import warnings
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -49,6 +51,16 @@ log = logging.getLogger(__name__)
 
 # Below this batch size one thread beats waking the pool.
 _PARALLEL_MIN_BATCH = 16
+
+
+@functools.lru_cache(maxsize=1)
+def _pool() -> tuple[ThreadPoolExecutor, int]:
+    """Threads for large batches (the eq. (1) kernel releases the GIL)."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        n = os.cpu_count() or 1
+    return ThreadPoolExecutor(max_workers=n, thread_name_prefix="eq1"), n
 
 @dataclass(frozen=True)
 class LikelihoodParams:
@@ -241,14 +253,16 @@ class PoseLikelihood:
         float or (B,) ndarray
             Log-likelihood up to the constant ``-N log Z`` (nats).
         """
-        from certpose.model._kernels import eq1_batch, eq1_batch_serial
+        from certpose.model._kernels import eq1_batch
 
         poses, single = _as_poses(T)
-        kernel = eq1_batch if poses.shape[0] >= _PARALLEL_MIN_BATCH else eq1_batch_serial
-        with warnings.catch_warnings():
-            # numba tries TBB first and warns when the installed one is too old; harmless.
-            warnings.filterwarnings("ignore", message=".*TBB.*")
-            out = kernel(poses, *self._args())
+        args = self._args()
+        pool, n_threads = _pool()
+        if poses.shape[0] < _PARALLEL_MIN_BATCH or n_threads == 1:
+            out = eq1_batch(poses, *args)
+        else:
+            chunks = np.array_split(poses, min(n_threads, poses.shape[0] // 4))
+            out = np.concatenate(list(pool.map(lambda c: eq1_batch(c, *args), chunks)))
         return float(out[0]) if single else out
 
     def point_terms(self, T: ArrayLike) -> NDArray[np.float64]:

@@ -1,6 +1,9 @@
 """Numba kernels for the hot loops of GNC and pruning (consistency graph, greedy clique, voting).
 
-Kept free of Python objects so each call costs microseconds; compiled once and cached.
+Kept free of Python objects so each call costs microseconds; compiled once and cached. Callers
+pass C-contiguous, writable float64 arrays (:func:`as_kernel_array`): numba compiles a separate
+specialisation for read-only arrays, which would double the first run's compile time. Sorting
+is done by the callers in numpy (numba would compile its own mergesort).
 """
 
 from __future__ import annotations
@@ -11,6 +14,11 @@ from numba import njit
 from solvers.procrustes import procrustes_kernel
 
 procrustes = procrustes_kernel()  # the one weighted Procrustes, compiled
+
+
+def as_kernel_array(value, dtype=np.float64):
+    """``value`` as a C-contiguous, writable array of ``dtype`` (copied only when needed)."""
+    return np.require(value, dtype=dtype, requirements=["C", "W"])
 
 
 @njit(cache=True)
@@ -114,14 +122,13 @@ def consistency_matrix(at, bt, beta, cbar):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def multistart_greedy_clique(adj, deg):  # pragma: no cover - compiled
+def multistart_greedy_clique(adj, deg, order):  # pragma: no cover - compiled
     """Best of the greedy cliques grown inside each vertex's neighbourhood (by degree order).
 
-    A cheap, strong lower bound on the maximum clique: O(N * d * c) for degree d and clique
-    size c.
+    ``order`` lists the vertices by decreasing degree. A cheap, strong lower bound on the
+    maximum clique: O(N * d * c) for degree d and clique size c.
     """
     n = adj.shape[0]
-    order = np.argsort(-deg, kind="mergesort")
     best = np.empty(0, dtype=np.int64)
     in_best = np.zeros(n, dtype=np.bool_)
     members = np.empty(n, dtype=np.int64)
@@ -151,18 +158,6 @@ def multistart_greedy_clique(adj, deg):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def degrees(adj):  # pragma: no cover - compiled
-    n = adj.shape[0]
-    deg = np.zeros(n, dtype=np.int64)
-    for i in range(n):
-        s = 0
-        for j in range(n):
-            s += adj[i, j]
-        deg[i] = s
-    return deg
-
-
-@njit(cache=True)
 def peel_to_core(adj, deg_in, k):  # pragma: no cover - compiled
     """Vertices of the k-core (repeatedly drop vertices of degree < k)."""
     n = adj.shape[0]
@@ -189,18 +184,13 @@ def peel_to_core(adj, deg_in, k):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def scalar_tls(v, beta, w, cbar2):  # pragma: no cover - compiled
+def scalar_tls(v, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
     """Exact scalar TLS by sweeping sorted interval endpoints; returns (x, cost, found).
 
+    ``ends`` (2N,) holds ``v - beta cbar`` then ``v + beta cbar``; ``order`` sorts it (stable).
     ``found`` is False when no piece beats "all outliers" (then any x is optimal).
     """
     n = v.shape[0]
-    cbar = np.sqrt(cbar2)
-    ends = np.empty(2 * n)
-    for k in range(n):
-        ends[k] = v[k] - beta[k] * cbar
-        ends[n + k] = v[k] + beta[k] * cbar
-    order = np.argsort(ends, kind="mergesort")
     total_w = 0.0
     for k in range(n):
         total_w += w[k]
@@ -231,33 +221,3 @@ def scalar_tls(v, beta, w, cbar2):  # pragma: no cover - compiled
             best_x = x
             found = True
     return best_x, best_cost, found
-
-
-@njit(cache=True)
-def weighted_spread(p, w):  # pragma: no cover - compiled
-    """Square roots of the weighted covariance eigenvalues of ``p`` (descending), and the count."""
-    n = p.shape[0]
-    sw = 0.0
-    c = np.zeros(3)
-    cnt = 0
-    for k in range(n):
-        if w[k] > 0.0:
-            sw += w[k]
-            cnt += 1
-            for d in range(3):
-                c[d] += w[k] * p[k, d]
-    out = np.zeros(3)
-    if cnt == 0:
-        return out, 0
-    c /= sw
-    cov = np.zeros((3, 3))
-    for k in range(n):
-        if w[k] > 0.0:
-            for i in range(3):
-                di = p[k, i] - c[i]
-                for j in range(3):
-                    cov[i, j] += w[k] * di * (p[k, j] - c[j])
-    ev = np.linalg.eigvalsh(cov / sw)
-    for i in range(3):
-        out[i] = np.sqrt(max(ev[2 - i], 0.0))
-    return out, cnt

@@ -43,7 +43,10 @@ def consistency_graph(
     if beta.ndim == 0:
         beta = np.full(at.shape[1], float(beta))
     beta = np.ascontiguousarray(beta)
-    return _kernels.consistency_matrix(at, bt, beta, float(cbar))
+    return _kernels.consistency_matrix(
+        _kernels.as_kernel_array(at), _kernels.as_kernel_array(bt), _kernels.as_kernel_array(beta),
+        float(cbar),
+    )
 
 
 def maximum_cliques(
@@ -77,12 +80,13 @@ def maximum_cliques(
     """
     from solvers.registration import _kernels
 
-    adj = np.ascontiguousarray(adjacency, dtype=np.uint8)
+    adj = np.require(adjacency, dtype=np.uint8, requirements=["C", "W"])
     n = adj.shape[0]
     if n == 0:
         return [np.empty(0, dtype=np.int64)], True
-    deg = _kernels.degrees(adj)
-    best = np.sort(_kernels.multistart_greedy_clique(adj, deg))
+    deg = adj.sum(axis=1, dtype=np.int64)
+    order = np.argsort(-deg, kind="stable")
+    best = np.sort(_kernels.multistart_greedy_clique(adj, deg, order))
     core = _kernels.peel_to_core(adj, deg, best.size - 1)
     if core.size <= best.size:
         return [best], True
@@ -135,7 +139,13 @@ def scalar_tls(
     beta = np.asarray(noise_bound, dtype=np.float64)
     beta = np.full(n, float(beta)) if beta.ndim == 0 else np.ascontiguousarray(beta)
     w = np.ones(n) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
-    x, cost, found = _kernels.scalar_tls(v, beta, w, float(cbar2))
+    cbar = float(np.sqrt(cbar2))
+    ends = np.concatenate([v - beta * cbar, v + beta * cbar])
+    order = np.argsort(ends, kind="stable")
+    x, cost, found = _kernels.scalar_tls(
+        _kernels.as_kernel_array(v), _kernels.as_kernel_array(beta), _kernels.as_kernel_array(w),
+        float(cbar2), ends, order,
+    )
     if not found:
         # No piece beats "everything is an outlier": every x is optimal; report the median.
         return float(np.median(v)), float(cost)

@@ -14,6 +14,7 @@ from solvers.lie import make_transform
 from solvers.problem import WeightedTLSProblem
 from solvers.registration.pruning import prune_maximum_cliques, vote_translation
 from solvers.result import RegistrationResult, SolverStatus
+from solvers.validation import check_count
 
 __all__ = [
     "GNCParams",
@@ -48,8 +49,7 @@ class GNCParams:
     cost_tol: float = 1e-12
 
     def __post_init__(self) -> None:
-        if self.max_iterations < 1:
-            raise ValueError(f"`max_iterations` must be >= 1, got {self.max_iterations}.")
+        check_count(self.max_iterations, "max_iterations", minimum=1)
         if not self.mu_factor > 1:
             raise ValueError(f"`mu_factor` must be > 1, got {self.mu_factor}.")
         if not self.cost_tol >= 0:
@@ -79,12 +79,10 @@ class PruningParams:
     max_tied_cliques: int = 16
 
     def __post_init__(self) -> None:
-        if self.max_correspondences < 3:
-            raise ValueError(
-                f"`max_correspondences` must be >= 3, got {self.max_correspondences}."
-            )
-        if self.max_tied_cliques < 1:
-            raise ValueError(f"`max_tied_cliques` must be >= 1, got {self.max_tied_cliques}.")
+        check_count(self.max_correspondences, "max_correspondences", minimum=3)
+        if self.exact_clique_max_vertices is not None:
+            check_count(self.exact_clique_max_vertices, "exact_clique_max_vertices", minimum=0)
+        check_count(self.max_tied_cliques, "max_tied_cliques", minimum=1)
 
 
 def degeneracy(
@@ -96,14 +94,22 @@ def degeneracy(
     line free. Spread is judged against the noise bound, below which it is indistinguishable
     from noise.
     """
-    from solvers.registration import _kernels
-
-    ev, count = _kernels.weighted_spread(
-        np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(weights, dtype=np.float64)
-    )
+    w = np.asarray(weights, dtype=np.float64)
+    keep = w > 0
+    count = int(np.count_nonzero(keep))
     if count < 3:
         return f"only {count} inlier(s); at least 3 non-collinear points are needed"
-    floor = max(noise_bound, 1e-12 * max(1.0, float(np.abs(points).max())))
+    p, wk = np.asarray(points, dtype=np.float64)[keep], w[keep] / w[keep].max()
+    # Judge the spread in units of the points' extent, so any scale works (1e-200 .. 1e200).
+    scale = float(np.abs(p).max())
+    if not scale > 0:
+        return "the inliers are coincident (all at the origin)"
+    p = p / scale
+    centred = p - (wk @ p) / wk.sum()
+    cov = (centred * wk[:, None]).T @ centred / wk.sum()
+    ev = scale * np.sqrt(np.clip(np.linalg.eigvalsh(cov)[::-1], 0.0, None))
+    # Below ~1e-12 of the extent, spread is floating-point rounding, not geometry.
+    floor = max(noise_bound, 1e-12 * scale)
     if ev[0] <= floor:
         return f"the inliers are coincident (spread {ev[0]:.3g} <= noise bound {floor:.3g})"
     if ev[1] <= floor:
@@ -159,11 +165,12 @@ def _gnc_core(
         a, b, w, beta = a[idx], b[idx], w[idx], beta[idx]
     from solvers.registration import _kernels  # numba: imported on first solve
 
+    arr = _kernels.as_kernel_array
     R, t, _gw, it, converged, ok = _kernels.gnc_tls(
-        np.ascontiguousarray(a),
-        np.ascontiguousarray(b),
-        np.ascontiguousarray(w),
-        np.ascontiguousarray(1.0 / beta**2),
+        arr(a),
+        arr(b),
+        arr(w),
+        arr(1.0 / beta**2),
         problem.cbar2,
         params.max_iterations,
         params.mu_factor,
@@ -172,13 +179,10 @@ def _gnc_core(
     return R, t, int(it), bool(converged), bool(ok)
 
 
-def solve_gnc(
+def _solve_gnc(
     problem: WeightedTLSProblem, *, params: GNCParams | None = None
 ) -> RegistrationResult:
-    """Solve a weighted TLS problem with GNC-TLS (Yang, Antonante, Tzoumas, Carlone 2020).
-
-    Robust to roughly 70-80% outliers; use :func:`solve_pruned` beyond.
-    """
+    """See :func:`solve_gnc` (on a unit-scale problem)."""
     params = params or GNCParams()
     t0 = time.perf_counter()
     R, t, it, converged, ok = _gnc_core(problem, None, params)
@@ -193,16 +197,13 @@ def solve_gnc(
     return _finish(problem, R, t, iterations=it, t0=t0, status=status, message=msg, solver="gnc")
 
 
-def solve_pruned(
+def _solve_pruned(
     problem: WeightedTLSProblem,
     *,
     params: GNCParams | None = None,
     pruning: PruningParams | None = None,
 ) -> RegistrationResult:
-    """Max-clique pruning, GNC on the survivors and exact per-axis translation voting.
-
-    The consistency graph ignores weights; correspondences of zero weight are left out of it.
-    """
+    """See :func:`solve_pruned` (on a unit-scale problem)."""
     params = params or GNCParams()
     pruning = pruning or PruningParams()
     t0 = time.perf_counter()
@@ -212,6 +213,7 @@ def solve_pruned(
                        status=SolverStatus.INSUFFICIENT_INLIERS,
                        message=f"only {active.size} correspondence(s) have positive weight",
                        solver="pruned")
+    check_graph_memory(int(active.size))
     cliques, n_edges, exact = prune_maximum_cliques(
         problem.source[active], problem.target[active], problem.noise_bound[active],
         problem.cbar2, limit=pruning.max_tied_cliques,
@@ -251,6 +253,132 @@ def solve_pruned(
                    solver="pruned", info=info)
 
 
+def _solve_registration(
+    problem: WeightedTLSProblem,
+    *,
+    method: Method = "auto",
+    gnc: GNCParams | None = None,
+    pruning: PruningParams | None = None,
+) -> RegistrationResult:
+    """See :func:`solve_registration` (on a unit-scale problem)."""
+    pruning = pruning or PruningParams()
+    if method not in ("auto", "gnc", "pruned"):
+        raise ValueError(f"`method` must be 'auto', 'gnc' or 'pruned', got {method!r}.")
+    if method == "gnc" or (method == "auto" and problem.n > pruning.max_correspondences):
+        return _solve_gnc(problem, params=gnc)
+    result = _solve_pruned(problem, params=gnc, pruning=pruning)
+    if method != "auto":
+        return result
+    w = problem.weights
+    uneven = bool(np.ptp(w[w > 0]) > 1e-12 * w.max()) if np.any(w > 0) else False
+    if result.success and not uneven:
+        return result
+    if not result.success and result.status is SolverStatus.DEGENERATE:
+        return result
+    # The max clique ignores weights (and may fail): GNC on everything sees them; keep the
+    # pose with the lower TLS cost.
+    fallback = _solve_gnc(problem, params=gnc)
+    if fallback.success and (not result.success or fallback.cost < result.cost):
+        log.info("GNC on all correspondences beat the pruned solve (cost %.6g vs %.6g)",
+                 fallback.cost, result.cost)
+        info = dict(fallback.info, pruned_cost=result.cost, pruned_status=result.status.value)
+        return replace(fallback, info=info,
+                       solve_time=result.solve_time + fallback.solve_time)
+    return replace(result, solve_time=result.solve_time + fallback.solve_time)
+
+
+# Noise bounds below this fraction of the points' extent are far below float64 resolution
+# (1e-16): no residual but an exact zero can meet them, and the same holds at this floor, which
+# keeps 1 / beta^2 finite inside the kernels.
+_MIN_RELATIVE_NOISE_BOUND = 1e-100
+
+
+def _unit_scale(problem: WeightedTLSProblem) -> tuple[WeightedTLSProblem, float]:
+    """The problem scaled so that its largest coordinate is about 1, and the scale.
+
+    Residuals, inliers and the TLS cost are invariant under a common scaling of the points,
+    the noise bound and the translation; the scale is a power of two, so the scaling is exact.
+    """
+    extent = max(float(np.abs(problem.source).max()), float(np.abs(problem.target).max()))
+    scale = float(np.ldexp(1.0, int(np.frexp(extent)[1]))) if extent > 0 else 1.0
+    beta = np.maximum(problem.noise_bound / scale, _MIN_RELATIVE_NOISE_BOUND)
+    if scale == 1.0 and np.array_equal(beta, problem.noise_bound):
+        return problem, 1.0
+    return WeightedTLSProblem(problem.source / scale, problem.target / scale, noise_bound=beta,
+                              weights=problem.weights, cbar2=problem.cbar2), scale
+
+
+def _rescaled(result: RegistrationResult, scale: float) -> RegistrationResult:
+    if scale == 1.0:
+        return result
+    T = np.array(result.T_target_source)
+    T[:3, 3] *= scale
+    return replace(result, T_target_source=T)
+
+
+def check_graph_memory(n: int) -> None:
+    """Refuse, before allocating, a consistency graph of ``n`` vertices that memory cannot hold.
+
+    The dense graph takes ``n^2`` bytes; more than half of the available memory is refused.
+
+    Raises
+    ------
+    MemoryError
+        With ``n`` and the bytes needed.
+    """
+    need = n * n
+    available = _available_memory()
+    if available is not None and need > available // 2:
+        raise MemoryError(
+            f"max-clique pruning of N = {n} correspondences needs a dense {n} x {n} consistency "
+            f"graph ({need / 1e9:.3g} GB) but only {available / 1e9:.3g} GB of memory is "
+            "available; use prune='auto' or 'never' (GNC without pruning), or fewer "
+            "correspondences."
+        )
+
+
+def _available_memory() -> int | None:
+    import os
+
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):  # not POSIX: do not guess
+        return None
+
+
+def solve_gnc(
+    problem: WeightedTLSProblem, *, params: GNCParams | None = None
+) -> RegistrationResult:
+    """Solve a weighted TLS problem with GNC-TLS (Yang, Antonante, Tzoumas, Carlone 2020).
+
+    Robust to roughly 70-80% outliers; use :func:`solve_pruned` beyond. The problem is scaled
+    to unit size first, so any finite scale of the points and noise bound is solved alike.
+    """
+    unit, scale = _unit_scale(problem)
+    return _rescaled(_solve_gnc(unit, params=params), scale)
+
+
+def solve_pruned(
+    problem: WeightedTLSProblem,
+    *,
+    params: GNCParams | None = None,
+    pruning: PruningParams | None = None,
+) -> RegistrationResult:
+    """Max-clique pruning, GNC on the survivors and exact per-axis translation voting.
+
+    The consistency graph ignores weights; correspondences of zero weight are left out of it.
+    The problem is scaled to unit size first.
+
+    Raises
+    ------
+    MemoryError
+        When the dense consistency graph (N^2 bytes) does not fit in the available memory;
+        raised before anything is allocated.
+    """
+    unit, scale = _unit_scale(problem)
+    return _rescaled(_solve_pruned(unit, params=params, pruning=pruning), scale)
+
+
 def solve_registration(
     problem: WeightedTLSProblem,
     *,
@@ -264,29 +392,16 @@ def solve_registration(
     (``N <= pruning.max_correspondences``): pruning costs little next to GNC and is what keeps
     the estimate right past 80% outliers. Otherwise GNC runs alone. The max clique ignores
     weights, so with uneven weights (or when pruning fails) GNC on all correspondences runs too
-    and the pose of lower TLS cost is returned; ``solve_time`` covers both.
+    and the pose of lower TLS cost is returned; ``solve_time`` covers both. The problem is
+    scaled to unit size first (exactly, by a power of two), so points at any finite scale
+    (1e-200 .. 1e200) and tiny noise bounds are solved alike.
+
+    Raises
+    ------
+    MemoryError
+        ``method="pruned"`` with more correspondences than the memory's consistency graph holds.
     """
-    pruning = pruning or PruningParams()
     if method not in ("auto", "gnc", "pruned"):
         raise ValueError(f"`method` must be 'auto', 'gnc' or 'pruned', got {method!r}.")
-    if method == "gnc" or (method == "auto" and problem.n > pruning.max_correspondences):
-        return solve_gnc(problem, params=gnc)
-    result = solve_pruned(problem, params=gnc, pruning=pruning)
-    if method != "auto":
-        return result
-    w = problem.weights
-    uneven = bool(np.ptp(w[w > 0]) > 1e-12 * w.max()) if np.any(w > 0) else False
-    if result.success and not uneven:
-        return result
-    if not result.success and result.status is SolverStatus.DEGENERATE:
-        return result
-    # The max clique ignores weights (and may fail): GNC on everything sees them; keep the
-    # pose with the lower TLS cost.
-    fallback = solve_gnc(problem, params=gnc)
-    if fallback.success and (not result.success or fallback.cost < result.cost):
-        log.info("GNC on all correspondences beat the pruned solve (cost %.6g vs %.6g)",
-                 fallback.cost, result.cost)
-        info = dict(fallback.info, pruned_cost=result.cost, pruned_status=result.status.value)
-        return replace(fallback, info=info,
-                       solve_time=result.solve_time + fallback.solve_time)
-    return replace(result, solve_time=result.solve_time + fallback.solve_time)
+    unit, scale = _unit_scale(problem)
+    return _rescaled(_solve_registration(unit, method=method, gnc=gnc, pruning=pruning), scale)

@@ -1,0 +1,70 @@
+"""Cold and warm wall times of ``certpose register --demo`` and ``certpose pose --demo``.
+
+"Cold" is a first run on a fresh install: every command runs in a new process with
+``NUMBA_CACHE_DIR`` pointing to a fresh, empty temporary directory, so every numba kernel is
+compiled. "Warm" reruns the same command with the now filled cache (what every later run costs).
+Each figure is the wall time of the whole process (imports, compilation, solve, printing).
+
+Issue #8's targets: cold ``register --demo`` <= 5 s, cold ``pose --demo`` <= 12 s.
+
+usage::
+
+    python examples/bench_cold_start.py               # both commands, 1 cold + 1 warm run each
+    python examples/bench_cold_start.py --repeat 3    # best and median of 3 of each
+    python examples/bench_cold_start.py --commands register
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+COMMANDS = {
+    "register": ["register", "--demo"],
+    "pose": ["pose", "--demo"],
+}
+
+
+def _run(args: list[str], cache_dir: str) -> float:
+    env = dict(os.environ, NUMBA_CACHE_DIR=cache_dir)
+    root = Path(__file__).resolve().parents[1]
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(root), env.get("PYTHONPATH")]))
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "certpose", *args], env=env,
+                          capture_output=True, text=True)
+    elapsed = time.perf_counter() - t0
+    if proc.returncode not in (0, 1):  # 1: the solve ran but was not a success
+        raise SystemExit(f"certpose {' '.join(args)} failed ({proc.returncode}):\n{proc.stderr}")
+    return elapsed
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=1, help="cold and warm runs of each")
+    parser.add_argument("--commands", nargs="+", choices=sorted(COMMANDS),
+                        default=["register", "pose"])
+    args = parser.parse_args()
+    if args.repeat < 1:
+        parser.error("--repeat must be >= 1")
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"{os.cpu_count()} CPUs, load average {load:.2f}; python {sys.version.split()[0]}")
+    print(f"{'command':<24} {'cold s (best/median)':>22} {'warm s (best/median)':>22}")
+    for name in args.commands:
+        cold, warm = [], []
+        for _ in range(args.repeat):
+            with tempfile.TemporaryDirectory(prefix="numba-cold-") as cache:
+                cold.append(_run(COMMANDS[name], cache))
+                warm.append(_run(COMMANDS[name], cache))
+        cmd = "certpose " + " ".join(COMMANDS[name])
+        print(f"{cmd:<24} {min(cold):>10.2f} / {statistics.median(cold):<9.2f} "
+              f"{min(warm):>10.2f} / {statistics.median(warm):<9.2f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
