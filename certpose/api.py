@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solvers import RegistrationResult, WeightedTLSProblem, solve_registration
+from solvers.registration import from_unit_scale, to_unit_scale
 
 __all__ = ["register", "as_points"]
 
@@ -103,13 +104,16 @@ def register(
     if prune not in ("auto", "always", "never"):
         raise ValueError(f"`prune` must be 'auto', 'always' or 'never', got {prune!r}.")
     method = {"auto": "auto", "always": "pruned", "never": "gnc"}[prune]
+    # Solve and certify at unit scale: the TLS cost, inliers and certificate bounds do not
+    # depend on the units, and the solvers' tolerances are then meaningful at any scale.
+    unit, scale = to_unit_scale(problem)
     if solver == "sdp":
         from solvers.certify import solve_sdp  # cvxpy: imported on demand
 
-        return solve_sdp(problem, scope=scope, tol=tol, time_limit=time_limit)
-    result = solve_registration(problem, method=method)  # type: ignore[arg-type]
+        return from_unit_scale(solve_sdp(unit), scale)
+    result = solve_registration(unit, method=method)  # type: ignore[arg-type]
     if certify:
         from solvers.certify import certify_result
 
-        result = certify_result(problem, result, scope=scope, tol=tol, time_limit=time_limit)
-    return result
+        result = certify_result(unit, result)
+    return from_unit_scale(result, scale)

@@ -419,3 +419,18 @@ def test_problem_arrays_read_only_do_not_break_solve():
 
     res = solve_registration(problem, method="gnc")
     assert rotation_error_deg(res.rotation, R) < 1.0
+
+
+@pytest.mark.parametrize("scale", [1e-200, 1e200])
+@pytest.mark.parametrize("kwargs", [{"certify": True}, {"solver": "sdp"}])
+def test_extreme_scales_certify_alike(scale, kwargs):
+    """Certificates are computed at unit scale: the same verdict and gap at any scale."""
+    src, dst, _, _ = _instance(n=30, n_out=5)
+    ref = register(src, dst, noise_bound=0.01, **kwargs)
+    res = register(src * scale, dst * scale, noise_bound=0.01 * scale, **kwargs)
+    assert ref.certificate is not None and res.certificate is not None
+    assert res.certificate.certified == ref.certificate.certified
+    assert res.certificate.status == ref.certificate.status
+    assert res.certificate.relative_gap == pytest.approx(ref.certificate.relative_gap, rel=1e-3,
+                                                         abs=1e-9)
+    np.testing.assert_allclose(res.translation / scale, ref.translation, atol=1e-9)

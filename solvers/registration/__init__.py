@@ -17,17 +17,22 @@ from solvers.registration.pruning import (
 from solvers.registration.solve import (
     GNCParams,
     PruningParams,
+    check_graph_memory,
     degeneracy,
+    from_unit_scale,
     solve_gnc,
     solve_pruned,
     solve_registration,
+    to_unit_scale,
 )
 
 __all__ = [
     "GNCParams",
     "PruningParams",
+    "check_graph_memory",
     "consistency_graph",
     "degeneracy",
+    "from_unit_scale",
     "max_clique",
     "maximum_cliques",
     "prune_max_clique",
@@ -36,5 +41,6 @@ __all__ = [
     "solve_gnc",
     "solve_pruned",
     "solve_registration",
+    "to_unit_scale",
     "vote_translation",
 ]

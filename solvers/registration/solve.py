@@ -23,6 +23,9 @@ __all__ = [
     "solve_pruned",
     "solve_registration",
     "degeneracy",
+    "to_unit_scale",
+    "from_unit_scale",
+    "check_graph_memory",
 ]
 
 log = logging.getLogger(__name__)
@@ -293,7 +296,7 @@ def _solve_registration(
 _MIN_RELATIVE_NOISE_BOUND = 1e-100
 
 
-def _unit_scale(problem: WeightedTLSProblem) -> tuple[WeightedTLSProblem, float]:
+def to_unit_scale(problem: WeightedTLSProblem) -> tuple[WeightedTLSProblem, float]:
     """The problem scaled so that its largest coordinate is about 1, and the scale.
 
     Residuals, inliers and the TLS cost are invariant under a common scaling of the points,
@@ -308,7 +311,11 @@ def _unit_scale(problem: WeightedTLSProblem) -> tuple[WeightedTLSProblem, float]
                               weights=problem.weights, cbar2=problem.cbar2), scale
 
 
-def _rescaled(result: RegistrationResult, scale: float) -> RegistrationResult:
+def from_unit_scale(result: RegistrationResult, scale: float) -> RegistrationResult:
+    """A result on :func:`to_unit_scale`'s problem, with its translation back in the original units.
+
+    Inliers, cost and certificate bounds are scale-invariant and carry over unchanged.
+    """
     if scale == 1.0:
         return result
     T = np.array(result.T_target_source)
@@ -354,8 +361,8 @@ def solve_gnc(
     Robust to roughly 70-80% outliers; use :func:`solve_pruned` beyond. The problem is scaled
     to unit size first, so any finite scale of the points and noise bound is solved alike.
     """
-    unit, scale = _unit_scale(problem)
-    return _rescaled(_solve_gnc(unit, params=params), scale)
+    unit, scale = to_unit_scale(problem)
+    return from_unit_scale(_solve_gnc(unit, params=params), scale)
 
 
 def solve_pruned(
@@ -375,8 +382,8 @@ def solve_pruned(
         When the dense consistency graph (N^2 bytes) does not fit in the available memory;
         raised before anything is allocated.
     """
-    unit, scale = _unit_scale(problem)
-    return _rescaled(_solve_pruned(unit, params=params, pruning=pruning), scale)
+    unit, scale = to_unit_scale(problem)
+    return from_unit_scale(_solve_pruned(unit, params=params, pruning=pruning), scale)
 
 
 def solve_registration(
@@ -403,5 +410,5 @@ def solve_registration(
     """
     if method not in ("auto", "gnc", "pruned"):
         raise ValueError(f"`method` must be 'auto', 'gnc' or 'pruned', got {method!r}.")
-    unit, scale = _unit_scale(problem)
-    return _rescaled(_solve_registration(unit, method=method, gnc=gnc, pruning=pruning), scale)
+    unit, scale = to_unit_scale(problem)
+    return from_unit_scale(_solve_registration(unit, method=method, gnc=gnc, pruning=pruning), scale)
