@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 
 from solvers import RegistrationResult, WeightedTLSProblem, solve_registration
 from solvers.registration import from_unit_scale, to_unit_scale
+from solvers.validation import check_limit
 
 __all__ = ["register", "as_points"]
 
@@ -103,6 +104,9 @@ def register(
         raise ValueError(f"`solver` must be 'gnc' or 'sdp', got {solver!r}.")
     if prune not in ("auto", "always", "never"):
         raise ValueError(f"`prune` must be 'auto', 'always' or 'never', got {prune!r}.")
+    check_limit(time_limit, "time_limit")
+    if check_limit(tol, "tol", allow_none=False) == 0:
+        raise ValueError("`tol` must be positive, got 0.")
     method = {"auto": "auto", "always": "pruned", "never": "gnc"}[prune]
     # Solve and certify at unit scale: the TLS cost, inliers and certificate bounds do not
     # depend on the units, and the solvers' tolerances are then meaningful at any scale.
@@ -110,10 +114,12 @@ def register(
     if solver == "sdp":
         from solvers.certify import solve_sdp  # cvxpy: imported on demand
 
-        return from_unit_scale(solve_sdp(unit), scale)
+        return from_unit_scale(
+            solve_sdp(unit, scope=scope, tol=tol, time_limit=time_limit), scale
+        )
     result = solve_registration(unit, method=method)  # type: ignore[arg-type]
     if certify:
         from solvers.certify import certify_result
 
-        result = certify_result(unit, result)
+        result = certify_result(unit, result, scope=scope, tol=tol, time_limit=time_limit)
     return from_unit_scale(result, scale)

@@ -434,3 +434,16 @@ def test_extreme_scales_certify_alike(scale, kwargs):
     assert res.certificate.relative_gap == pytest.approx(ref.certificate.relative_gap, rel=1e-3,
                                                          abs=1e-9)
     np.testing.assert_allclose(res.translation / scale, ref.translation, atol=1e-9)
+
+
+@pytest.mark.parametrize(("kwargs", "exc", "pattern"), [
+    ({"time_limit": -1.0}, ValueError, "`time_limit` must be a non-negative finite number"),
+    ({"time_limit": True}, TypeError, "`time_limit` must be a number"),
+    ({"time_limit": math.nan}, ValueError, "`time_limit`"),
+    ({"tol": -1e-3}, ValueError, "`tol`"),
+    ({"tol": 0.0}, ValueError, "`tol` must be positive"),
+])
+def test_register_rejects_bad_limits(kwargs, exc, pattern):
+    src, dst, _, _ = _instance()
+    with pytest.raises(exc, match=pattern):
+        register(src, dst, noise_bound=0.01, certify=True, **kwargs)
