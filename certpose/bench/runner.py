@@ -39,7 +39,6 @@ Solvers (:data:`SOLVERS`):
 from __future__ import annotations
 
 import csv
-import json
 import logging
 import math
 import time
@@ -52,6 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from certpose.data.instances import NOISE_BOUND_FACTOR, BenchInstance, make_instance
+from certpose.io.output import write_json
 from solvers.lie import rotation_error_deg, translation_error
 from solvers.validation import check_points
 
@@ -206,7 +206,7 @@ class BenchReport:
             _write_csv(out / "trials.csv", TRIAL_COLUMNS, self.trials),
         ]
         path = out / "bench.json"
-        path.write_text(json.dumps(self.to_dict(), indent=2) + "\n", encoding="utf-8")
+        write_json(path, self.to_dict())  # strict JSON: NaN (e.g. no successes) -> null
         written.append(path)
         if plot:
             written.extend(plot_report(self, out))
