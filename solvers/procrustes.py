@@ -60,11 +60,26 @@ def _procrustes(a, b, w):  # pragma: no cover - compiled by procrustes_kernel
             for j in range(3):
                 H[i, j] += bi * (a[k, j] - ca[j])
     U, _, Vt = np.linalg.svd(H)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
+    # 3x3 determinants and products spelled out: numba's np.linalg.det and matmul would add
+    # about a second to the first run's compilation.
+    det_u = (U[0, 0] * (U[1, 1] * U[2, 2] - U[1, 2] * U[2, 1])
+             - U[0, 1] * (U[1, 0] * U[2, 2] - U[1, 2] * U[2, 0])
+             + U[0, 2] * (U[1, 0] * U[2, 1] - U[1, 1] * U[2, 0]))
+    det_v = (Vt[0, 0] * (Vt[1, 1] * Vt[2, 2] - Vt[1, 2] * Vt[2, 1])
+             - Vt[0, 1] * (Vt[1, 0] * Vt[2, 2] - Vt[1, 2] * Vt[2, 0])
+             + Vt[0, 2] * (Vt[1, 0] * Vt[2, 1] - Vt[1, 1] * Vt[2, 0]))
+    if det_u * det_v < 0.0:
         for i in range(3):
             U[i, 2] = -U[i, 2]
-    R = U @ Vt
-    return R, cb - R @ ca, True
+    R = np.zeros((3, 3))
+    t = cb.copy()
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                R[i, j] += U[i, k] * Vt[k, j]
+        for j in range(3):
+            t[i] -= R[i, j] * ca[j]
+    return R, t, True
 
 
 @functools.cache
