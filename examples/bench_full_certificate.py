@@ -64,8 +64,8 @@ def run_cell(pts: np.ndarray, n: int, ratio: float, reps: int, rng: np.random.Ge
     for _ in tqdm(range(reps), desc=f"N={n} {ratio:.0%}", leave=False):
         src, dst = instance(rng, pts, n, ratio)
         p = WeightedTLSProblem(src, dst, noise_bound=BETA)
-        plain = register(src, dst, noise_bound=BETA, rng=0)
-        res = register(src, dst, noise_bound=BETA, rng=0, certify=True, time_limit=time_limit)
+        plain = register(src, dst, noise_bound=BETA)
+        res = register(src, dst, noise_bound=BETA, certify=True, time_limit=time_limit)
         c = res.certificate
         cert.append(c.certified)
         times.append(c.solve_time)
@@ -79,7 +79,7 @@ def run_cell(pts: np.ndarray, n: int, ratio: float, reps: int, rng: np.random.Ge
                 litgap.append(cw.literature_gap)
         if tim:
             t0 = time.perf_counter()
-            register(src, dst, noise_bound=BETA, rng=0, certify=True, scope="rotation")
+            register(src, dst, noise_bound=BETA, certify=True, scope="rotation")
             ttim.append(time.perf_counter() - t0)
     return dict(n=n, ratio=ratio, certified=float(np.mean(cert)), median_s=float(np.median(times)),
                 max_s=float(np.max(times)), worse=worse,

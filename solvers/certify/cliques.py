@@ -95,12 +95,26 @@ def candidate_cliques(
         return [], True
     s_min = int(above[0]) + 1
     edges = consistency_edges(problem, act)
-    g = ig.Graph(n=act.size, edges=edges.tolist())
-    core = np.asarray(g.coreness())
-    keep = np.flatnonzero(core >= s_min - 1)
+    # Peel to the (s_min - 1)-core in numpy first: building an igraph graph from a dense edge
+    # list costs seconds, and the core is usually tiny (high outlier rates) or complete (low).
+    alive = np.ones(act.size, dtype=bool)
+    while True:
+        live = alive[edges[:, 0]] & alive[edges[:, 1]]
+        edges = edges[live]
+        deg = np.bincount(edges.ravel(), minlength=act.size)
+        drop = alive & (deg < s_min - 1)
+        if not drop.any():
+            break
+        alive &= ~drop
+    keep = np.flatnonzero(alive)
     if keep.size < s_min:
         return [], True
-    sub = g.induced_subgraph(keep.tolist())
+    m = keep.size
+    if edges.shape[0] == m * (m - 1) // 2:
+        return [act[keep]], True  # complete (low outlier rates): one clique
+    remap = np.full(act.size, -1, dtype=np.int64)
+    remap[keep] = np.arange(m)
+    sub = ig.Graph(n=m, edges=remap[edges].tolist())
     found = []
     for c in sub.maximal_cliques(min=s_min):
         idx = act[keep[np.asarray(c, dtype=np.int64)]]

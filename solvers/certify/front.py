@@ -99,6 +99,14 @@ by ``np.allclose``'s default relative tolerance) was once "certified" with ``upp
 MAX_CLIQUES = 5000
 """Most maximal cliques the clique decomposition bounds before giving up (uncertified)."""
 
+BNB_MAX_TERMS = 200
+"""Largest clique the exact search tries (N = 100 at 0% outliers: 4-12 M nodes, seconds; a
+clique of 500 did not finish in 18 M nodes)."""
+
+JOINT_DUAL_MAX = 60
+"""Largest clique handed to the joint dual search when the exact search runs out of budget: its
+dual matrix has ``13 (K + 1)`` rows, and past about 60 terms an iteration takes seconds."""
+
 BNB_MAX_NODES = 50_000_000
 """Node budget of the exact branch and bound on one clique (about 25 s); beyond it the clique
 subproblem goes to the joint dual search."""
@@ -466,6 +474,13 @@ def _clique_bound(
         if C.size < 3:
             lower = min(lower, out_cost)  # f_C >= 0
             continue
+        if C.size > BNB_MAX_TERMS:
+            # Hopeless for the exact search (it grows exponentially with the clique's inlier
+            # cost) and for the joint dual search: give up at once rather than at the deadline.
+            methods.add(f"clique of {C.size} terms too large")
+            stopped = True
+            lower = min(lower, out_cost)
+            continue
         sub = pn.subset(C)
         u_sub = sub.cost(R, t)
         res = clique_optimum(sub, u_sub, np.argsort(-r2[C], kind="stable"),
@@ -481,8 +496,13 @@ def _clique_bound(
         else:
             # Too many nodes (a large clique with many near-threshold terms): the joint dual
             # search bounds the clique subproblem instead.
-            methods.add("joint_dual")
             remaining = budget - (time.perf_counter() - t0)
+            if C.size > JOINT_DUAL_MAX:
+                methods.add(f"bnb stopped at {res.nodes} nodes on {C.size} terms")
+                stopped = True
+                lower = min(lower, out_cost)
+                continue
+            methods.add("joint_dual")
             if remaining <= 0:
                 stopped = True
                 lower = min(lower, out_cost)
@@ -502,7 +522,8 @@ def _clique_bound(
                        f", {sum(iters)} nodes)",
         eigenvalue_ratio=np.nan, method="clique_decomposition",
         message=(f"clique decomposition over {len(cliques)} maximal clique(s) of sizes "
-                 f"{[c.size for c in cliques][:8]}"),
+                 f"{[int(c.size) for c in cliques][:8]}: {'; '.join(sorted(methods)) or 'none'}"
+                 + ("; stopped before every clique was bounded exactly" if stopped else "")),
         rotation=rot, translation=trans, cliques=tuple(used),
     )
 
