@@ -16,11 +16,11 @@ from tests.conftest import make_instance
 from tests.test_certify_audit import FAMILIES, exact_optimum, make_family
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=1500, deadline=None)
 @given(arrays(np.float64, (3, 3), elements=st.floats(-1e3, 1e3)),
        st.floats(1e-6, 1e6))
 def test_horn_root_is_a_tight_upper_bound(H: np.ndarray, scale: float) -> None:
-    """QCP Newton from above: never below the SVD max trace, and within 1e-6 of it."""
+    """QCP Newton from above: never below the SVD max trace, and within 1e-5 of it."""
     H = H * scale
     assume(not np.any((np.abs(H) > 0) & (np.abs(H) < 1e-100)))  # callers scale to unit size
     U, s, Vt = np.linalg.svd(H)
@@ -29,7 +29,7 @@ def test_horn_root_is_a_tight_upper_bound(H: np.ndarray, scale: float) -> None:
     lam = _horn_lambda_max(H, np.sqrt(3.0) * np.linalg.norm(H) * (1 + 1e-9) + 1e-300)
     norm = np.linalg.norm(H)
     assert lam >= true - 1e-12 * norm
-    assert lam <= true + 1e-6 * norm + 1e-299
+    assert lam <= true + 1e-5 * norm + 1e-299
 
 
 def test_horn_root_near_identity() -> None:
@@ -39,7 +39,7 @@ def test_horn_root_near_identity() -> None:
         d = np.sign(np.linalg.det(U @ Vt)) or 1.0
         true = s[0] + s[1] + d * s[2]
         lam = _horn_lambda_max(H, np.sqrt(3.0) * np.linalg.norm(H) * (1 + 1e-9) + 1e-300)
-        assert true - 1e-12 <= lam <= true + 1e-6
+        assert true - 1e-12 <= lam <= true + 1e-5
 
 
 @pytest.mark.parametrize("family", ["uniform", "uneven", "beta", "cbar2", "symmetric",

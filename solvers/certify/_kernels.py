@@ -83,7 +83,8 @@ def _horn_lambda_max(H, upper):  # pragma: no cover - compiled
     polynomial ``x^4 + c2 x^2 + c1 x + c0`` is convex beyond the largest root, so Newton's
     method started above it (at ``upper``, e.g. ``(G_a + G_b) / 2``) decreases monotonically to
     it: every iterate is an upper bound (Theobald's QCP), at a fraction of an SVD's cost. A
-    margin of ``1e-7 upper`` covers rounding near double roots.
+    Near double roots (rank-one ``H``) rounding limits Newton's accuracy, so the result is
+    verified: ``x I - N`` must pass a Cholesky test, else ``x`` is raised.
     """
     hm = max(np.abs(H).max(), 1e-300)
     Hn = H / hm  # the quartic's powers would under/overflow at extreme scales
@@ -134,9 +135,38 @@ def _horn_lambda_max(H, upper):  # pragma: no cover - compiled
         if step <= 1e-13 * abs(x):
             break
         x -= step
-    # Near a double root (clustered singular values) rounding limits the root's accuracy to
-    # about sqrt(eps) relative: the margin keeps the result an upper bound.
-    return (x + 1e-7 * un) * hm
+    # Near a double root (clustered singular values) rounding limits the root's accuracy:
+    # the result is verified (x I - N positive definite by Cholesky) and raised until it is.
+    margin = 1e-9 * un
+    for _ in range(12):
+        xt = min(x + margin, un)
+        if xt >= un or _pd_shift(N, xt):
+            return xt * hm
+        margin *= 10.0
+    return un * hm
+
+
+@njit(cache=True)
+def _pd_shift(N, x):  # pragma: no cover - compiled
+    """Whether ``x I - N`` (4 x 4) is positive definite, by Cholesky with a rounding margin."""
+    A = -N.copy()
+    for i in range(4):
+        A[i, i] += x
+    tiny = 64.0 * 2.220446049250313e-16 * (abs(x) + np.abs(N).max())
+    for j in range(4):
+        d = A[j, j]
+        for k in range(j):
+            d -= A[j, k] * A[j, k]
+        if not d > tiny:
+            return False
+        d = np.sqrt(d)
+        A[j, j] = d
+        for i in range(j + 1, 4):
+            v = A[i, j]
+            for k in range(j):
+                v -= A[i, k] * A[j, k]
+            A[i, j] = v / d
+    return True
 
 
 @njit(cache=True)
