@@ -170,19 +170,24 @@ def _pd_shift(N, x):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def _ls_bound(s):  # pragma: no cover - compiled
-    """A lower bound (tight to rounding) on the least-squares optimum from running sums ``s``."""
+def _centred(s):  # pragma: no cover - compiled
+    """Centroids, centred cross-covariance and spreads from running sums ``s`` (``sw > 0``)."""
     sw = s[0]
-    if sw <= 0.0:
-        return 0.0
     ca = s[1:4] / sw
     cb = s[4:7] / sw
     H = np.empty((3, 3))
     for i in range(3):
         for j in range(3):
             H[i, j] = s[7 + 3 * i + j] - sw * ca[i] * cb[j]
-    ga = s[16] - sw * (ca @ ca)
-    gb = s[17] - sw * (cb @ cb)
+    return ca, cb, H, s[16] - sw * (ca @ ca), s[17] - sw * (cb @ cb)
+
+
+@njit(cache=True)
+def _ls_bound(s):  # pragma: no cover - compiled
+    """A lower bound (tight to rounding) on the least-squares optimum from running sums ``s``."""
+    if s[0] <= 0.0:
+        return 0.0
+    _, _, H, ga, gb = _centred(s)
     lam = _horn_lambda_max(H, 0.5 * (abs(ga) + abs(gb)) * (1.0 + 1e-9) + 1e-300)
     return max(ga + gb - 2.0 * lam, 0.0)
 
@@ -190,25 +195,15 @@ def _ls_bound(s):  # pragma: no cover - compiled
 @njit(cache=True)
 def _ls_value(s):  # pragma: no cover - compiled
     """Least-squares optimum and pose (centred frame) from running sums ``s``, by SVD."""
-    sw = s[0]
-    R = np.eye(3)
-    tp = np.zeros(3)
-    if sw <= 0.0:
-        return 0.0, R, tp
-    ca = s[1:4] / sw
-    cb = s[4:7] / sw
-    H = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            H[i, j] = s[7 + 3 * i + j] - sw * ca[i] * cb[j]
+    if s[0] <= 0.0:
+        return 0.0, np.eye(3), np.zeros(3)
+    ca, cb, H, ga, gb = _centred(s)
     U, sv, Vt = np.linalg.svd(H)
     d = 1.0 if np.linalg.det(U @ Vt) > 0 else -1.0
-    val = (s[16] - sw * (ca @ ca)) + (s[17] - sw * (cb @ cb)) - 2.0 * (sv[0] + sv[1] + d * sv[2])
     D = np.eye(3)
     D[2, 2] = d
     R = Vt.T @ D @ U.T
-    tp = cb - R @ ca
-    return max(val, 0.0), R, tp
+    return max(ga + gb - 2.0 * (sv[0] + sv[1] + d * sv[2]), 0.0), R, cb - R @ ca
 
 
 @njit(cache=True)
