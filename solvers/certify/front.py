@@ -70,7 +70,7 @@ from solvers.certify.relaxation import (
     tim_problem,
 )
 from solvers.problem import WeightedTLSProblem
-from solvers.procrustes import weighted_procrustes, weighted_rotation
+from solvers.procrustes import weighted_procrustes
 from solvers.result import RegistrationResult, SolverStatus
 
 __all__ = [
@@ -183,29 +183,25 @@ def _survivors(problem: WeightedTLSProblem) -> NDArray[np.int64]:
 def rotation_gnc(
     problem: RotationTLSProblem, *, max_iterations: int = 100, mu_factor: float = 1.4
 ) -> NDArray[np.float64]:
-    """GNC-TLS for a rotation-only TLS problem (closed-form weighted rotation per iteration)."""
-    w0 = problem.weights / problem.noise_bound**2
-    a, b, c2 = problem.source, problem.target, problem.cbar2
-    gw = np.ones(problem.n)
-    R = weighted_rotation((b * (w0 * gw)[:, None]).T @ a)
-    r2 = problem.residuals_sq(R)
-    mu = c2 / max(2 * r2.max() - c2, 1e-12)
-    prev = np.inf
-    for _ in range(max_iterations):
-        ub, lb = (mu + 1) / mu * c2, mu / (mu + 1) * c2
-        with np.errstate(divide="ignore", invalid="ignore"):
-            mid = np.sqrt(c2 / np.maximum(r2, 1e-300)) * np.sqrt(mu * (mu + 1)) - mu
-        gw = np.where(r2 >= ub, 0.0, np.where(r2 <= lb, 1.0, mid))
-        if not np.any(gw * w0 > 0):
-            break
-        R = weighted_rotation((b * (w0 * gw)[:, None]).T @ a)
-        r2 = problem.residuals_sq(R)
-        cost = float(problem.weights @ (gw * r2))
-        if abs(cost - prev) <= 1e-12 * max(1.0, abs(cost)):
-            break
-        prev = cost
-        mu *= mu_factor
-    return refine_rotation(problem, R)
+    """GNC-TLS for a rotation-only TLS problem, by the registration's GNC kernel.
+
+    The terms are mirrored (``a, b`` and ``-a, -b``, interleaved): mirrored terms have equal
+    residuals for every rotation, hence equal GNC weights, so every weighted centroid is exactly
+    zero and the pose GNC's translation stays 0 -- it solves the rotation problem (each cost
+    counted twice). The rotation is then refined locally.
+    """
+    from solvers.registration import GNCParams, solve_registration
+
+    n = problem.n
+    a = np.empty((2 * n, 3))
+    b = np.empty((2 * n, 3))
+    a[0::2], a[1::2] = problem.source, -problem.source
+    b[0::2], b[1::2] = problem.target, -problem.target
+    mirrored = WeightedTLSProblem(a, b, noise_bound=np.repeat(problem.noise_bound, 2),
+                                  weights=np.repeat(problem.weights, 2), cbar2=problem.cbar2)
+    res = solve_registration(mirrored, method="gnc",
+                             gnc=GNCParams(max_iterations=max_iterations, mu_factor=mu_factor))
+    return refine_rotation(problem, res.rotation)
 
 
 def _dual_candidate(problem: RotationTLSProblem, R: NDArray[np.float64]) -> NDArray[np.float64]:
