@@ -154,21 +154,6 @@ class CliqueOptimum:
     nodes: int
 
 
-def _ls_from_sums(sw: float, sa: NDArray, sb: NDArray, sab: NDArray, saa: float, sbb: float
-                  ) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
-    """Weighted least-squares optimum ``min_{R,t} sum w |R a + t - b|^2`` from running sums."""
-    if sw <= 0:
-        return 0.0, np.eye(3), np.zeros(3)
-    ca, cb = sa / sw, sb / sw
-    H = sab - sw * np.outer(ca, cb)  # sum w (a - ca)(b - cb)^T
-    U, s, Vt = np.linalg.svd(H)
-    d = 1.0 if np.linalg.det(U @ Vt) > 0 else -1.0
-    trace = s[0] + s[1] + d * s[2]
-    val = (saa - sw * ca @ ca) + (sbb - sw * cb @ cb) - 2.0 * trace
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return max(float(val), 0.0), R, cb - R @ ca
-
-
 NODES_PER_SECOND = 2_000_000
 """Branch-and-bound nodes per second (measured 2.2 M/s on one core of the 2-core test machine), for time limits."""
 
