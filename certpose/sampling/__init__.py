@@ -6,5 +6,13 @@ never the CLI or the bench.
 """
 
 from certpose.sampling.distribution import PoseDistribution
+from certpose.sampling.sampler import (
+    ISParams,
+    ISResult,
+    TangentMixture,
+    importance_sample,
+    sample_pose_distribution,
+)
 
-__all__ = ["PoseDistribution"]
+__all__ = ["ISParams", "ISResult", "PoseDistribution", "TangentMixture", "importance_sample",
+           "sample_pose_distribution"]
