@@ -22,12 +22,12 @@ rotation vector that maps to the same rotation. Nothing is estimated: the only t
 wrap sum, whose neglected terms carry ``exp(-(5 pi)^2 / (2 sigma^2))`` of the mass.
 
 Default temperature. At ``temperature = 1`` eq. (1) counts every object point as an independent
-observation; neighbouring points look at the same voxels and are strongly correlated. The
-default rule divides eq. (1) by the number of object points per independent observation:
-``temperature = N / n_eff``, with ``n_eff`` the number of distinct voxels the posed model
-occupies at the seed (:func:`default_temperature`), times ``temperature_scale`` (default 4, to
-absorb the correlation of neighbouring voxels through the descriptors; a first rule, not yet
-calibrated against credible-region coverage on YCB-Video).
+observation; neighbouring points look at the same voxels and their descriptors (FPFH over a
+radius of several voxels) are strongly correlated. The default rule divides eq. (1) by the number
+of object points per independent observation: ``temperature = temperature_scale * N / n_eff``,
+with ``n_eff`` the number of distinct cells of side ``correlation_voxels`` voxels (default 4)
+that the posed model occupies at the best seed (:func:`default_temperature`). A first rule, not
+yet calibrated against credible-region coverage on YCB-Video.
 """
 
 from __future__ import annotations
@@ -83,9 +83,11 @@ class ISParams:
     Attributes
     ----------
     draws : int
-        Draws per round (the last round's draws form the distribution).
+        Draws of the last round, which form the distribution.
     rounds : int
-        Adaptation rounds (>= 1); each refits the mixture to the weighted draws.
+        Rounds (>= 1); each but the last draws ``pilot_draws`` and refits the mixture to them.
+    pilot_draws : int
+        Draws per adaptation round (0 = ``draws // 4``, at least 500).
     rotation_noise : float
         Initial standard deviation of the tangent rotation noise around each seed (rad).
     translation_noise : float
@@ -95,6 +97,8 @@ class ISParams:
         :func:`sample_pose_distribution`; :func:`importance_sample` then uses 1).
     temperature_scale : float
         Multiplies the default temperature rule.
+    correlation_voxels : float
+        Side of the cells counted as independent observations by the default rule (voxels).
     defensive : float
         Fraction of the mixture kept at the initial seeds with the initial noise in every
         round (defensive importance sampling: bounds the weights where adaptation shrank too much).
@@ -107,11 +111,13 @@ class ISParams:
     """
 
     draws: int = 10_000
-    rounds: int = 4
-    rotation_noise: float = 0.05
-    translation_noise: float = 0.005
+    rounds: int = 6
+    pilot_draws: int = 0
+    rotation_noise: float = 0.03
+    translation_noise: float = 0.003
     temperature: float | None = None
-    temperature_scale: float = 4.0
+    temperature_scale: float = 1.0
+    correlation_voxels: float = 4.0
     defensive: float = 0.1
     min_rotation_noise: float = 1e-3
     min_translation_noise: float = 1e-4
@@ -121,10 +127,12 @@ class ISParams:
     def __post_init__(self) -> None:
         if int(self.draws) < 2:
             raise ValueError(f"Expected `draws` >= 2, got {self.draws}.")
+        if int(self.pilot_draws) < 0:
+            raise ValueError(f"Expected `pilot_draws` >= 0, got {self.pilot_draws}.")
         if int(self.rounds) < 1:
             raise ValueError(f"Expected `rounds` >= 1, got {self.rounds}.")
         for name in ("rotation_noise", "translation_noise", "temperature_scale",
-                     "min_rotation_noise", "min_translation_noise"):
+                     "min_rotation_noise", "min_translation_noise", "correlation_voxels"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"Expected `{name}` to be positive and finite, got {v}.")
@@ -274,44 +282,87 @@ def _check_seeds(seeds: ArrayLike) -> NDArray[np.float64]:
     return T
 
 
-def _refit(mix: TangentMixture, R: NDArray, t: NDArray, w: NDArray, p: ISParams,
-           initial: TangentMixture) -> TangentMixture:
-    """One adaptation step: each component's weighted draws give its new centre and covariance."""
-    K = len(mix.weights)
-    # Responsibility of each component for each draw (its share of the mixture density).
-    logs = np.stack([TangentMixture(mix.rotations[k:k + 1], mix.translations[k:k + 1],
-                                    mix.covariances[k:k + 1], np.ones(1)).log_density(R, t)
-                     + math.log(max(mix.weights[k], 1e-300)) for k in range(K)])
+def _flattened(logw: NDArray[np.float64], fraction: float) -> tuple[NDArray[np.float64], float]:
+    """Normalised weights ``w^a``, with the largest ``a`` in (0, 1] whose ESS is at least
+    ``fraction`` of the draws: a refit on a handful of draws would collapse the covariance."""
+    lw = np.where(np.isfinite(logw), logw, -np.inf)
+
+    def norm_w(a: float) -> NDArray[np.float64]:
+        v = np.exp(a * (lw - lw.max()))
+        return v / v.sum()
+
+    target = fraction * len(lw)
+    if 1.0 / np.sum(norm_w(1.0) ** 2) >= target:
+        return norm_w(1.0), 1.0
+    lo, hi = 0.0, 1.0
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if 1.0 / np.sum(norm_w(mid) ** 2) >= target else (lo, mid)
+    a = max(lo, 1e-6)
+    return norm_w(a), a
+
+
+def _with_defensive(adapted: TangentMixture, initial: TangentMixture, defensive: float) -> TangentMixture:
+    """The proposal: the adapted components and, with mass ``defensive``, the initial ones."""
+    if defensive == 0.0:
+        return adapted
+    return TangentMixture(
+        np.concatenate([adapted.rotations, initial.rotations]),
+        np.concatenate([adapted.translations, initial.translations]),
+        np.concatenate([adapted.covariances, initial.covariances]),
+        np.concatenate([adapted.weights * (1.0 - defensive), initial.weights * defensive]),
+    )
+
+
+def _refit(proposal: TangentMixture, n_adapted: int, R: NDArray, t: NDArray, w: NDArray,
+           alpha: float, p: ISParams) -> TangentMixture | None:
+    """One adaptation step: the adapted components' weighted draws give their new centres and
+    covariances (responsibilities from the whole proposal); None when no component has weight."""
+    K = len(proposal.weights)
+    logs = np.stack([TangentMixture(proposal.rotations[k:k + 1], proposal.translations[k:k + 1],
+                                    proposal.covariances[k:k + 1], np.ones(1)).log_density(R, t)
+                     + math.log(max(proposal.weights[k], 1e-300)) for k in range(K)])
     resp = np.exp(logs - logsumexp(logs, axis=0))
+    # Draws owned by the defensive components are shared among the adapted ones.
+    resp_a = resp[:n_adapted] / np.maximum(resp[:n_adapted].sum(axis=0), 1e-300)
     Rs, ts, Cs, ws = [], [], [], []
     floor = _isotropic(p.min_rotation_noise, p.min_translation_noise)
-    for k in range(K):
-        wk = w * resp[k]
+    for k in range(n_adapted):
+        wk = w * resp_a[k]
         mass = wk.sum()
-        if mass <= 1e-12 or 1.0 / np.sum((wk / mass) ** 2) < 12:
-            continue  # too few effective draws to refit this component: drop it
+        if mass <= 1e-12:
+            continue  # no weight at all: drop the component
+        if 1.0 / np.sum((wk / mass) ** 2) < 12:
+            # Too few effective draws for a covariance: keep the centre, halve the spread.
+            Rs.append(proposal.rotations[k])
+            ts.append(proposal.translations[k])
+            Cs.append(proposal.covariances[k] / 4.0 + floor)
+            ws.append(mass)
+            continue
         wk = wk / mass
-        # One Karcher step from the old centre (a few iterations would barely move it).
-        Rk, tk = mix.rotations[k], mix.translations[k]
+        # A few Karcher steps from the old centre.
+        Rk = proposal.rotations[k]
         for _ in range(3):
-            x_rot = _so3_log(np.einsum("ji,njk->nik", Rk, R))
-            Rk = Rk @ _so3_exp(wk @ x_rot)
+            Rk = Rk @ _so3_exp(wk @ _so3_log(np.einsum("ji,njk->nik", Rk, R)))
         tk = wk @ t
         x = np.concatenate([_so3_log(np.einsum("ji,njk->nik", Rk, R)), t - tk], axis=1)
-        C = (x * wk[:, None]).T @ x / (1.0 - np.sum(wk**2))
+        C = (x * wk[:, None]).T @ x / max(1.0 - np.sum(wk**2), 1e-12) + floor
+        if alpha < 1.0:
+            # The draws were weighted by target^a q^(1-a): for Gaussians its precision is
+            # a P_target + (1 - a) P_q, so undo the proposal's share. Variances are capped at
+            # 25x the flattened estimate's largest.
+            Pa = np.linalg.inv(C)
+            P = (Pa - (1.0 - alpha) * np.linalg.inv(proposal.covariances[k])) / alpha
+            lam, V = np.linalg.eigh(0.5 * (P + P.T))
+            lam = np.maximum(lam, np.linalg.eigvalsh(Pa).min() / 25.0)
+            C = (V / lam) @ V.T
         Rs.append(Rk)
         ts.append(tk)
-        Cs.append(C + floor)
+        Cs.append(0.5 * (C + C.T))
         ws.append(mass)
     if not ws:
-        return initial
-    ws_arr = np.asarray(ws) / np.sum(ws) * (1.0 - p.defensive)
-    return TangentMixture(
-        np.concatenate([np.stack(Rs), initial.rotations]),
-        np.concatenate([np.stack(ts), initial.translations]),
-        np.concatenate([np.stack(Cs), initial.covariances]),
-        np.concatenate([ws_arr, initial.weights * p.defensive]),
-    )
+        return None
+    return TangentMixture(np.stack(Rs), np.stack(ts), np.stack(Cs), np.asarray(ws) / np.sum(ws))
 
 
 def importance_sample(
@@ -344,18 +395,28 @@ def importance_sample(
     T0 = _check_seeds(seeds)
     temp = 1.0 if p.temperature is None else float(p.temperature)
     K = len(T0)
+    # Seeds weighted by the target at the seed (a seed 10 nats worse starts with e^-10 the mass,
+    # floored at 1% so that every seed keeps a chance).
+    ls = np.asarray(log_target(T0), dtype=np.float64).reshape(-1) / temp
+    ls = np.where(np.isfinite(ls), ls, -np.inf)
+    sw = np.exp(ls - ls.max()) if np.any(np.isfinite(ls)) else np.ones(K)
+    sw = np.maximum(sw / sw.sum(), 0.01)
     initial = TangentMixture(T0[:, :3, :3].copy(), T0[:, :3, 3].copy(),
                              np.repeat(_isotropic(p.rotation_noise, p.translation_noise)[None], K, 0),
-                             np.full(K, 1.0 / K))
-    mix = initial
+                             sw / sw.sum())
+    adapted, mix = initial, initial
     t_start = time.perf_counter()
-    n = int(p.draws)
+    n_last = int(p.draws)
+    n_pilot = int(p.pilot_draws) or max(n_last // 4, 500)
     ess_rounds: list[float] = []
     bar = _progress(int(p.rounds), "importance sampling", p.progress)
-    T = np.tile(np.eye(4), (n, 1, 1))
+    n_eval = 0
     try:
         for r in range(int(p.rounds)):
+            n = n_last if r + 1 == p.rounds else n_pilot
+            n_eval += n
             R, t = mix.sample(n, gen)
+            T = np.tile(np.eye(4), (n, 1, 1))
             T[:, :3, :3], T[:, :3, 3] = R, t
             lt = np.asarray(log_target(T), dtype=np.float64).reshape(-1)
             if lt.shape != (n,):
@@ -372,7 +433,10 @@ def importance_sample(
             log.debug("IS round %d: ESS %.0f of %d, %d components", r, ess, n, len(mix.weights))
             bar.update(1)
             if r + 1 < p.rounds:
-                mix = _refit(mix, R, t, w, p, initial)
+                wf, alpha = _flattened(logw, 0.2)
+                new = _refit(mix, len(adapted.weights), R, t, wf, alpha, p)
+                adapted = new if new is not None else initial
+                mix = _with_defensive(adapted, initial, p.defensive)
     finally:
         bar.close()
     keep = np.isfinite(logw)
@@ -380,24 +444,26 @@ def importance_sample(
     dist = weighted.resample(int(p.resample), rng=gen) if p.resample else weighted
     seconds = time.perf_counter() - t_start
     status = "ok" if ess_rounds[-1] >= 0.01 * n else "low_ess"
-    msg = (f"{p.rounds} rounds of {n} draws at temperature {temp:.3g}: ESS {ess_rounds[-1]:.0f} "
+    msg = (f"{p.rounds} rounds ({n_pilot} pilot draws, {n} final) at temperature {temp:.3g}: ESS {ess_rounds[-1]:.0f} "
            f"({', '.join(f'{e:.0f}' for e in ess_rounds)} per round), {seconds:.2f} s")
     log.info("importance sampling: %s", msg)
-    return ISResult(dist, weighted, mix, temp, tuple(ess_rounds), n * int(p.rounds), seconds,
+    return ISResult(dist, weighted, mix, temp, tuple(ess_rounds), n_eval, seconds,
                     status, msg)
 
 
-def default_temperature(likelihood, T: ArrayLike, *, scale: float = 4.0) -> float:  # noqa: ANN001
-    """The default temperature rule (see the module docstring): ``scale * N / n_voxels``.
+def default_temperature(likelihood, T: ArrayLike, *, scale: float = 1.0,  # noqa: ANN001
+                        correlation_voxels: float = 4.0) -> float:
+    """The default temperature rule (see the module docstring): ``scale * N / n_eff``.
 
-    ``n_voxels`` is the number of distinct grid voxels the ``N`` model points of ``likelihood``
-    (a :class:`~certpose.model.likelihood.PoseLikelihood`) occupy at pose ``T`` (4, 4).
+    ``n_eff`` is the number of distinct cells of side ``correlation_voxels`` grid voxels that the
+    ``N`` model points of ``likelihood`` (a :class:`~certpose.model.likelihood.PoseLikelihood`)
+    occupy at pose ``T`` (4, 4).
     """
     T = np.asarray(T, dtype=np.float64)
     pts = likelihood._points @ T[:3, :3].T + T[:3, 3]
-    vox = np.floor((pts - likelihood.grid.origin) / likelihood.grid.voxel_size).astype(np.int64)
-    n_vox = len(np.unique(vox, axis=0))
-    return float(scale) * likelihood.num_points / max(n_vox, 1)
+    cell = likelihood.grid.voxel_size * float(correlation_voxels)
+    n_eff = len(np.unique(np.floor((pts - likelihood.grid.origin) / cell).astype(np.int64), axis=0))
+    return float(scale) * likelihood.num_points / max(n_eff, 1)
 
 
 def seeds_from_mle(mle) -> NDArray[np.float64]:  # noqa: ANN001
@@ -433,5 +499,6 @@ def sample_pose_distribution(
     p = params or ISParams()
     T0 = _check_seeds(np.asarray(seeds, dtype=np.float64))
     if p.temperature is None:
-        p = replace(p, temperature=default_temperature(likelihood, T0[0], scale=p.temperature_scale))
+        p = replace(p, temperature=default_temperature(likelihood, T0[0], scale=p.temperature_scale,
+                                                       correlation_voxels=p.correlation_voxels))
     return importance_sample(likelihood.log_likelihood, T0, params=p, rng=rng)
