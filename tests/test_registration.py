@@ -201,3 +201,19 @@ def test_a_tied_mirror_image_clique_does_not_win(rng):
     assert res.info["tied_max_cliques"] >= 2
     assert _ok(res, R, t)
     assert np.all(res.inliers[5:10])
+
+
+def test_peel_to_core_matches_networkx() -> None:
+    """The numpy k-core peeling of the pruning step against networkx's k_core."""
+    import networkx as nx
+
+    from solvers.registration.pruning import _peel_to_core
+
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        n = int(rng.integers(1, 60))
+        A = np.triu((rng.random((n, n)) < rng.uniform(0, 0.5)).astype(np.uint8), 1)
+        A = A + A.T
+        k = int(rng.integers(1, 10))
+        got = set(_peel_to_core(A, A.sum(axis=1), k).tolist())
+        assert got == set(nx.k_core(nx.from_numpy_array(A), k).nodes())

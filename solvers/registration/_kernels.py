@@ -158,32 +158,6 @@ def multistart_greedy_clique(adj, deg, order):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def peel_to_core(adj, deg_in, k):  # pragma: no cover - compiled
-    """Vertices of the k-core (repeatedly drop vertices of degree < k)."""
-    n = adj.shape[0]
-    alive = np.ones(n, dtype=np.bool_)
-    deg = deg_in.copy()
-    stack = np.empty(n, dtype=np.int64)
-    top = 0
-    for i in range(n):
-        if deg[i] < k:
-            alive[i] = False
-            stack[top] = i
-            top += 1
-    while top > 0:
-        top -= 1
-        v = stack[top]
-        for u in range(n):
-            if adj[v, u] and alive[u]:
-                deg[u] -= 1
-                if deg[u] < k:
-                    alive[u] = False
-                    stack[top] = u
-                    top += 1
-    return np.flatnonzero(alive)
-
-
-@njit(cache=True)
 def scalar_tls(v, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
     """Exact scalar TLS by sweeping sorted interval endpoints; returns (x, cost, found).
 
