@@ -219,3 +219,19 @@ def test_register_passes_the_certificate_options() -> None:
     out = register(src, dst, noise_bound=BETA, certify=True, scope="rotation", tol=1e-6)
     assert out.certificate.problem == "rotation_tim_subproblem"
     assert out.certificate.tol == 1e-6
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"max_iter": 10.5}, "max_iter"), ({"max_iter": True}, "max_iter"), ({"max_iter": 0}, "max_iter"),
+    ({"time_limit": -1.0}, "time_limit"), ({"time_limit": float("nan")}, "time_limit"),
+    ({"dense_max": 2.5}, "dense_max"), ({"eps": 0.0}, "eps"), ({"method": "fast"}, "method"),
+])
+def test_certifier_options_are_checked(kwargs: dict, match: str) -> None:
+    rng = np.random.default_rng(0)
+    src, dst, *_ = make_instance(rng, 10, 0.0)
+    p = WeightedTLSProblem(src, dst, noise_bound=BETA)
+    res = solve_registration(p)
+    with pytest.raises((TypeError, ValueError), match=match):
+        certify_pose(p, res.rotation, res.translation, **kwargs)
+    with pytest.raises((TypeError, ValueError), match=match):
+        certify_result(p, res, **kwargs)

@@ -713,7 +713,7 @@ def certify_rotation(
     """
     t0 = time.perf_counter()
     tol = _check_tol(tol)
-    _check_method(method)
+    _check_options(method, max_iter, time_limit, dense_max, eps)
     R, _, why = _candidate_error(R, np.zeros(3))
     scoped = _Scoped(BoundedProblem.ROTATION, problem, None, None)
     if why:
@@ -730,9 +730,20 @@ def certify_rotation(
                                outlier_cost=_outlier_cost(problem, R, None), t0=t0, better=better)
 
 
-def _check_method(method: str) -> None:
+def _check_options(method: str, max_iter: Any = None, time_limit: Any = None,
+                   dense_max: Any = None, eps: Any = 1e-7) -> None:
+    """One-line errors naming the argument (non-integer counts, negative or NaN limits)."""
+    from solvers.validation import check_count, check_limit
+
     if method not in ("auto", "dense", "chordal", "dual"):
         raise ValueError(f"`method` must be 'auto', 'dense', 'chordal' or 'dual', got {method!r}.")
+    if max_iter is not None:
+        check_count(max_iter, "max_iter", minimum=1)
+    if dense_max is not None:
+        check_count(dense_max, "dense_max", minimum=1)
+    check_limit(time_limit, "time_limit")
+    if not check_limit(eps, "eps", allow_none=False) > 0:
+        raise ValueError(f"`eps` must be positive, got {eps!r}.")
 
 
 def certify_pose(
@@ -789,7 +800,7 @@ def certify_pose(
     """
     t0 = time.perf_counter()
     tol = _check_tol(tol)
-    _check_method(method)
+    _check_options(method, max_iter, time_limit, dense_max, eps)
     if isinstance(problem, RotationTLSProblem):
         return certify_rotation(problem, R, tol=tol, method=method, max_iter=max_iter,
                                 time_limit=time_limit, dense_max=dense_max or 10, eps=eps)
@@ -863,7 +874,7 @@ def solve_sdp(
 
     t0 = time.perf_counter()
     tol = _check_tol(tol)
-    _check_method(method)
+    _check_options(method, max_iter, time_limit, dense_max, eps)
     scope = "rotation" if scope == "auto" else scope
     scoped = _scope_problem(problem, scope, None)
     pn, _ = _normalised(scoped.problem)
@@ -939,7 +950,7 @@ def certify_result(
     """
     t0 = time.perf_counter()
     tol = _check_tol(tol)
-    _check_method(method)
+    _check_options(method, max_iter, time_limit, dense_max, eps)
     R, t = np.array(result.rotation), np.array(result.translation)
     scoped = _scope_problem(problem, scope, survivors)
     _, _, why = _candidate_error(R, t)
