@@ -183,3 +183,27 @@ def test_register_malformed_subprocess(tmp_path):
     assert proc.returncode == 1
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "garbage.csv" in lines[0], proc.stderr
+
+
+def test_register_demo_certificate_options(tmp_path, capsys):  # type: ignore[no-untyped-def]
+    """--certify bounds the full problem by default; --scope/--tol reach the certificate."""
+    from tests.conftest import strict_json
+
+    out = tmp_path / "full.json"
+    assert main(["register", "--demo", "--demo-outliers", "0.9", "--certify", "--json", str(out)]) == 0
+    cert = strict_json(out.read_text())["result"]["certificate"]
+    assert cert["problem"] == "full_weighted_tls" and cert["certified"] is True
+    assert cert["cliques"] and cert["weight_scale"] == 1.0
+    assert "it covers the returned pose" in capsys.readouterr().out
+    out = tmp_path / "tim.json"
+    assert main(["register", "--demo", "--certify", "--scope", "rotation", "--tol", "1e-2",
+                 "--json", str(out)]) == 0
+    cert = strict_json(out.read_text())["result"]["certificate"]
+    assert cert["problem"] == "rotation_tim_subproblem" and cert["tol"] == 1e-2
+    assert cert["pairs"] and cert["indices"]
+
+
+def test_register_bad_certificate_options(capsys):  # type: ignore[no-untyped-def]
+    assert main(["register", "--demo", "--certify", "--time-limit", "-1"]) == 1
+    err = capsys.readouterr().err
+    assert "time_limit" in err and "Traceback" not in err
