@@ -17,9 +17,10 @@ the identity, total volume ``8 pi^2``) and Lebesgue measure on R^3 is
 
 where ``theta u = log(R_k^T R)`` with ``theta`` in [0, pi]: ``2 (1 - cos s) / s^2`` is the
 Jacobian of the exponential map of SO(3) (the Haar density in exponential coordinates), and the
-sum over ``m`` (``|m| <= 2``, both signs of ``u`` covered by negative ``s``) collects every
+sum over ``m`` (``|m| <= 1``, both signs of ``u`` covered by negative ``s``) collects every
 rotation vector that maps to the same rotation. Nothing is estimated: the only truncation is the
-wrap sum, whose neglected terms carry ``exp(-(5 pi)^2 / (2 sigma^2))`` of the mass.
+wrap sum, whose neglected terms carry ``exp(-(3 pi)^2 / (2 sigma^2))`` of the mass (< 1e-19 for
+rotation standard deviations up to 1 rad).
 
 Default temperature. At ``temperature = 1`` eq. (1) counts every object point as an independent
 observation; neighbouring points look at the same voxels and their descriptors (FPFH over a
@@ -46,7 +47,7 @@ from scipy.special import logsumexp
 from certpose.sampling.distribution import PoseDistribution
 
 __all__ = ["ISParams", "ISResult", "TangentMixture", "default_temperature", "importance_sample",
-           "sample_pose_distribution"]
+           "perturbed_eq2_seeds", "sample_pose_distribution", "seeds_from_mle"]
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +153,7 @@ def _so3_exp(w: NDArray[np.float64]) -> NDArray[np.float64]:
     return Rotation.from_rotvec(w).as_matrix()
 
 
-_WRAPS = np.arange(-2, 3)
+_WRAPS = np.arange(-1, 2)
 
 
 @dataclass(frozen=True)
@@ -198,6 +199,10 @@ class TangentMixture:
 
     def log_density(self, R: ArrayLike, t: ArrayLike) -> NDArray[np.float64]:
         """Exact log-density (per unit Haar measure x m^3) at poses ``R`` (n, 3, 3), ``t`` (n, 3)."""
+        return logsumexp(self.component_log_densities(R, t), axis=0)
+
+    def component_log_densities(self, R: ArrayLike, t: ArrayLike) -> NDArray[np.float64]:
+        """(K, n) ``log(weight_k q_k(R, t))``; their log-sum-exp over ``k`` is :meth:`log_density`."""
         R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
         t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
         n, K = len(R), len(self.weights)
@@ -221,7 +226,7 @@ class TangentMixture:
             log_jac = np.where(s == 0, 0.0, np.log(np.maximum(s * s, 1e-300))
                                - np.log(two_one_minus_cos)[:, None])
             out[k] = math.log(max(self.weights[k], 1e-300)) + logsumexp(log_gauss + log_jac, axis=1)
-        return logsumexp(out, axis=0)
+        return out
 
 
 def _isotropic(rot: float, trans: float) -> NDArray[np.float64]:
@@ -314,14 +319,10 @@ def _with_defensive(adapted: TangentMixture, initial: TangentMixture, defensive:
     )
 
 
-def _refit(proposal: TangentMixture, n_adapted: int, R: NDArray, t: NDArray, w: NDArray,
-           alpha: float, p: ISParams) -> TangentMixture | None:
+def _refit(proposal: TangentMixture, logs: NDArray, n_adapted: int, R: NDArray, t: NDArray,
+           w: NDArray, alpha: float, p: ISParams) -> TangentMixture | None:
     """One adaptation step: the adapted components' weighted draws give their new centres and
     covariances (responsibilities from the whole proposal); None when no component has weight."""
-    K = len(proposal.weights)
-    logs = np.stack([TangentMixture(proposal.rotations[k:k + 1], proposal.translations[k:k + 1],
-                                    proposal.covariances[k:k + 1], np.ones(1)).log_density(R, t)
-                     + math.log(max(proposal.weights[k], 1e-300)) for k in range(K)])
     resp = np.exp(logs - logsumexp(logs, axis=0))
     # Draws owned by the defensive components are shared among the adapted ones.
     resp_a = resp[:n_adapted] / np.maximum(resp[:n_adapted].sum(axis=0), 1e-300)
@@ -423,7 +424,8 @@ def importance_sample(
                 raise ValueError(f"Expected `log_target` to return shape ({n},), got {lt.shape}.")
             if np.any(np.isnan(lt)):
                 raise ValueError("`log_target` returned NaN.")
-            logw = lt / temp - mix.log_density(R, t)
+            logs = mix.component_log_densities(R, t)
+            logw = lt / temp - logsumexp(logs, axis=0)
             if not np.any(np.isfinite(logw)):
                 raise ValueError("every draw has zero target density; check the seeds.")
             w = np.exp(logw - logw.max())
@@ -434,7 +436,7 @@ def importance_sample(
             bar.update(1)
             if r + 1 < p.rounds:
                 wf, alpha = _flattened(logw, 0.2)
-                new = _refit(mix, len(adapted.weights), R, t, wf, alpha, p)
+                new = _refit(mix, logs, len(adapted.weights), R, t, wf, alpha, p)
                 adapted = new if new is not None else initial
                 mix = _with_defensive(adapted, initial, p.defensive)
     finally:
@@ -502,3 +504,39 @@ def sample_pose_distribution(
         p = replace(p, temperature=default_temperature(likelihood, T0[0], scale=p.temperature_scale,
                                                        correlation_voxels=p.correlation_voxels))
     return importance_sample(likelihood.log_likelihood, T0, params=p, rng=rng)
+
+
+def perturbed_eq2_seeds(
+    eq2,  # noqa: ANN001 - an Eq2Problem
+    num: int,
+    *,
+    scale: float = 1.0,
+    rng: np.random.Generator | int | None = None,
+) -> NDArray[np.float64]:
+    """Perturb-and-MAP seeds: eq. (2) re-solved ``num`` times with perturbed weights ``c_ij``.
+
+    Each solve adds centred Gumbel noise of scale ``scale`` (nats) to every ``c_ij`` (weights
+    clipped at 0) and solves it as the pipeline does (``solvers.solve_registration(method="auto")``: max-clique pruning, then GNC-TLS). The
+    solver takes no initial pose, so these are cold starts, not the issue's warm starts.
+
+    Returns
+    -------
+    (num, 4, 4) ndarray
+        ``T_scene_object`` of each re-solve.
+    """
+    from dataclasses import replace
+
+    from solvers import solve_registration
+
+    if int(num) < 0:
+        raise ValueError(f"Expected `num` >= 0, got {num}.")
+    if not (math.isfinite(scale) and scale > 0):
+        raise ValueError(f"Expected `scale` to be positive and finite, got {scale}.")
+    gen = _resolve_rng(rng)
+    out = np.empty((int(num), 4, 4))
+    base = np.asarray(eq2.problem.weights, dtype=np.float64)
+    for i in range(int(num)):
+        noise = scale * (gen.gumbel(size=base.shape) - np.euler_gamma)
+        prob = replace(eq2.problem, weights=np.maximum(base + noise, 0.0))
+        out[i] = solve_registration(prob, method="auto").T_target_source
+    return out
