@@ -62,6 +62,8 @@ def main() -> None:
               f"Pareto-k {d.pareto_k():.2f}, {res.num_evaluations} evaluations; resampled 10,000: "
               f"axis tilt q95 {np.quantile(tilt, 0.95):.2f} deg, "
               f"translation error q95 {1e3 * np.quantile(np.linalg.norm(x[:, 3:], axis=1), 0.95):.2f} mm")
+        modes = d.modes()
+        print("  modes (mass, particles): " + ", ".join(f"{m.mass:.3f} ({m.num_particles})" for m in modes))
 
 
 if __name__ == "__main__":

@@ -137,3 +137,24 @@ def test_log_density_matches_smoothed_gaussian():
     assert d.log_density(R0, t0) == pytest.approx(expected, abs=0.15)
     # Far from the particles the density is tiny.
     assert d.log_density(R0, t0 + 0.05) < expected - 100
+
+
+def test_modes_two_clusters_with_their_mass():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    n = 3000
+    # Two pose clusters 90 deg apart about z, masses 0.7 / 0.3, plus an arc inside the first.
+    a = np.where(np.arange(n) < 2100, rng.uniform(-0.5, 0.5, n), np.pi / 2 + rng.normal(0, 0.01, n))
+    R = Rotation.from_rotvec(np.outer(a, [0, 0, 1])).as_matrix()
+    t = rng.normal(0, 0.001, (n, 3))
+    d = PoseDistribution(R, t, np.full(n, 1.0 / n))
+    modes = d.modes(max_points=1000)
+    assert len(modes) == 2
+    assert modes[0].mass == pytest.approx(0.7) and modes[1].mass == pytest.approx(0.3)
+    assert modes[0].num_particles + modes[1].num_particles == n
+    ang = Rotation.from_matrix(modes[1].rotation).as_rotvec()
+    np.testing.assert_allclose(ang, [0, 0, np.pi / 2], atol=0.01)
+    assert modes[0].covariance[2, 2] == pytest.approx(1 / 12, rel=0.1)  # uniform on [-0.5, 0.5]
+    with pytest.raises(ValueError, match="rotation_scale"):
+        d.modes(rotation_scale=0.0)

@@ -5,7 +5,7 @@ May import :mod:`certpose.model`, :mod:`certpose.estimation` and :mod:`solvers`'
 never the CLI or the bench.
 """
 
-from certpose.sampling.distribution import PoseDistribution
+from certpose.sampling.distribution import PoseDistribution, PoseMode
 from certpose.sampling.sampler import (
     ISParams,
     ISResult,
@@ -14,5 +14,5 @@ from certpose.sampling.sampler import (
     sample_pose_distribution,
 )
 
-__all__ = ["ISParams", "ISResult", "PoseDistribution", "TangentMixture", "importance_sample",
+__all__ = ["ISParams", "ISResult", "PoseDistribution", "PoseMode", "TangentMixture", "importance_sample",
            "sample_pose_distribution"]

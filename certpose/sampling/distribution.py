@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 from scipy.special import logsumexp
 
-__all__ = ["PoseDistribution"]
+__all__ = ["PoseDistribution", "PoseMode"]
 
 logger = logging.getLogger(__name__)
 
@@ -37,6 +37,37 @@ def _check_rotations(rotations: NDArray[np.float64]) -> None:
             f"`rotations[{bad[0]}]` is not a rotation (|R^T R - I| = {err[bad[0]]:.2e}, "
             f"det = {det[bad[0]]:.3f}); {bad.size} of {len(rotations)} are invalid."
         )
+
+
+@dataclass(frozen=True, eq=False)
+class PoseMode:
+    """One cluster of a :class:`PoseDistribution`.
+
+    Attributes
+    ----------
+    rotation : (3, 3)
+        Weighted Karcher mean rotation of the cluster.
+    translation : (3,)
+        Weighted mean translation (m).
+    covariance : (6, 6)
+        Weighted covariance in the tangent chart around the mean (rad^2, m^2).
+    mass : float
+        Sum of the cluster's weights.
+    num_particles : int
+    """
+
+    rotation: NDArray[np.float64]
+    translation: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    mass: float
+    num_particles: int
+
+    @property
+    def T(self) -> NDArray[np.float64]:
+        """(4, 4) mean pose."""
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = self.rotation, self.translation
+        return T
 
 
 @dataclass(frozen=True)
@@ -182,6 +213,51 @@ class PoseDistribution:
         X = self.tangent(R0, t0)
         cov = np.einsum("n,ni,nj->ij", self.weights, X, X)
         return R0, t0, cov
+
+    def modes(
+        self,
+        *,
+        rotation_scale: float = 0.1,
+        translation_scale: float = 0.01,
+        max_points: int = 2000,
+        rng: np.random.Generator | int | None = 0,
+    ) -> list[PoseMode]:
+        """Clusters of the particles with their mass, heaviest first.
+
+        Single-linkage clustering (``scipy.cluster.hierarchy``) cut at distance 1 in the metric
+        ``sqrt((theta / rotation_scale)^2 + (|dt| / translation_scale)^2)`` (``theta`` from the
+        chordal distance of the rotations, rad; ``dt`` in m): a continuous arc of poses (a hidden
+        handle) stays one mode. At most ``max_points`` particles (a systematic resampling) are
+        clustered; every particle then joins the cluster of its nearest clustered particle.
+        """
+        from scipy.cluster.hierarchy import fcluster, linkage
+        from scipy.spatial import cKDTree
+
+        for name, v in (("rotation_scale", rotation_scale), ("translation_scale", translation_scale)):
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"Expected `{name}` to be positive and finite, got {v}.")
+        if int(max_points) < 1:
+            raise ValueError(f"Expected `max_points` >= 1, got {max_points}.")
+        # Chordal distance |R1 - R2|_F = 2 sqrt(2) sin(theta / 2) ~ sqrt(2) theta.
+        feats = np.hstack([self.rotations.reshape(-1, 9) / (np.sqrt(2) * rotation_scale),
+                           self.translations / translation_scale])
+        sub = self if len(self) <= max_points else self.resample(int(max_points), rng=rng)
+        sub_feats = np.hstack([sub.rotations.reshape(-1, 9) / (np.sqrt(2) * rotation_scale),
+                               sub.translations / translation_scale])
+        uniq, inv = np.unique(sub_feats, axis=0, return_inverse=True)
+        labels_u = (np.ones(1, dtype=int) if len(uniq) == 1
+                    else fcluster(linkage(uniq, method="single"), t=1.0, criterion="distance"))
+        _, nearest = cKDTree(uniq).query(feats)
+        labels = labels_u[nearest]
+        out = []
+        for lab in np.unique(labels):
+            idx = np.flatnonzero(labels == lab)
+            mass = float(self.weights[idx].sum())
+            part = PoseDistribution(self.rotations[idx], self.translations[idx],
+                                    self.weights[idx] / mass)
+            R, t, cov = part.mean_and_covariance()
+            out.append(PoseMode(R, t, cov, mass, len(idx)))
+        return sorted(out, key=lambda m: -m.mass)
 
     def log_density(self, R: ArrayLike, t: ArrayLike) -> float:
         """Log-density of one pose under a Gaussian kernel density of the particles.
