@@ -80,7 +80,7 @@ def test_bench_cli_tiny_grid_all_peers(tmp_path, capsys):
     out = tmp_path / "bench"
     rc = main(["bench", "--n", "20", "30", "--outlier-ratios", "0", "0.5", "--trials", "2",
                "--seed", "3", "--solvers", *PEERS, "--out", str(out), "--plot",
-               "--no-progress"])
+               "--no-progress", "--workers", "0"])
     assert rc == 0
     stdout = capsys.readouterr().out
     for name in PEERS:
@@ -132,7 +132,8 @@ def test_bench_bunny_option(tmp_path, capsys):
 
     bunny = require_data("bunny", "bun_zipper_res3.ply")
     rc = main(["bench", "--bunny", str(bunny), "--n", "30", "--outlier-ratios", "0.2",
-               "--trials", "1", "--solvers", "gnc", "--out", str(tmp_path), "--no-progress"])
+               "--trials", "1", "--solvers", "gnc", "--out", str(tmp_path), "--no-progress",
+               "--workers", "0"])
     assert rc == 0
     data = strict_json((tmp_path / "bench.json").read_text())
     assert data["shape"] == str(bunny)
@@ -167,6 +168,6 @@ def test_bench_cli_errors(capsys):
 
 def test_bench_names_the_extra_when_it_is_missing(monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "tqdm", None)  # as if the bench extra were not installed
-    assert main(["bench", "--n", "10", "--trials", "1", "--solvers", "gnc"]) == 1
+    assert main(["bench", "--n", "10", "--trials", "1", "--solvers", "gnc", "--workers", "0"]) == 1
     err = capsys.readouterr().err
     assert "needs tqdm" in err and "pip install 'certpose[bench]'" in err

@@ -6,13 +6,18 @@ inliers, outliers replacing target points with points drawn uniformly in a ball 
 noise bound ``beta = 5.54 sigma``. A trial succeeds when the rotation error is below 5 degrees
 and the translation error below 0.05.
 
-Every solver sees exactly the same instances, in the same process. Times are wall-clock
+Every solver sees exactly the same instances. Each instance is drawn from its own seed
+(:func:`instance_seed`: the run's seed and the instance's place in the grid), in whichever
+process runs it: in this process (``workers=0``) or on Dask workers (a ``LocalCluster`` or a
+running scheduler), which receive seeds, not arrays. Rows, one per (instance, solver) and keyed
+by ``(suite, instance_seed, solver)``, are streamed to ``trials.csv`` as they finish
+(:mod:`certpose.bench.rows`), so an interrupted run resumes where it stopped. Times are wall-clock
 seconds around each call, including the solver's own conversion of the input arrays (building
 a factor graph, Open3D point clouds, validating the problem...); for certpose's solvers the
 time the result reports itself (``solve_time``) is recorded too (``reported_time_ms``). Each
 solver is run once on a throw-away instance first, so JIT compilation and lazy imports are
-not timed. Within a grid cell, the cell's instances are drawn first and each solver then runs
-on all of them in turn (not interleaved with the others, which slowed every solver down).
+not timed. Within a batch (a Dask task, or the whole run in process), the instances are drawn
+first and each solver then runs on all of them in turn (not interleaved with the others, which slowed every solver down).
 
 Solvers (:data:`SOLVERS`):
 
@@ -42,7 +47,7 @@ import csv
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -61,6 +66,9 @@ __all__ = [
     "BenchConfig",
     "BenchReport",
     "run_benchmark",
+    "BenchInterrupted",
+    "instance_seed",
+    "plan_tasks",
     "summarize",
     "format_table",
 ]
@@ -86,6 +94,8 @@ SUMMARY_COLUMNS = (
     "errors",
 )
 TRIAL_COLUMNS = (
+    "suite",
+    "instance_seed",
     "solver",
     "n",
     "outlier_ratio",
@@ -197,14 +207,18 @@ class BenchReport:
             }
         )
 
-    def write(self, out_dir: str | Path, *, plot: bool = False) -> list[Path]:
-        """Write ``summary.csv``, ``trials.csv`` and ``bench.json`` (and plots) to ``out_dir``."""
+    def write(
+        self, out_dir: str | Path, *, plot: bool = False, trials: bool = True
+    ) -> list[Path]:
+        """Write ``summary.csv``, ``trials.csv`` and ``bench.json`` (and plots) to ``out_dir``.
+
+        ``trials=False`` leaves ``trials.csv`` alone (a run that streamed its rows there).
+        """
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        written = [
-            _write_csv(out / "summary.csv", SUMMARY_COLUMNS, self.summary),
-            _write_csv(out / "trials.csv", TRIAL_COLUMNS, self.trials),
-        ]
+        written = [_write_csv(out / "summary.csv", SUMMARY_COLUMNS, self.summary)]
+        if trials:
+            written.append(_write_csv(out / "trials.csv", TRIAL_COLUMNS, self.trials))
         path = out / "bench.json"
         write_json(path, self.to_dict())  # strict JSON: NaN (e.g. no successes) -> null
         written.append(path)
@@ -336,12 +350,102 @@ def _seed_peers(seed: int) -> None:
 # --------------------------------------------------------------------------- running
 
 
+@dataclass(frozen=True)
+class _Task:
+    """One instance to draw on a worker from its seed, and the solvers still to run on it."""
+
+    n: int
+    ratio: float
+    trial: int
+    seed: int
+    solvers: tuple[str, ...]
+
+
+def instance_seed(seed: int, n: int, ratio: float, trial: int) -> int:
+    """Seed of one instance, from the run's seed and the instance's place in the grid.
+
+    Independent of the order instances are drawn in, so any worker can draw any instance, and
+    a resumed run draws the same ones. Non-negative and below ``2**63`` (a pandas ``int64``).
+    """
+    ss = np.random.SeedSequence([int(seed), int(n), round(float(ratio) * 1e9), int(trial)])
+    return int(ss.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
+
+
+def suite_name(shape_name: str) -> str:
+    """The ``suite`` column: the shape file's stem (``"synthetic"`` for the built-in one)."""
+    return "synthetic" if shape_name == "synthetic" else Path(shape_name).stem
+
+
+# Per process: solvers already warmed up, with the reason when one cannot run.
+_WARMED: dict[str, str | None] = {}
+
+
+def _ensure_warm(names: Sequence[str], shape: NDArray[np.float64], noise: float) -> dict[str, str]:
+    """Warm up the solvers not yet run in this process; the skipped ones with the reason."""
+    todo = [s for s in names if s not in _WARMED]
+    if todo:
+        skipped: dict[str, str] = {}
+        _warm_up(todo, shape, noise, skipped)
+        for s in todo:
+            _WARMED[s] = skipped.get(s)
+    return {s: why for s in names if (why := _WARMED[s]) is not None}
+
+
+def _iter_tasks(
+    tasks: Sequence[_Task], shape: NDArray[np.float64], noise: float, suite: str
+) -> Iterator[dict[str, Any]]:
+    """Rows of ``tasks``, drawing each instance from its seed; solver by solver.
+
+    One solver at a time over the instances: interleaving solvers measured slower certpose
+    times (cold caches, Open3D's OpenMP threads still spinning).
+    """
+    names = list(dict.fromkeys(s for t in tasks for s in t.solvers))
+    skipped = _ensure_warm(names, shape, noise)
+    insts = [make_instance(shape, t.n, t.ratio, noise=noise, rng=t.seed) for t in tasks]
+    for name in names:
+        if name in skipped:
+            continue
+        for task, inst in zip(tasks, insts, strict=True):
+            if name in task.solvers:
+                row = _run_one(name, inst, task.n, task.ratio, task.trial, seed=task.seed)
+                row["suite"] = suite
+                yield row
+
+
+def _run_batch(
+    tasks: Sequence[_Task], shape: NDArray[np.float64], noise: float, suite: str
+) -> tuple[list[dict[str, Any]], dict[str, str]]:
+    """A Dask task: the rows of ``tasks`` and the solvers this worker could not run."""
+    rows = list(_iter_tasks(tasks, shape, noise, suite))
+    names = list(dict.fromkeys(s for t in tasks for s in t.solvers))
+    return rows, {s: why for s in names if (why := _WARMED.get(s)) is not None}
+
+
+def plan_tasks(config: BenchConfig, done: set[tuple[str, int, str]], suite: str) -> list[_Task]:
+    """Instances of ``config``'s grid with the solvers whose rows are not in ``done``."""
+    tasks = []
+    for n in config.n_values:
+        for ratio in config.outlier_ratios:
+            for trial in range(config.trials):
+                seed = instance_seed(config.seed, n, ratio, trial)
+                todo = tuple(s for s in config.solvers if (suite, seed, s) not in done)
+                if todo:
+                    tasks.append(_Task(n, ratio, trial, seed, todo))
+    return tasks
+
+
 def run_benchmark(
     config: BenchConfig,
     *,
     shape: NDArray[np.float64] | None = None,
     shape_name: str = "synthetic",
     progress: bool = True,
+    out_dir: str | Path | None = None,
+    resume: bool = False,
+    force: bool = False,
+    workers: int | None = 0,
+    scheduler: str | None = None,
+    batch_size: int | None = None,
 ) -> BenchReport:
     """Run every solver of ``config`` on the same instances.
 
@@ -352,16 +456,34 @@ def run_benchmark(
     shape : (M, 3) ndarray, optional
         Shape points in the unit cube; default :func:`certpose.io.points.synthetic_shape`.
     shape_name : str, optional
-        Recorded in the report (e.g. the bunny's path).
+        Recorded in the report (e.g. the bunny's path); its stem is the rows' ``suite``.
     progress : bool, optional
         Show a tqdm progress bar on stderr.
+    out_dir : path, optional
+        Stream the rows to ``out_dir/trials.csv`` as they finish (checked before any work).
+    resume : bool, optional
+        Keep the rows of ``out_dir`` and run only the missing ones.
+    force : bool, optional
+        Overwrite a result set in ``out_dir`` (else :class:`FileExistsError`).
+    workers : int or None, optional
+        ``0``: run in this process. ``N > 0``: a Dask ``LocalCluster`` of ``N`` single-thread
+        worker processes; ``None``: one per CPU core. Ignored with ``scheduler``.
+    scheduler : str, optional
+        Address of a running Dask scheduler to send the work to.
+    batch_size : int, optional
+        Instances per Dask task (default: at most 25, at least 4 tasks per worker).
 
     Returns
     -------
     BenchReport
-        Per-trial records and per-(solver, N, ratio) aggregates. A solver that raises on an
-        instance is recorded as a failed trial with the error; a solver whose backend is
-        missing is listed in ``skipped``.
+        Per-trial records (all rows of ``out_dir`` when streaming) and per-(solver, N, ratio)
+        aggregates. A solver that raises on an instance is recorded as a failed trial with the
+        error; a solver whose backend is missing is listed in ``skipped``.
+
+    Raises
+    ------
+    BenchInterrupted
+        On Ctrl-C, after the finished rows are written.
     """
     tqdm = _bench_extra("tqdm", "certpose bench").tqdm
 
@@ -370,56 +492,159 @@ def run_benchmark(
 
         shape = synthetic_shape()
     shape = check_points(shape, "shape", min_points=3)
+    if workers is not None and workers < 0:
+        raise ValueError(f"`workers` must be >= 0 or None, got {workers}.")
+    suite = suite_name(shape_name)
+
+    writer = None
+    records: list[dict[str, Any]] = []
+    if out_dir is not None:
+        from certpose.bench.rows import open_rows
+
+        manifest = {"shape": shape_name, "noise": config.noise, "suite": suite}
+        writer, records = open_rows(out_dir, TRIAL_COLUMNS, manifest, resume=resume, force=force)
+    done = {(str(r["suite"]), int(r["instance_seed"]), str(r["solver"])) for r in records}
+    n_before = len(records)
+    tasks = plan_tasks(config, done, suite)
+    total = sum(len(t.solvers) for t in tasks)
 
     skipped: dict[str, str] = {}
-    solvers = list(config.solvers)
-    _warm_up(solvers, shape, config, skipped)
-    solvers = [s for s in solvers if s not in skipped]
+    written = 0
 
-    rng = np.random.default_rng(config.seed)
-    _seed_peers(config.seed)
-    grid = [(n, r) for n in config.n_values for r in config.outlier_ratios]
-    records: list[dict[str, Any]] = []
-    with tqdm(
-        total=len(grid) * config.trials * max(len(solvers), 1),
-        desc="certpose bench",
-        unit="solve",
-        disable=not progress,
-        leave=False,
-    ) as bar:
-        for n, ratio in grid:
-            cell = [
-                make_instance(shape, n, ratio, noise=config.noise, rng=rng)
-                for _ in range(config.trials)
-            ]
-            # One solver at a time over the cell's instances: interleaving solvers measured
-            # slower certpose times (cold caches, Open3D's OpenMP threads still spinning).
-            for name in solvers:
-                bar.set_postfix_str(f"N={n} outliers={ratio:g} {name}", refresh=False)
-                for trial, inst in enumerate(cell):
-                    records.append(_run_one(name, inst, n, ratio, trial))
+    def emit(row: dict[str, Any]) -> None:
+        nonlocal written
+        if writer is not None:
+            writer.write(row)
+        records.append(row)
+        written += 1
+
+    try:
+        with tqdm(total=total, desc="certpose bench", unit="solve", disable=not progress,
+                  leave=False) as bar:
+            if not tasks:
+                pass
+            elif scheduler is None and workers == 0:
+                skipped.update(_ensure_warm(config.solvers, shape, config.noise))
+                for row in _iter_tasks(tasks, shape, config.noise, suite):
+                    emit(row)
                     bar.update()
+            else:
+                _run_dask(tasks, shape, config.noise, suite, workers=workers,
+                          scheduler=scheduler, batch_size=batch_size, emit=emit, bar=bar,
+                          skipped=skipped)
+    except KeyboardInterrupt:
+        where = ""
+        if writer is not None:
+            # Count what is on disk: the interrupt may land between a row's write and `emit`'s
+            # bookkeeping.
+            from certpose.bench.rows import read_rows
+
+            writer.close()
+            written = len(read_rows(writer.path, TRIAL_COLUMNS)) - n_before
+            where = f" to {writer.path}"
+        raise BenchInterrupted(
+            f"interrupted: {written} new row(s) written{where}"
+            + ("; run again with --resume to finish." if writer is not None else ".")
+        ) from None
+    finally:
+        if writer is not None:
+            writer.close()
+    if skipped:
+        for name, why in skipped.items():
+            log.warning("skipping solver %s: %s", name, why)
+    order = {s: i for i, s in enumerate(config.solvers)}
+    records.sort(key=lambda r: (r["n"], r["outlier_ratio"], order.get(r["solver"], 99),
+                                r["trial"], r["suite"]))
     return BenchReport(config, shape_name, records, summarize(records), skipped)
 
 
+class BenchInterrupted(Exception):
+    """Ctrl-C during a run: the finished rows are on disk; the message says where."""
+
+
+def _run_dask(
+    tasks: Sequence[_Task],
+    shape: NDArray[np.float64],
+    noise: float,
+    suite: str,
+    *,
+    workers: int | None,
+    scheduler: str | None,
+    batch_size: int | None,
+    emit: Callable[[dict[str, Any]], None],
+    bar: Any,
+    skipped: dict[str, str],
+) -> None:
+    """Send batches of tasks to Dask and emit each row as its batch completes.
+
+    At most a few batches per worker are in flight, so the driver's memory does not grow with
+    the number of instances; a batch lost with its worker is retried by Dask elsewhere.
+    """
+    distributed = _bench_extra("distributed", "certpose bench on Dask")
+    import os
+
+    if scheduler is not None:
+        cluster = None
+        client = distributed.Client(scheduler)
+    else:
+        n_workers = workers or os.cpu_count() or 1
+        # One single-thread process per core: solvers hold the GIL; no dashboard, since
+        # other users' clusters may hold its port.
+        cluster = distributed.LocalCluster(
+            n_workers=n_workers, threads_per_worker=1, processes=True,
+            dashboard_address=None, silence_logs=logging.ERROR,
+        )
+        client = distributed.Client(cluster)
+    try:
+        n_slots = max(sum(client.nthreads().values()), 1)
+        size = batch_size or max(1, min(25, math.ceil(len(tasks) / (4 * n_slots))))
+        batches = (tasks[i : i + size] for i in range(0, len(tasks), size))
+        shape_f = client.scatter(shape, broadcast=True)
+
+        def submit(batch: Sequence[_Task]) -> Any:
+            return client.submit(_run_batch, list(batch), shape_f, noise, suite, pure=False,
+                                 retries=2)
+
+        window = 4 * n_slots
+        first = [submit(b) for _, b in zip(range(window), batches, strict=False)]
+        pending = distributed.as_completed(first)
+        for fut in pending:
+            rows, skip = fut.result()
+            fut.release()
+            skipped.update(skip)
+            for row in rows:
+                emit(row)
+                bar.update()
+            nxt = next(batches, None)
+            if nxt is not None:
+                pending.add(submit(nxt))
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
 def _warm_up(
-    solvers: Sequence[str], shape: NDArray[np.float64], config: BenchConfig, skipped: dict
+    solvers: Sequence[str], shape: NDArray[np.float64], noise: float, skipped: dict
 ) -> None:
     """Run each solver once on a throw-away instance (JIT compilation, lazy imports)."""
-    n = min(min(config.n_values), 50)
-    inst = make_instance(shape, n, 0.5, noise=config.noise, rng=np.random.default_rng(2**31 - 1))
+    inst = make_instance(shape, 50, 0.5, noise=noise, rng=np.random.default_rng(2**31 - 1))
     for name in solvers:
         try:
             SOLVERS[name](inst)
         except ImportError as exc:
             skipped[name] = f"cannot import its backend ({exc})"
-            log.warning("skipping solver %s: %s", name, skipped[name])
         except Exception as exc:  # reported per trial by the timed runs
             log.warning("warm-up of %s failed: %s", name, exc)
 
 
-def _run_one(name: str, inst: BenchInstance, n: int, ratio: float, trial: int) -> dict[str, Any]:
-    rec: dict[str, Any] = {"solver": name, "n": n, "outlier_ratio": ratio, "trial": trial}
+def _run_one(
+    name: str, inst: BenchInstance, n: int, ratio: float, trial: int, *, seed: int
+) -> dict[str, Any]:
+    rec: dict[str, Any] = {"instance_seed": seed, "solver": name, "n": n,
+                           "outlier_ratio": ratio, "trial": trial}
+    if name == "o3d-ransac":
+        _seed_peers(seed)  # per instance: the same sample whatever ran before on this worker
     t0 = time.perf_counter()
     try:
         out = SOLVERS[name](inst)

@@ -1,0 +1,205 @@
+"""The benchmark's row file: one CSV line per (instance, solver), appended as each row finishes.
+
+Every row is flushed and ``fsync``-ed before the next one is written, so a run killed at any
+moment leaves complete rows plus at most one truncated last line; :func:`open_rows` drops that
+line when a run is resumed. A row is keyed by ``(suite, instance_seed, solver)``.
+
+The file opens with :func:`pandas.read_csv` (``certified`` is empty when the solver gives no
+certificate).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+import os
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+__all__ = ["ROWS_FILE", "MANIFEST_FILE", "RowWriter", "read_rows", "open_rows", "row_key"]
+
+log = logging.getLogger(__name__)
+
+ROWS_FILE = "trials.csv"
+"""Name of the streamed row file inside the output folder."""
+MANIFEST_FILE = "run.json"
+"""What the rows were drawn with (shape, noise): a resumed run must match it."""
+RESULT_FILES = (ROWS_FILE, MANIFEST_FILE, "summary.csv", "bench.json", "bench.png", "tightness.png")
+"""Files of a result set; any of them present means the folder holds a previous run."""
+
+_INT = ("instance_seed", "n", "trial")
+_FLOAT = ("outlier_ratio", "rotation_error_deg", "translation_error", "time_ms",
+          "reported_time_ms", "relative_gap")
+
+
+def row_key(row: dict[str, Any]) -> tuple[str, int, str]:
+    """``(suite, instance_seed, solver)``: what identifies a row across runs."""
+    return (str(row["suite"]), int(row["instance_seed"]), str(row["solver"]))
+
+
+def _parse(row: dict[str, str]) -> dict[str, Any]:
+    out: dict[str, Any] = dict(row)
+    for k in _INT:
+        out[k] = int(row[k])
+    for k in _FLOAT:
+        out[k] = float(row[k])
+    out["success"] = row["success"] == "True"
+    out["certified"] = None if row["certified"] == "" else row["certified"] == "True"
+    return out
+
+
+def read_rows(path: str | os.PathLike[str], columns: Sequence[str]) -> list[dict[str, Any]]:
+    """Rows of a row file with their types, ignoring a truncated last line.
+
+    Raises
+    ------
+    ValueError
+        One line naming the file when it is not a row file with ``columns``.
+    """
+    p = Path(path)
+    text = p.read_text(encoding="utf-8")
+    complete = text[: text.rfind("\n") + 1]  # a killed run may leave half a line
+    reader = csv.DictReader(io.StringIO(complete))
+    if tuple(reader.fieldnames or ()) != tuple(columns):
+        raise ValueError(
+            f"'{p}' is not a certpose bench row file: expected the columns "
+            f"{', '.join(columns)}, got {', '.join(reader.fieldnames or ['nothing'])}."
+        )
+    rows = []
+    for lineno, row in enumerate(reader, start=2):
+        try:
+            rows.append(_parse(row))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"'{p}' line {lineno} is not a valid row: {exc}") from exc
+    return rows
+
+
+class RowWriter:
+    """Append rows to a CSV file, each flushed and fsync-ed as it is written."""
+
+    def __init__(self, path: Path, columns: Sequence[str], *, append: bool) -> None:
+        self.path = path
+        self.columns = tuple(columns)
+        self.count = 0
+        self._fh = path.open("a" if append else "w", newline="", encoding="utf-8")
+        self._csv = csv.DictWriter(self._fh, fieldnames=list(columns), extrasaction="ignore",
+                                   lineterminator="\n")
+        if not append:
+            self._csv.writeheader()
+            self._sync()
+
+    def write(self, row: dict[str, Any]) -> None:
+        self._csv.writerow({k: _cell(row.get(k)) for k in self.columns})
+        self._sync()
+        self.count += 1
+
+    def write_many(self, rows: Iterable[dict[str, Any]]) -> None:
+        for row in rows:
+            self.write(row)
+
+    def _sync(self) -> None:
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+
+    def close(self) -> None:
+        self._fh.close()
+
+    def __enter__(self) -> RowWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _cell(value: Any) -> Any:
+    if value is None:
+        return ""
+    if isinstance(value, str):
+        # One row per line, always: a truncated last line is then the only partial record.
+        return " ".join(value.splitlines())
+    if isinstance(value, float) and math.isnan(value):
+        return "nan"
+    return value
+
+
+def open_rows(
+    out_dir: str | os.PathLike[str],
+    columns: Sequence[str],
+    manifest: dict[str, Any],
+    *,
+    resume: bool = False,
+    force: bool = False,
+) -> tuple[RowWriter, list[dict[str, Any]]]:
+    """Open the row file of ``out_dir`` for a new or a resumed run, before any work.
+
+    Parameters
+    ----------
+    out_dir : path
+        Output folder; created if missing.
+    columns : sequence of str
+        The row file's columns.
+    manifest : dict
+        What the rows are drawn with; stored as ``run.json``, and compared on ``resume``.
+    resume : bool
+        Keep the rows already present (a truncated last line is dropped).
+    force : bool
+        Delete a previous result set in ``out_dir``.
+
+    Returns
+    -------
+    writer : RowWriter
+    done : list of dict
+        The rows already present (empty unless ``resume``).
+
+    Raises
+    ------
+    FileExistsError
+        ``out_dir`` holds a result set and neither ``resume`` nor ``force`` is given.
+    ValueError
+        ``resume`` and ``force`` together; a resumed folder drawn with another manifest.
+    """
+    if resume and force:
+        raise ValueError("--resume and --force exclude each other (keep the rows, or delete them).")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rows_path, manifest_path = out / ROWS_FILE, out / MANIFEST_FILE
+    existing = [name for name in RESULT_FILES if (out / name).exists()]
+    if existing and not (resume or force):
+        raise FileExistsError(
+            f"'{out}' already holds bench results ({', '.join(existing)}); pass --resume to "
+            "continue that run or --force to overwrite it."
+        )
+    if force:
+        for name in existing:
+            (out / name).unlink()
+        existing = []
+    manifest = json.loads(json.dumps(manifest))  # the form it is stored in
+    done: list[dict[str, Any]] = []
+    if resume and rows_path.exists():
+        if manifest_path.exists():
+            old = json.loads(manifest_path.read_text(encoding="utf-8"))
+            if old != manifest:
+                diff = sorted(k for k in set(old) | set(manifest) if old.get(k) != manifest.get(k))
+                raise ValueError(
+                    f"cannot resume '{out}': it was run with other {', '.join(diff)} "
+                    f"({', '.join(f'{k}={old.get(k)!r}' for k in diff)})."
+                )
+        text = rows_path.read_text(encoding="utf-8")
+        if "\n" in text:
+            done = read_rows(rows_path, columns)
+            cut = text.rfind("\n") + 1
+            if cut < len(text):
+                log.info("dropping a truncated last line of %s", rows_path)
+                with rows_path.open("r+", encoding="utf-8") as fh:
+                    fh.truncate(len(text[:cut].encode("utf-8")))
+            writer = RowWriter(rows_path, columns, append=True)
+        else:  # killed before the header was complete
+            writer = RowWriter(rows_path, columns, append=False)
+    else:
+        writer = RowWriter(rows_path, columns, append=False)
+    manifest_path.write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
+    return writer, done

@@ -1,0 +1,199 @@
+"""``certpose bench`` at scale: rows streamed to disk, resume after a kill, overwrite refusal,
+and the Dask path (a real ``distributed.LocalCluster``) giving the in-process rows."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from certpose.bench.rows import open_rows, read_rows
+from certpose.bench.runner import TRIAL_COLUMNS, BenchConfig, instance_seed, run_benchmark
+from certpose.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+# Wall-clock times differ from run to run; every other column is a function of the seeds.
+TIMES = ["time_ms", "reported_time_ms"]
+TINY = ["bench", "--n", "15", "--outlier-ratios", "0", "0.5", "--trials", "2", "--seed", "4",
+        "--solvers", "gnc", "gnc-only", "--no-progress"]
+
+
+def _rows(path: Path) -> pd.DataFrame:
+    """The row file without the timing columns, in a canonical order."""
+    df = pd.read_csv(path, keep_default_na=False, dtype=str).drop(columns=TIMES)
+    return df.sort_values(["suite", "instance_seed", "solver"]).reset_index(drop=True)
+
+
+def test_rows_stream_and_overwrite_needs_force(tmp_path, capsys):
+    out = tmp_path / "res"
+    assert main([*TINY, "--out", str(out), "--workers", "0"]) == 0
+    first = (out / "trials.csv").read_text()
+    df = pd.read_csv(out / "trials.csv")
+    assert list(df.columns) == list(TRIAL_COLUMNS)
+    assert len(df) == 2 * 2 * 2 and df.groupby(["suite", "instance_seed", "solver"]).ngroups == 8
+    capsys.readouterr()
+
+    # Another run into the same folder is refused, and the rows are untouched.
+    assert main([*TINY, "--seed", "5", "--out", str(out), "--workers", "0"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "already holds bench results" in err and "--force" in err and "\n" not in err
+    assert (out / "trials.csv").read_text() == first
+
+    assert main([*TINY, "--seed", "5", "--out", str(out), "--workers", "0", "--force"]) == 0
+    df5 = pd.read_csv(out / "trials.csv")
+    assert len(df5) == 8
+    assert set(df5["instance_seed"]).isdisjoint(set(df["instance_seed"]))
+    assert main([*TINY, "--out", str(out), "--force", "--resume"]) == 1
+    assert "exclude each other" in capsys.readouterr().err
+
+
+def test_output_folder_checked_before_any_work(tmp_path, capsys):
+    # Nothing listens on port 1: had the run started (Dask client, warm-up), the error would be
+    # about the connection, not about the folder.
+    nowhere = ["--scheduler", "tcp://127.0.0.1:1"]
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("not a folder")
+    assert main([*TINY, "--out", str(a_file), *nowhere]) == 1
+    assert "is not a directory" in capsys.readouterr().err
+
+    out = tmp_path / "res"
+    assert main([*TINY, "--out", str(out), "--workers", "0"]) == 0
+    capsys.readouterr()
+    assert main([*TINY, "--out", str(out), *nowhere]) == 1
+    assert "already holds bench results" in capsys.readouterr().err
+
+
+def test_resume_drops_a_truncated_last_line_and_refuses_other_noise(tmp_path):
+    config = BenchConfig(n_values=(12,), outlier_ratios=(0.25,), trials=3, seed=2,
+                         solvers=("gnc-only",))
+    out = tmp_path / "res"
+    full = run_benchmark(config, progress=False, out_dir=out)
+    path = out / "trials.csv"
+    lines = path.read_text().splitlines(keepends=True)
+    assert len(lines) == 4
+    # As if killed while writing the third row.
+    path.write_text("".join(lines[:3]) + lines[3][:25])
+    assert len(read_rows(path, TRIAL_COLUMNS)) == 2
+    resumed = run_benchmark(config, progress=False, out_dir=out, resume=True)
+    assert _rows(path).equals(_rows_of(full.trials, tmp_path))
+    assert len(resumed.trials) == 3 and path.read_text().count("\n") == 4
+
+    other = BenchConfig(n_values=(12,), outlier_ratios=(0.25,), trials=3, seed=2, noise=0.02,
+                        solvers=("gnc-only",))
+    with pytest.raises(ValueError, match="cannot resume .* noise"):
+        run_benchmark(other, progress=False, out_dir=out, resume=True)
+
+
+def test_open_rows_rejects_a_foreign_file(tmp_path):
+    (tmp_path / "trials.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(ValueError, match="not a certpose bench row file"):
+        open_rows(tmp_path, TRIAL_COLUMNS, {}, resume=True)
+
+
+def test_instance_seed_is_a_pure_function_of_the_grid_place():
+    assert instance_seed(0, 100, 0.5, 3) == instance_seed(0, 100, 0.5, 3)
+    seeds = {instance_seed(s, n, r, t) for s in (0, 1) for n in (100, 1000)
+             for r in (0.0, 0.5, 0.95) for t in range(50)}
+    assert len(seeds) == 2 * 2 * 3 * 50
+    assert all(0 <= x < 2**63 for x in seeds)
+
+
+def _rows_of(records, tmp_path) -> pd.DataFrame:
+    from certpose.bench.rows import RowWriter
+
+    path = tmp_path / "expected.csv"
+    with RowWriter(path, TRIAL_COLUMNS, append=False) as w:
+        w.write_many(records)
+    return _rows(path)
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "certpose", *args]
+
+
+def _env() -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": str(ROOT)}
+
+
+def _wait_for_rows(path: Path, count: int, proc: subprocess.Popen, timeout: float = 120) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if path.exists() and path.read_text().count("\n") > count:
+            return
+        assert proc.poll() is None, "the run ended before it could be interrupted"
+        time.sleep(0.05)
+    raise AssertionError(f"fewer than {count} rows after {timeout} s")
+
+
+GRID = ["bench", "--n", "40", "--outlier-ratios", "0", "0.6", "0.9", "--trials", "40",
+        "--seed", "11", "--solvers", "gnc", "gnc-only", "--no-progress"]
+
+
+@pytest.mark.slow  # two runs of 240 solves in subprocesses
+def test_sigkill_then_resume_gives_the_rows_of_an_uninterrupted_run(tmp_path):
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    subprocess.run(_cli(*GRID, "--workers", "0", "--out", str(whole)), env=_env(), check=True,
+                   capture_output=True)
+
+    proc = subprocess.Popen(_cli(*GRID, "--workers", "0", "--out", str(cut)), env=_env(),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    _wait_for_rows(cut / "trials.csv", 50, proc)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    n_cut = len(read_rows(cut / "trials.csv", TRIAL_COLUMNS))
+    assert 50 <= n_cut < 240
+
+    done = subprocess.run(_cli(*GRID, "--workers", "0", "--out", str(cut), "--resume"),
+                          env=_env(), capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    a, b = _rows(whole / "trials.csv"), _rows(cut / "trials.csv")
+    assert len(a) == 240 and a.equals(b)
+
+
+@pytest.mark.slow  # a subprocess run interrupted with Ctrl-C
+def test_ctrl_c_keeps_the_finished_rows_and_says_so_in_one_line(tmp_path):
+    out = tmp_path / "res"
+    proc = subprocess.Popen(_cli(*GRID, "--workers", "0", "--out", str(out)), env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait_for_rows(out / "trials.csv", 20, proc)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "interrupted" in lines[0] and "--resume" in lines[0], err
+    written = read_rows(out / "trials.csv", TRIAL_COLUMNS)
+    assert f"{len(written)} new row(s)" in lines[0]
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, processes=True, threads_per_worker=1,
+                                  dashboard_address=None) as cl:
+        yield cl
+
+
+@pytest.mark.slow  # starts a 2-process LocalCluster
+def test_dask_gives_the_rows_of_the_in_process_run(tmp_path, cluster):
+    config = BenchConfig(n_values=(20, 30), outlier_ratios=(0.0, 0.7), trials=3, seed=7,
+                         solvers=("gnc", "gnc-only"))
+    local = run_benchmark(config, progress=False, out_dir=tmp_path / "local", workers=0)
+    dask = run_benchmark(config, progress=False, out_dir=tmp_path / "dask",
+                         scheduler=cluster.scheduler_address, batch_size=2)
+    a, b = _rows(tmp_path / "local" / "trials.csv"), _rows(tmp_path / "dask" / "trials.csv")
+    assert len(a) == 2 * 2 * 3 * 2 and a.equals(b)
+    assert local.summary and len(dask.trials) == len(local.trials)
+
+    # Resuming on Dask after losing rows fills in exactly the missing ones.
+    path = tmp_path / "dask" / "trials.csv"
+    lines = path.read_text().splitlines(keepends=True)
+    path.write_text("".join(lines[:7]))
+    run_benchmark(config, progress=False, out_dir=tmp_path / "dask", resume=True,
+                  scheduler=cluster.scheduler_address, batch_size=2)
+    assert _rows(path).equals(a)
