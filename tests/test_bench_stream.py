@@ -197,3 +197,42 @@ def test_dask_gives_the_rows_of_the_in_process_run(tmp_path, cluster):
     run_benchmark(config, progress=False, out_dir=tmp_path / "dask", resume=True,
                   scheduler=cluster.scheduler_address, batch_size=2)
     assert _rows(path).equals(a)
+
+
+@pytest.mark.slow  # a LocalCluster run with one worker killed in the middle
+def test_a_killed_worker_loses_no_row(tmp_path, cluster):
+    import threading
+
+    from distributed import Client
+
+    config = BenchConfig(n_values=(40,), outlier_ratios=(0.0, 0.6, 0.9), trials=150, seed=3,
+                         solvers=("gnc-only",))
+    out = tmp_path / "res"
+    errors: list[BaseException] = []
+
+    def bench() -> None:
+        try:
+            run_benchmark(config, progress=False, out_dir=out,
+                          scheduler=cluster.scheduler_address, batch_size=5)
+        except BaseException as exc:  # re-raised in the test's thread
+            errors.append(exc)
+
+    thread = threading.Thread(target=bench)
+    thread.start()
+    path = out / "trials.csv"
+    deadline = time.monotonic() + 120
+    while not (path.exists() and path.read_text().count("\n") > 60):
+        assert thread.is_alive() and time.monotonic() < deadline, errors
+        time.sleep(0.02)
+    with Client(cluster.scheduler_address) as client:
+        pids = client.run(os.getpid)
+    victim = sorted(pids.values())[0]
+    os.kill(victim, signal.SIGKILL)
+    thread.join(timeout=180)
+    assert not thread.is_alive() and not errors, errors
+    with Client(cluster.scheduler_address) as client:
+        assert victim not in client.run(os.getpid).values()  # it did die (and was replaced)
+
+    expected = run_benchmark(config, progress=False, workers=0)
+    rows = _rows(path)
+    assert len(rows) == 450 and rows.equals(_rows_of(expected.trials, tmp_path))

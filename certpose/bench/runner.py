@@ -583,6 +583,10 @@ def _run_dask(
     distributed = _bench_extra("distributed", "certpose bench on Dask")
     import os
 
+    if not log.isEnabledFor(logging.DEBUG):
+        # Dask logs every cluster start and stop at INFO (set when it is imported).
+        logging.getLogger("distributed").setLevel(logging.WARNING)
+
     if scheduler is not None:
         cluster = None
         client = distributed.Client(scheduler)
@@ -595,6 +599,9 @@ def _run_dask(
             dashboard_address=None, silence_logs=logging.ERROR,
         )
         client = distributed.Client(cluster)
+        # Ctrl-C reaches the whole process group: the driver stops the cluster, the workers
+        # must not die first with tracebacks of their own.
+        client.run(_ignore_sigint)
     try:
         n_slots = max(sum(client.nthreads().values()), 1)
         size = batch_size or max(1, min(25, math.ceil(len(tasks) / (4 * n_slots))))
@@ -618,10 +625,20 @@ def _run_dask(
             nxt = next(batches, None)
             if nxt is not None:
                 pending.add(submit(nxt))
+    except KeyboardInterrupt:
+        # Workers busy in a solve are killed on close; that is expected, not worth a warning.
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        raise
     finally:
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _ignore_sigint() -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _warm_up(
