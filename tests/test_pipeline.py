@@ -150,3 +150,36 @@ def test_cli_ycbv_writes_json(tmp_path, capsys):
     assert data["certificate"] is None and data["certificate_message"] == "not requested"
     assert data["pose_is_certified"] is False and data["certified_pose"] is None
     assert "certificate: no certificate" in text and "CERTIFIED" not in text
+
+
+@pytest.mark.slow
+def test_cli_pose_demo_samples_writes_particles(tmp_path, capsys):  # type: ignore[no-untyped-def]
+    """`certpose pose --demo --samples N --particles OUT.npz`: N particles of T_camera_object."""
+    from certpose.cli import main
+    from certpose.sampling import PoseDistribution
+
+    out = tmp_path / "particles.npz"
+    js = tmp_path / "pose.json"
+    assert main(["pose", "--demo", "--samples", "500", "--particles", str(out),
+                 "--json", str(js)]) == 0
+    text = capsys.readouterr().out
+    assert "pose distribution: 500 particles" in text and "Pareto-k" in text
+    dist = PoseDistribution.load(out)
+    assert len(dist) == 500 and abs(dist.weights.sum() - 1) < 1e-9
+    import json
+
+    payload = json.loads(js.read_text())
+    T = np.asarray(payload["T_camera_object"])
+    # The particles are in the camera frame, around the returned pose (the mug spins about
+    # its axis, so compare positions).
+    assert np.median(np.linalg.norm(dist.translations - T[:3, 3], axis=1)) < 0.02
+    assert payload["sampling"]["particles"] == 500 and payload["sampling"]["ess"] > 0
+
+
+def test_cli_pose_particles_need_samples(tmp_path, capsys):  # type: ignore[no-untyped-def]
+    from certpose.cli import main
+
+    assert main(["pose", "--demo", "--particles", str(tmp_path / "p.npz")]) == 1
+    assert "--particles needs --samples" in capsys.readouterr().err
+    assert main(["pose", "--demo", "--samples", "10", "--particles",
+                 str(tmp_path / "missing" / "p.npz")]) == 1

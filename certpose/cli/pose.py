@@ -49,6 +49,11 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--no-certify", action="store_true", help="skip the eq. (2) certificate")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument("--json", metavar="OUT", default=None, help="also write the result as JSON")
+    smp = p.add_argument_group("pose distribution (importance sampler seeded by the MLE and eq. (2))")
+    smp.add_argument("--samples", type=int, default=0, metavar="N",
+                     help="sample the pose distribution and keep N resampled particles")
+    smp.add_argument("--particles", metavar="OUT.npz", default=None,
+                     help="write the particles (rotations, translations, weights; T_camera_object)")
     p.set_defaults(func=run)
 
 
@@ -68,11 +73,22 @@ def run(args: argparse.Namespace) -> int:
 
     if args.json is not None:
         check_output_path(args.json, what="--json output")
+    if args.samples < 0:
+        raise CLIError(f"--samples must be >= 0, got {args.samples}")
+    if args.particles is not None:
+        if args.samples == 0:
+            raise CLIError("--particles needs --samples N")
+        check_output_path(args.particles, what="--particles output")
     if not (math.isfinite(args.voxel_size) and args.voxel_size > 0):
         raise CLIError(f"--voxel-size must be positive, got {args.voxel_size}")
     params = PoseParams(voxel_size=args.voxel_size)
     if args.no_certify:
         params = replace(params, mle=replace(MLEParams(), certify=False))
+    if args.samples:
+        from certpose.sampling.sampler import ISParams
+
+        params = replace(params, sampler=ISParams(draws=max(10_000, args.samples),
+                                                  resample=args.samples))
     if args.demo:
         title = "synthetic mug scene (handle hidden behind an occluder)"
         result = run_demo(params=params, rng=args.seed)
@@ -131,6 +147,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"time: MLE {_fmt(t.get('mle'), 1, ' s')} (scene building "
           f"{_fmt(t.get('scene'), 1, ' s')}, object model {_fmt(t.get('object'), 1, ' s')})")
     print(f"details: {result.message}")
+    if result.distribution is not None:
+        _print_distribution(result, args)
     if args.json is not None:
         payload = {"input": {"demo": bool(args.demo), "ycbv": args.ycbv, "frame": args.frame,
                              "object": args.object, "model": args.model,
@@ -139,3 +157,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {write_json(args.json, payload)}")
     sys.stdout.flush()
     return 0 if result.success else 1
+
+
+def _print_distribution(result: object, args: argparse.Namespace) -> None:
+    dist, info = result.distribution, result.sampling  # type: ignore[attr-defined]
+    k = info.get("pareto_k")
+    print(f"pose distribution: {len(dist)} particles (T_camera_object), ESS of the weighted draws "
+          f"{info['ess']:.0f}, Pareto-k {_fmt(k, 1, '', 2)}, temperature {info['temperature']:.3g}, "
+          f"{info['evaluations']} eq. (1) evaluations in {info['seconds']:.2f} s; {info['message']}")
+    for j, m in enumerate(dist.modes()[:5]):
+        print(f"  mode {j}: mass {m.mass:.3f} ({m.num_particles} particles), translation "
+              f"[{', '.join(f'{v:.4f}' for v in m.translation)}] m")
+    if args.particles is not None:
+        dist.save(args.particles)
+        print(f"wrote {args.particles}")

@@ -75,6 +75,11 @@ class PoseParams:
     roi_margin : float or None
         :func:`run_ycbv` / :func:`run_demo` build the scene field in the box of the object's
         mask grown by this many metres (``None``: the whole frame, which is slower).
+    sampler : ISParams or None
+        When given, the pose distribution is sampled after the MLE
+        (:func:`certpose.sampling.sample_pose_distribution`, seeded by the MLE, the eq. (2)
+        solution, the refined hypotheses and the modes) and returned in
+        ``PoseResult.distribution``.
     """
 
     voxel_size: float = 0.005
@@ -82,6 +87,7 @@ class PoseParams:
     likelihood: Any = _default("certpose.model.likelihood.LikelihoodParams")
     mle: Any = _default("certpose.estimation.mle.MLEParams")
     roi_margin: float | None = 0.1
+    sampler: Any = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.voxel_size) and self.voxel_size > 0):
@@ -216,6 +222,8 @@ class PoseResult:
     certificate_scope: str = ""
     pose_is_certified: bool = False
     modes: tuple[dict[str, Any], ...] = ()
+    distribution: Any = field(default=None, repr=False)
+    sampling: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary."""
@@ -237,6 +245,7 @@ class PoseResult:
             "success": self.success,
             "status": self.status,
             "message": self.message,
+            "sampling": dict(self.sampling) or None,
         }
 
 
@@ -348,10 +357,39 @@ def estimate_pose(
             d["errors"] = pose_errors(Tm, T_camera_object_gt, pts,
                                       symmetry_axis=symmetry_axis).to_dict()
         modes.append(d)
+    distribution, sampling = None, {}
+    if params.sampler is not None:
+        t = time.perf_counter()
+        distribution, sampling = _sample(scene, cls, object_model, mle, T_cw, params, gen)
+        timings["sampling"] = time.perf_counter() - t
     return PoseResult(T, mle.log_likelihood, mle.certificate, cert_msg, mle.hypothesis,
                       mle.eq2_log_likelihood, mle.eq2_refined_log_likelihood, timings, errors,
                       mle.success, mle.status.value, msg, mle, mle.certificate_scope(),
-                      mle.pose_is_certified, tuple(modes))
+                      mle.pose_is_certified, tuple(modes), distribution, sampling)
+
+
+def _sample(scene: Any, cls: Any, object_model: Any, mle: Any, T_cw: NDArray[np.float64],
+            params: PoseParams, gen: np.random.Generator) -> tuple[Any, dict[str, Any]]:
+    """The pose distribution, particles as ``T_camera_object``, and a summary of the run."""
+    from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
+    from certpose.sampling import PoseDistribution
+    from certpose.sampling.sampler import sample_pose_distribution, seeds_from_mle
+
+    lik = PoseLikelihood(scene, cls, object_model, params=params.likelihood or LikelihoodParams())
+    res = sample_pose_distribution(lik, seeds_from_mle(mle), params=params.sampler, rng=gen)
+    d = res.distribution
+    R = np.einsum("ij,njk->nik", T_cw[:3, :3], d.rotations)
+    t = d.translations @ T_cw[:3, :3].T + T_cw[:3, 3]
+    dist = PoseDistribution(R, t, d.weights, log_weights=d.log_weights)
+    info = {"particles": len(dist), "ess": float(res.weighted.ess),
+            "ess_per_round": list(res.ess_per_round), "temperature": float(res.temperature),
+            "evaluations": int(res.num_evaluations), "seconds": float(res.seconds),
+            "status": res.status, "message": res.message}
+    try:
+        info["pareto_k"] = float(res.weighted.pareto_k())
+    except ValueError:
+        info["pareto_k"] = None
+    return dist, info
 
 
 def _scene_for(frame: RGBDFrame, mask: NDArray[np.bool_], params: PoseParams, backbone: Any) -> Any:
