@@ -511,12 +511,12 @@ def run_benchmark(
     skipped: dict[str, str] = {}
     written = 0
 
-    def emit(row: dict[str, Any]) -> None:
+    def emit(rows: list[dict[str, Any]]) -> None:
         nonlocal written
         if writer is not None:
-            writer.write(row)
-        records.append(row)
-        written += 1
+            writer.write_many(rows)  # on disk (fsync) before the next row or batch is run
+        records.extend(rows)
+        written += len(rows)
 
     try:
         with tqdm(total=total, desc="certpose bench", unit="solve", disable=not progress,
@@ -526,7 +526,7 @@ def run_benchmark(
             elif scheduler is None and workers == 0:
                 skipped.update(_ensure_warm(config.solvers, shape, config.noise))
                 for row in _iter_tasks(tasks, shape, config.noise, suite):
-                    emit(row)
+                    emit([row])
                     bar.update()
             else:
                 _run_dask(tasks, shape, config.noise, suite, workers=workers,
@@ -571,7 +571,7 @@ def _run_dask(
     workers: int | None,
     scheduler: str | None,
     batch_size: int | None,
-    emit: Callable[[dict[str, Any]], None],
+    emit: Callable[[list[dict[str, Any]]], None],
     bar: Any,
     skipped: dict[str, str],
 ) -> None:
@@ -619,9 +619,8 @@ def _run_dask(
             rows, skip = fut.result()
             fut.release()
             skipped.update(skip)
-            for row in rows:
-                emit(row)
-                bar.update()
+            emit(rows)
+            bar.update(len(rows))
             nxt = next(batches, None)
             if nxt is not None:
                 pending.add(submit(nxt))
