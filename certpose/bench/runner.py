@@ -659,7 +659,7 @@ def _run_one(
 ) -> dict[str, Any]:
     rec: dict[str, Any] = {"instance_seed": seed, "solver": name, "n": n,
                            "outlier_ratio": ratio, "trial": trial}
-    if name == "o3d-ransac":
+    if name.startswith("o3d-"):
         _seed_peers(seed)  # per instance: the same sample whatever ran before on this worker
     t0 = time.perf_counter()
     try:
