@@ -159,7 +159,9 @@ def test_sigkill_then_resume_gives_the_rows_of_an_uninterrupted_run(tmp_path):
 @pytest.mark.slow  # a subprocess run interrupted with Ctrl-C
 def test_ctrl_c_keeps_the_finished_rows_and_says_so_in_one_line(tmp_path):
     out = tmp_path / "res"
-    proc = subprocess.Popen(_cli(*GRID, "--workers", "0", "--out", str(out)), env=_env(),
+    # A grid long enough (12,000 solves) that the run cannot finish before the signal lands.
+    grid = [a if a != "40" or i != GRID.index("--trials") + 1 else "2000" for i, a in enumerate(GRID)]
+    proc = subprocess.Popen(_cli(*grid, "--workers", "0", "--out", str(out)), env=_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     _wait_for_rows(out / "trials.csv", 20, proc)
     proc.send_signal(signal.SIGINT)
