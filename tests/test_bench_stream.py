@@ -161,8 +161,11 @@ def test_ctrl_c_keeps_the_finished_rows_and_says_so_in_one_line(tmp_path):
     out = tmp_path / "res"
     # A grid long enough (12,000 solves) that the run cannot finish before the signal lands.
     grid = [a if a != "40" or i != GRID.index("--trials") + 1 else "2000" for i, a in enumerate(GRID)]
+    # SIGINT back to its default in the child: a test run started in the background (SIGINT
+    # ignored) would otherwise pass the ignore on, and Python would never see the Ctrl-C.
     proc = subprocess.Popen(_cli(*grid, "--workers", "0", "--out", str(out)), env=_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     _wait_for_rows(out / "trials.csv", 20, proc)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
