@@ -5,6 +5,7 @@ May import :mod:`certpose.model`, :mod:`certpose.estimation` and :mod:`solvers`'
 never the CLI or the bench.
 """
 
+from certpose.sampling.baselines import DEParams, MCMCParams, SamplerResult, de_sample, mcmc_sample
 from certpose.sampling.distribution import PoseDistribution, PoseMode
 from certpose.sampling.sampler import (
     ISParams,
@@ -14,5 +15,6 @@ from certpose.sampling.sampler import (
     sample_pose_distribution,
 )
 
-__all__ = ["ISParams", "ISResult", "PoseDistribution", "PoseMode", "TangentMixture", "importance_sample",
+__all__ = ["DEParams", "ISParams", "ISResult", "MCMCParams", "PoseDistribution", "PoseMode",
+           "SamplerResult", "TangentMixture", "de_sample", "importance_sample", "mcmc_sample",
            "sample_pose_distribution"]
