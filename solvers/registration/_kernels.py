@@ -41,7 +41,9 @@ def gnc_tls(a, b, prior_w, inv_beta2, cbar2, max_iter, mu_factor, cost_tol):  # 
     Returns (R, t, gnc_weights, iterations, converged, ok).
     """
     n = a.shape[0]
-    w = prior_w.copy()
+    w = np.empty(n)
+    for k in range(n):
+        w[k] = prior_w[k]
     R, t, ok = procrustes(a, b, w)
     if not ok:
         return R, t, w, 0, False, False
@@ -50,7 +52,9 @@ def gnc_tls(a, b, prior_w, inv_beta2, cbar2, max_iter, mu_factor, cost_tol):  # 
     for k in range(n):
         if prior_w[k] > 0.0 and r2[k] > r2max:
             r2max = r2[k]
-    gw = np.ones(n)
+    gw = np.empty(n)
+    for k in range(n):
+        gw[k] = 1.0
     if 2.0 * r2max <= cbar2:
         # Every residual is already inside the truncation: least squares is the TLS optimum.
         return R, t, gw, 1, True, True
