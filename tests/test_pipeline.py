@@ -163,7 +163,7 @@ def test_cli_pose_demo_samples_writes_particles(tmp_path, capsys):  # type: igno
     assert main(["pose", "--demo", "--samples", "500", "--particles", str(out),
                  "--json", str(js)]) == 0
     text = capsys.readouterr().out
-    assert "pose distribution: 500 particles" in text and "Pareto-k" in text
+    assert "pose distribution (importance sampler): 500 particles" in text and "Pareto-k" in text
     dist = PoseDistribution.load(out)
     assert len(dist) == 500 and abs(dist.weights.sum() - 1) < 1e-9
     import json
@@ -174,6 +174,39 @@ def test_cli_pose_demo_samples_writes_particles(tmp_path, capsys):  # type: igno
     # its axis, so compare positions).
     assert np.median(np.linalg.norm(dist.translations - T[:3, 3], axis=1)) < 0.02
     assert payload["sampling"]["particles"] == 500 and payload["sampling"]["ess"] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method, label", [("de", "Nevergrad TwoPointsDE, population weighted"), ("mcmc", "random-walk Metropolis")])
+def test_cli_pose_demo_baseline_and_plot(tmp_path, capsys, method, label):  # type: ignore[no-untyped-def]
+    """`certpose pose --demo --samples N --method de|mcmc --plot OUT.png` on the same target."""
+    import struct
+
+    from certpose.cli import main
+    from certpose.sampling import PoseDistribution
+
+    out, png = tmp_path / "p.npz", tmp_path / "m.png"
+    assert main(["pose", "--demo", "--samples", "300", "--method", method, "--particles", str(out),
+                 "--plot", str(png)]) == 0
+    text = capsys.readouterr().out
+    assert f"pose distribution ({label}): 300 particles" in text and "mode 0: mass" in text, text
+    # The same evaluation budget as the importance sampler's default (10,000 + 5 x 2,500).
+    assert "22500 eq. (1) evaluations" in text or method == "mcmc"
+    assert len(PoseDistribution.load(out)) == 300
+    data = png.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and struct.unpack(">II", data[16:24]) == (1200, 600)
+
+
+def test_cli_pose_plot_and_method_need_samples(tmp_path, capsys):  # type: ignore[no-untyped-def]
+    from certpose.cli import main
+
+    assert main(["pose", "--demo", "--plot", str(tmp_path / "m.png")]) == 1
+    assert "--plot needs --samples" in capsys.readouterr().err
+    assert main(["pose", "--demo", "--method", "de"]) == 1
+    assert "--method needs --samples" in capsys.readouterr().err
+    assert main(["pose", "--demo", "--samples", "10", "--plot",
+                 str(tmp_path / "missing" / "m.png")]) == 1
+    assert "missing" in capsys.readouterr().err
 
 
 def test_cli_pose_particles_need_samples(tmp_path, capsys):  # type: ignore[no-untyped-def]

@@ -20,6 +20,8 @@ examples:
   certpose pose --demo
   certpose pose --ycbv ../shared/data/ycbv --frame 0000/000001 --object 025_mug \\
       --model ../shared/data/ycbv/models/025_mug/points.xyz --json pose.json
+  certpose pose --demo --samples 10000 --particles mug.npz --plot mug.png
+  certpose pose --demo --samples 10000 --method de --plot mug_de.png   # the paper's sampler
 """
 
 
@@ -54,6 +56,14 @@ def add_parser(subparsers: Any) -> None:
                      help="sample the pose distribution and keep N resampled particles")
     smp.add_argument("--particles", metavar="OUT.npz", default=None,
                      help="write the particles (rotations, translations, weights; T_camera_object)")
+    smp.add_argument("--plot", metavar="OUT.png", default=None,
+                     help="plot the marginals (roll, pitch, yaw, x, y, z and, for a mug, the "
+                          "rotation about its axis; the ground truth when known)")
+    smp.add_argument("--method", choices=("is", "de", "mcmc"), default="is",
+                     help="is: the importance sampler (default); de: Nevergrad TwoPointsDE with "
+                          "its population weighted (the paper's sampler); mcmc: random-walk "
+                          "Metropolis on SE(3). The baselines get the same target and number of "
+                          "eq. (1) evaluations")
     p.set_defaults(func=run)
 
 
@@ -79,6 +89,12 @@ def run(args: argparse.Namespace) -> int:
         if args.samples == 0:
             raise CLIError("--particles needs --samples N")
         check_output_path(args.particles, what="--particles output")
+    if args.plot is not None:
+        if args.samples == 0:
+            raise CLIError("--plot needs --samples N")
+        check_output_path(args.plot, what="--plot output")
+    if args.method != "is" and args.samples == 0:
+        raise CLIError("--method needs --samples N")
     if not (math.isfinite(args.voxel_size) and args.voxel_size > 0):
         raise CLIError(f"--voxel-size must be positive, got {args.voxel_size}")
     params = PoseParams(voxel_size=args.voxel_size)
@@ -88,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
         from certpose.sampling.sampler import ISParams
 
         params = replace(params, sampler=ISParams(draws=max(10_000, args.samples),
-                                                  resample=args.samples))
+                                                  resample=args.samples),
+                         sampling_method=args.method)
     if args.demo:
         title = "synthetic mug scene (handle hidden behind an occluder)"
         result = run_demo(params=params, rng=args.seed)
@@ -162,7 +179,10 @@ def run(args: argparse.Namespace) -> int:
 def _print_distribution(result: object, args: argparse.Namespace) -> None:
     dist, info = result.distribution, result.sampling  # type: ignore[attr-defined]
     k = info.get("pareto_k")
-    print(f"pose distribution: {len(dist)} particles (T_camera_object), ESS of the weighted draws "
+    method = {"is": "importance sampler", "de": "Nevergrad TwoPointsDE, population weighted",
+              "mcmc": "random-walk Metropolis"}[info.get("method", "is")]
+    ess_kind = "bulk ESS of the chains" if info.get("method") == "mcmc" else "ESS of the weighted draws"
+    print(f"pose distribution ({method}): {len(dist)} particles (T_camera_object), {ess_kind} "
           f"{info['ess']:.0f}, Pareto-k {_fmt(k, 1, '', 2)}, temperature {info['temperature']:.3g}, "
           f"{info['evaluations']} eq. (1) evaluations in {info['seconds']:.2f} s; {info['message']}")
     for j, m in enumerate(dist.modes()[:5]):
@@ -171,3 +191,18 @@ def _print_distribution(result: object, args: argparse.Namespace) -> None:
     if args.particles is not None:
         dist.save(args.particles)
         print(f"wrote {args.particles}")
+    if args.plot is not None:
+        from certpose.estimation.pipeline import YCBV_SYMMETRY_AXES
+        from certpose.sampling.plots import plot_marginals
+
+        axis = (0.0, 0.0, 1.0) if args.demo else YCBV_SYMMETRY_AXES.get(args.object)
+        gt = result.T_camera_object_gt  # type: ignore[attr-defined]
+        title = (f"{'demo mug' if args.demo else f'{args.frame} {args.object}'}: {method}, "
+                 f"{len(dist)} particles" + ("" if gt is None else ", ground truth in red"))
+        plot_marginals(dist, args.plot, axis=axis, T_gt=gt,
+                       T_ref=gt if gt is not None else result.T_camera_object,  # type: ignore[attr-defined]
+                       title=title, notes=[f"{ess_kind.split(' of')[0]}: {info['ess']:.0f}",
+                                           f"Pareto-k: {_fmt(k, 1, '', 2)}",
+                                           f"temperature: {info['temperature']:.3g}",
+                                           f"time: {info['seconds']:.2f} s"])
+        print(f"wrote {args.plot}")

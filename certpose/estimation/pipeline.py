@@ -80,6 +80,12 @@ class PoseParams:
         (:func:`certpose.sampling.sample_pose_distribution`, seeded by the MLE, the eq. (2)
         solution, the refined hypotheses and the modes) and returned in
         ``PoseResult.distribution``.
+    sampling_method : {"is", "de", "mcmc"}
+        ``"is"``: the importance sampler. ``"de"`` / ``"mcmc"``: the baselines of
+        :mod:`certpose.sampling.baselines` on the same target (temperature of ``sampler``, or its
+        default rule) with the evaluation budget the importance sampler would use
+        (``draws + (rounds - 1) * pilot draws``); DE searches around the MLE with the seeds
+        suggested first, the MCMC chains start at the seeds.
     """
 
     voxel_size: float = 0.005
@@ -88,8 +94,11 @@ class PoseParams:
     mle: Any = _default("certpose.estimation.mle.MLEParams")
     roi_margin: float | None = 0.1
     sampler: Any = None
+    sampling_method: str = "is"
 
     def __post_init__(self) -> None:
+        if self.sampling_method not in ("is", "de", "mcmc"):
+            raise ValueError(f"`sampling_method` must be 'is', 'de' or 'mcmc', got {self.sampling_method!r}.")
         if not (math.isfinite(self.voxel_size) and self.voxel_size > 0):
             raise ValueError(f"`voxel_size` must be positive, got {self.voxel_size}.")
         if self.roi_margin is not None and not self.roi_margin >= 0:
@@ -224,6 +233,7 @@ class PoseResult:
     modes: tuple[dict[str, Any], ...] = ()
     distribution: Any = field(default=None, repr=False)
     sampling: dict[str, Any] = field(default_factory=dict)
+    T_camera_object_gt: Any = field(default=None, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary."""
@@ -365,7 +375,8 @@ def estimate_pose(
     return PoseResult(T, mle.log_likelihood, mle.certificate, cert_msg, mle.hypothesis,
                       mle.eq2_log_likelihood, mle.eq2_refined_log_likelihood, timings, errors,
                       mle.success, mle.status.value, msg, mle, mle.certificate_scope(),
-                      mle.pose_is_certified, tuple(modes), distribution, sampling)
+                      mle.pose_is_certified, tuple(modes), distribution, sampling,
+                      None if T_camera_object_gt is None else np.asarray(T_camera_object_gt, dtype=np.float64))
 
 
 def _sample(scene: Any, cls: Any, object_model: Any, mle: Any, T_cw: NDArray[np.float64],
@@ -376,17 +387,41 @@ def _sample(scene: Any, cls: Any, object_model: Any, mle: Any, T_cw: NDArray[np.
     from certpose.sampling.sampler import sample_pose_distribution, seeds_from_mle
 
     lik = PoseLikelihood(scene, cls, object_model, params=params.likelihood or LikelihoodParams())
-    res = sample_pose_distribution(lik, seeds_from_mle(mle), params=params.sampler, rng=gen)
+    seeds = seeds_from_mle(mle)
+    sp = params.sampler
+    if params.sampling_method == "is":
+        res = sample_pose_distribution(lik, seeds, params=sp, rng=gen)
+        ess, weighted = float(res.weighted.ess), res.weighted
+        extra: dict[str, Any] = {"ess_per_round": list(res.ess_per_round)}
+    else:
+        from certpose.sampling.baselines import DEParams, MCMCParams, de_sample, mcmc_sample
+        from certpose.sampling.chart import to_chart
+        from certpose.sampling.sampler import default_temperature
+
+        temp = sp.temperature if sp.temperature is not None else default_temperature(
+            lik, seeds[0], scale=sp.temperature_scale, correlation_voxels=sp.correlation_voxels)
+        pilot = int(sp.pilot_draws) or max(int(sp.draws) // 4, 500)
+        budget = int(sp.draws) + (int(sp.rounds) - 1) * pilot
+        if params.sampling_method == "de":
+            res = de_sample(lik.log_likelihood, seeds[0], rng=gen,
+                            params=DEParams(max_evaluations=budget, temperature=temp,
+                                            resample=int(sp.resample), progress=sp.progress),
+                            init=to_chart(seeds[:, :3, :3], seeds[:, :3, 3], seeds[0]))
+        else:
+            res = mcmc_sample(lik.log_likelihood, seeds, rng=gen,
+                              params=MCMCParams(max_evaluations=budget, temperature=temp,
+                                                resample=int(sp.resample), progress=sp.progress))
+        ess, weighted = float(res.ess), res.weighted
+        extra = {k: v for k, v in res.info.items() if np.isscalar(v)}
     d = res.distribution
     R = np.einsum("ij,njk->nik", T_cw[:3, :3], d.rotations)
     t = d.translations @ T_cw[:3, :3].T + T_cw[:3, 3]
     dist = PoseDistribution(R, t, d.weights, log_weights=d.log_weights)
-    info = {"particles": len(dist), "ess": float(res.weighted.ess),
-            "ess_per_round": list(res.ess_per_round), "temperature": float(res.temperature),
-            "evaluations": int(res.num_evaluations), "seconds": float(res.seconds),
-            "status": res.status, "message": res.message}
+    info = {"method": params.sampling_method, "particles": len(dist), "ess": ess,
+            "temperature": float(res.temperature), "evaluations": int(res.num_evaluations),
+            "seconds": float(res.seconds), "status": res.status, "message": res.message, **extra}
     try:
-        info["pareto_k"] = float(res.weighted.pareto_k())
+        info["pareto_k"] = float(weighted.pareto_k())
     except ValueError:
         info["pareto_k"] = None
     return dist, info
