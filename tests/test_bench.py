@@ -117,14 +117,14 @@ def test_bench_cli_tiny_grid_all_peers(tmp_path, capsys):
     assert data["config"]["n_values"] == [20, 30]
     assert data["config"]["solvers"] == PEERS
     assert data["noise_bound"] == pytest.approx(0.0554)
-    assert len(data["trials"]) == len(trials) and len(data["summary"]) == len(summary)
+    assert len(data["summary"]) == len(summary) and "trials" not in data  # rows: trials.csv
     assert data["skipped"] == {}
 
     import imageio.v3 as iio
 
     img = iio.imread(out / "bench.png")
     assert img.ndim == 3 and img.shape[0] > 100
-    assert not (out / "tightness.png").exists()  # no certificates requested
+    assert not (out / "certificates.png").exists()  # no certificates requested
 
 
 def test_bench_bunny_option(tmp_path, capsys):
@@ -152,14 +152,16 @@ def test_bench_certified_solver(tmp_path):
     assert trial["certified"] is True, trial
     assert 0.0 <= trial["relative_gap"] <= 1e-3
     assert row["certified_fraction"] == 1.0
+    assert trial["cert_problem"] == "full_weighted_tls"
+    assert trial["lower_bound"] <= trial["upper_bound"]
     written = report.write(tmp_path, plot=True)
-    assert tmp_path / "tightness.png" in written
+    assert tmp_path / "certificates.png" in written and tmp_path / "report.md" in written
 
 
 def test_bench_cli_errors(capsys):
-    assert main(["bench", "--plot", "--no-progress"]) == 1
+    assert main(["bench", "--plot", "--no-progress"]) == 2
     assert "--plot needs --out" in capsys.readouterr().err
-    assert main(["bench", "--outlier-ratios", "1.5", "--no-progress"]) == 1
+    assert main(["bench", "--outlier-ratios", "1.5", "--no-progress"]) == 2
     assert "outlier_ratios" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # argparse rejects unknown solver names
         main(["bench", "--solvers", "teaser"])

@@ -27,7 +27,7 @@ TINY = ["bench", "--n", "15", "--outlier-ratios", "0", "0.5", "--trials", "2", "
 def _rows(path: Path) -> pd.DataFrame:
     """The row file without the timing columns, in a canonical order."""
     df = pd.read_csv(path, keep_default_na=False, dtype=str).drop(columns=TIMES)
-    return df.sort_values(["suite", "instance_seed", "solver"]).reset_index(drop=True)
+    return df.sort_values(["suite", "instance", "solver"]).reset_index(drop=True)
 
 
 def test_rows_stream_and_overwrite_needs_force(tmp_path, capsys):
@@ -36,11 +36,11 @@ def test_rows_stream_and_overwrite_needs_force(tmp_path, capsys):
     first = (out / "trials.csv").read_text()
     df = pd.read_csv(out / "trials.csv")
     assert list(df.columns) == list(TRIAL_COLUMNS)
-    assert len(df) == 2 * 2 * 2 and df.groupby(["suite", "instance_seed", "solver"]).ngroups == 8
+    assert len(df) == 2 * 2 * 2 and df.groupby(["suite", "instance", "solver"]).ngroups == 8
     capsys.readouterr()
 
     # Another run into the same folder is refused, and the rows are untouched.
-    assert main([*TINY, "--seed", "5", "--out", str(out), "--workers", "0"]) == 1
+    assert main([*TINY, "--seed", "5", "--out", str(out), "--workers", "0"]) == 2
     err = capsys.readouterr().err.strip()
     assert "already holds bench results" in err and "--force" in err and "\n" not in err
     assert (out / "trials.csv").read_text() == first
@@ -49,7 +49,7 @@ def test_rows_stream_and_overwrite_needs_force(tmp_path, capsys):
     df5 = pd.read_csv(out / "trials.csv")
     assert len(df5) == 8
     assert set(df5["instance_seed"]).isdisjoint(set(df["instance_seed"]))
-    assert main([*TINY, "--out", str(out), "--force", "--resume"]) == 1
+    assert main([*TINY, "--out", str(out), "--force", "--resume"]) == 2
     assert "exclude each other" in capsys.readouterr().err
 
 
@@ -59,13 +59,13 @@ def test_output_folder_checked_before_any_work(tmp_path, capsys):
     nowhere = ["--scheduler", "tcp://127.0.0.1:1"]
     a_file = tmp_path / "file.txt"
     a_file.write_text("not a folder")
-    assert main([*TINY, "--out", str(a_file), *nowhere]) == 1
+    assert main([*TINY, "--out", str(a_file), *nowhere]) == 2
     assert "is not a directory" in capsys.readouterr().err
 
     out = tmp_path / "res"
     assert main([*TINY, "--out", str(out), "--workers", "0"]) == 0
     capsys.readouterr()
-    assert main([*TINY, "--out", str(out), *nowhere]) == 1
+    assert main([*TINY, "--out", str(out), *nowhere]) == 2
     assert "already holds bench results" in capsys.readouterr().err
 
 

@@ -180,7 +180,7 @@ def test_register_malformed_subprocess(tmp_path):
          str(tmp_path / "garbage.csv"), "--noise-bound", "0.1"],
         capture_output=True, text=True, timeout=300,
     )
-    assert proc.returncode == 1
+    assert proc.returncode == 2  # bad input
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "garbage.csv" in lines[0], proc.stderr
 
@@ -204,6 +204,6 @@ def test_register_demo_certificate_options(tmp_path, capsys):  # type: ignore[no
 
 
 def test_register_bad_certificate_options(capsys):  # type: ignore[no-untyped-def]
-    assert main(["register", "--demo", "--certify", "--time-limit", "-1"]) == 1
+    assert main(["register", "--demo", "--certify", "--time-limit", "-1"]) == 2
     err = capsys.readouterr().err
     assert "time_limit" in err and "Traceback" not in err

@@ -1,23 +1,27 @@
 """Registration benchmark: certpose's solvers and peers side by side on the same instances.
 
-Protocol (NOTES.md section 3): ``N`` points sampled from a shape scaled into the unit cube, a
-random rotation, a translation in the unit ball, isotropic Gaussian noise ``sigma`` on the
-inliers, outliers replacing target points with points drawn uniformly in a ball of radius 5,
-noise bound ``beta = 5.54 sigma``. A trial succeeds when the rotation error is below 5 degrees
-and the translation error below 0.05.
+Instances come from suites (:mod:`certpose.bench.suites`): the protocol of NOTES.md section 3
+on the built-in shape or the Stanford bunny (``N`` points in the unit cube, a random pose,
+Gaussian noise ``sigma`` on the inliers, outliers uniform in a ball of radius 5, noise bound
+``beta = 5.54 sigma``; success: rotation error < 5 deg and translation error < 0.05), the real
+3DMatch pair with FPFH correspondences, eq. (2) problems of the pose model, and any folder of
+problem files.
 
-Every solver sees exactly the same instances. Each instance is drawn from its own seed
-(:func:`instance_seed`: the run's seed and the instance's place in the grid), in whichever
-process runs it: in this process (``workers=0``) or on Dask workers (a ``LocalCluster`` or a
-running scheduler), which receive seeds, not arrays. Rows, one per (instance, solver) and keyed
-by ``(suite, instance_seed, solver)``, are streamed to ``trials.csv`` as they finish
-(:mod:`certpose.bench.rows`), so an interrupted run resumes where it stopped. Times are wall-clock
+Every solver sees exactly the same instances. Each instance is made from its spec (a seed and
+a grid place, a file path, a data folder), in whichever process runs it: in this process
+(``workers=0``) or on Dask workers (a ``LocalCluster`` or a running scheduler), which receive
+specs, not arrays. Rows, one per (instance, solver) and keyed by ``(suite, instance, solver)``,
+are streamed to ``trials.csv`` as they finish (:mod:`certpose.bench.rows`), so an interrupted
+run resumes where it stopped; the summary is computed from that file
+(:mod:`certpose.bench.report`), so the driver keeps no row in memory. Times are wall-clock
 seconds around each call, including the solver's own conversion of the input arrays (building
 a factor graph, Open3D point clouds, validating the problem...); for certpose's solvers the
 time the result reports itself (``solve_time``) is recorded too (``reported_time_ms``). Each
 solver is run once on a throw-away instance first, so JIT compilation and lazy imports are
-not timed. Within a batch (a Dask task, or the whole run in process), the instances are drawn
-first and each solver then runs on all of them in turn (not interleaved with the others, which slowed every solver down).
+not timed. Within a batch (a Dask task, or the whole run in process), the instances are made
+first and each solver then runs on all of them in turn (not interleaved with the others, which
+slowed every solver down). ``cost`` is the weighted TLS cost of the returned pose on the
+instance's problem, for every solver.
 
 Solvers (:data:`SOLVERS`):
 
@@ -26,7 +30,12 @@ Solvers (:data:`SOLVERS`):
 ``gnc-only``
     ``certpose.register(..., prune="never")``: GNC-TLS alone.
 ``gnc+certify``
-    ``certpose.register(..., certify=True)``: the front-end's pose with a certificate.
+    ``certpose.register(..., certify=True)``: the front-end's pose with a certificate of the
+    full problem (``scope="auto"``).
+``gnc+cert-pruned``, ``gnc+cert-rotation``
+    The same with ``scope="pruned"`` (the problem left after max-clique pruning) and
+    ``scope="rotation"`` (the rotation subproblem over translation-invariant measurements,
+    what TEASER++ certifies).
 ``sdp``
     ``certpose.register(..., solver="sdp")``: the SDP relaxation's rounded pose.
 ``gtsam-gnc``
@@ -39,14 +48,25 @@ Solvers (:data:`SOLVERS`):
 ``o3d-fgr``
     Open3D ``registration_fgr_based_on_correspondence`` (absolute scale, maximum
     correspondence distance ``beta``).
+``teaser++``
+    TEASER++'s Python binding (``teaserpp_python``, built from source: it has no wheel) with
+    GNC-TLS rotation estimation, ``cbar2 = 1`` and no scale estimation. Skipped when the
+    module cannot be imported.
+
+Peers take one noise bound and no weights: with per-correspondence bounds they get the
+largest, and weights are ignored (certpose's solvers use both).
 """
 
 from __future__ import annotations
 
-import csv
+import json
 import logging
 import math
+import os
+import shutil
+import tempfile
 import time
+import weakref
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -55,7 +75,29 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from certpose.data.instances import NOISE_BOUND_FACTOR, BenchInstance, make_instance
+from certpose.bench.report import (
+    SCOPE_COLUMNS,
+    SUMMARY_COLUMNS,
+    format_table,
+    plot_report,
+    summarize,
+    summarize_file,
+    write_markdown,
+)
+from certpose.bench.rows import TRIAL_COLUMNS, bench_extra
+from certpose.bench.suites import (
+    SUITES,
+    Instance,
+    InstanceSpec,
+    default_data_dir,
+    eq2_specs,
+    instance_seed,
+    load_instance,
+    problem_specs,
+    protocol_specs,
+    threedmatch_specs,
+)
+from certpose.data.instances import NOISE_BOUND_FACTOR
 from certpose.io.output import write_json
 from solvers.lie import rotation_error_deg, translation_error
 from solvers.validation import check_points
@@ -63,6 +105,10 @@ from solvers.validation import check_points
 __all__ = [
     "SOLVERS",
     "DEFAULT_SOLVERS",
+    "SUITES",
+    "SUMMARY_COLUMNS",
+    "SCOPE_COLUMNS",
+    "TRIAL_COLUMNS",
     "BenchConfig",
     "BenchReport",
     "run_benchmark",
@@ -71,65 +117,39 @@ __all__ = [
     "plan_tasks",
     "summarize",
     "format_table",
+    "redraw",
 ]
 
 log = logging.getLogger(__name__)
 
-ROTATION_TOL_DEG = 5.0
-TRANSLATION_TOL = 0.05
-
-SUMMARY_COLUMNS = (
-    "solver",
-    "n",
-    "outlier_ratio",
-    "trials",
-    "success_rate",
-    "median_rotation_error_deg",
-    "median_translation_error",
-    "median_time_ms",
-    "median_reported_time_ms",
-    "time_vs_gtsam",
-    "certified_fraction",
-    "median_relative_gap",
-    "errors",
-)
-TRIAL_COLUMNS = (
-    "suite",
-    "instance_seed",
-    "solver",
-    "n",
-    "outlier_ratio",
-    "trial",
-    "success",
-    "rotation_error_deg",
-    "translation_error",
-    "time_ms",
-    "reported_time_ms",
-    "status",
-    "certified",
-    "relative_gap",
-    "error",
-)
 
 
 @dataclass(frozen=True)
 class BenchConfig:
-    """Grid and protocol of a benchmark run.
+    """Suites, grid and solvers of a benchmark run.
 
     Attributes
     ----------
     n_values : tuple of int
-        Numbers of correspondences ``N``.
+        Numbers of correspondences ``N`` of the protocol suites.
     outlier_ratios : tuple of float
-        Fractions of outliers in ``[0, 1)``.
+        Fractions of outliers in ``[0, 1)`` of the protocol suites.
     noise : float
-        Standard deviation ``sigma`` of the inlier noise (unit-cube units).
+        Standard deviation ``sigma`` of the protocol's inlier noise (unit-cube units).
     trials : int
-        Instances per ``(N, outlier ratio)``.
+        Instances per ``(N, outlier ratio)`` (and synthetic scenes of the ``eq2`` suite).
     seed : int
         Seed of the instance generator (the same seed gives the same instances).
     solvers : tuple of str
         Names from :data:`SOLVERS`.
+    suites : tuple of str
+        Names from :data:`certpose.bench.suites.SUITES`; empty: the protocol on the shape given
+        to :func:`run_benchmark` (the built-in one by default).
+    problems : tuple of str
+        Folders of problem files, one suite each (named after the folder).
+    data_dir : str or None
+        Where ``bunny/``, ``3dmatch/`` and ``ycbv/`` are (default
+        :func:`certpose.bench.suites.default_data_dir`).
     """
 
     n_values: tuple[int, ...] = (100,)
@@ -138,11 +158,16 @@ class BenchConfig:
     trials: int = 10
     seed: int = 0
     solvers: tuple[str, ...] = ()
+    suites: tuple[str, ...] = ()
+    problems: tuple[str, ...] = ()
+    data_dir: str | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "n_values", tuple(int(n) for n in self.n_values))
         object.__setattr__(self, "outlier_ratios", tuple(float(r) for r in self.outlier_ratios))
         object.__setattr__(self, "solvers", tuple(self.solvers or DEFAULT_SOLVERS))
+        object.__setattr__(self, "suites", tuple(dict.fromkeys(self.suites)))
+        object.__setattr__(self, "problems", tuple(str(p) for p in self.problems))
         if not self.n_values or min(self.n_values) < 3:
             raise ValueError(f"`n_values` must be non-empty with every N >= 3, got {self.n_values}.")
         if not self.outlier_ratios or not all(0.0 <= r < 1.0 for r in self.outlier_ratios):
@@ -160,6 +185,9 @@ class BenchConfig:
             )
         if len(set(self.solvers)) != len(self.solvers):
             raise ValueError(f"`solvers` lists a solver twice: {self.solvers}.")
+        bad = [s for s in self.suites if s not in SUITES]
+        if bad:
+            raise ValueError(f"unknown suite(s) {', '.join(bad)}; choose from {', '.join(SUITES)}.")
 
     @property
     def noise_bound(self) -> float:
@@ -169,62 +197,85 @@ class BenchConfig:
 
 @dataclass(frozen=True)
 class BenchReport:
-    """Outcome of :func:`run_benchmark`.
+    """Outcome of :func:`run_benchmark`: the summary, computed from the row file.
 
     Attributes
     ----------
     config : BenchConfig
     shape : str
-        Where the points came from (a file or ``"synthetic"``).
-    trials : list of dict
-        One record per solver and instance (keys :data:`TRIAL_COLUMNS`).
+        Where the protocol's points came from (a file or ``"synthetic"``).
+    rows_path : Path
+        The row file (``trials.csv``); read it with pandas, or with :attr:`trials`.
     summary : list of dict
-        One record per solver, ``N`` and outlier ratio (keys :data:`SUMMARY_COLUMNS`).
+        One record per suite, solver, ``N`` and outlier ratio (keys :data:`SUMMARY_COLUMNS`).
+    scopes : list of dict
+        One record per solver, certificate problem and outlier ratio (keys
+        :data:`SCOPE_COLUMNS`): certified fraction and gaps.
     skipped : dict
         Solvers that could not run, with the reason.
     """
 
     config: BenchConfig
     shape: str
-    trials: list[dict[str, Any]]
+    rows_path: Path
     summary: list[dict[str, Any]]
+    scopes: list[dict[str, Any]] = field(default_factory=list)
     skipped: dict[str, str] = field(default_factory=dict)
 
+    @property
+    def trials(self) -> list[dict[str, Any]]:
+        """Every row of the row file, with their types (loaded on each access)."""
+        from certpose.bench.rows import read_rows
+
+        return read_rows(self.rows_path, TRIAL_COLUMNS)
+
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dictionary (NaN becomes ``None``)."""
+        """JSON-ready dictionary (NaN becomes ``None``); the rows stay in ``trials.csv``."""
         return _json_clean(
             {
                 "config": asdict(self.config),
                 "noise_bound": self.config.noise_bound,
                 "shape": self.shape,
+                "rows": str(self.rows_path),
                 "success_criterion": {
-                    "rotation_error_deg_below": ROTATION_TOL_DEG,
-                    "translation_error_below": TRANSLATION_TOL,
+                    "rotation_error_deg_below": 5.0,
+                    "translation_error_below": 0.05,
+                    "note": "protocol suites; 3dmatch: 5 deg, 0.1 m; eq2: 10 deg (symmetry "
+                            "axis when symmetric), 0.02 m; problem files: their metadata",
                 },
                 "skipped": self.skipped,
                 "summary": self.summary,
-                "trials": self.trials,
+                "certificates": self.scopes,
             }
         )
 
-    def write(
-        self, out_dir: str | Path, *, plot: bool = False, trials: bool = True
-    ) -> list[Path]:
-        """Write ``summary.csv``, ``trials.csv`` and ``bench.json`` (and plots) to ``out_dir``.
+    def write(self, out_dir: str | Path, *, plot: bool = False, trials: bool = True,
+              markdown: bool = True) -> list[Path]:
+        """Write ``summary.csv``, ``bench.json``, ``report.md`` (and plots) to ``out_dir``;
+        ``trials=True`` also copies the row file there when it lives elsewhere."""
+        from certpose.bench.report import write_csv
 
-        ``trials=False`` leaves ``trials.csv`` alone (a run that streamed its rows there).
-        """
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        written = [_write_csv(out / "summary.csv", SUMMARY_COLUMNS, self.summary)]
-        if trials:
-            written.append(_write_csv(out / "trials.csv", TRIAL_COLUMNS, self.trials))
+        written = [write_csv(out / "summary.csv", SUMMARY_COLUMNS, self.summary)]
+        if trials and self.rows_path.resolve() != (out / "trials.csv").resolve():
+            shutil.copyfile(self.rows_path, out / "trials.csv")
+            written.append(out / "trials.csv")
         path = out / "bench.json"
         write_json(path, self.to_dict())  # strict JSON: NaN (e.g. no successes) -> null
         written.append(path)
+        plots: list[Path] = []
         if plot:
-            written.extend(plot_report(self, out))
+            plots = plot_report(self.summary, self.scopes, out, title=self._title())
+            written.extend(plots)
+        if markdown:
+            written.append(write_markdown(out / "report.md", self.to_dict(), plots,
+                                          order=self.config.solvers))
         return written
+
+    def _title(self) -> str:
+        suites = sorted({r["suite"] for r in self.summary})
+        return f"certpose bench: {', '.join(suites) or Path(self.shape).name}"
 
 
 # --------------------------------------------------------------------------- solvers
@@ -235,43 +286,30 @@ class _Outcome:
     T: NDArray[np.float64]
     status: str = ""
     reported_time: float = float("nan")
-    certified: bool | None = None
-    relative_gap: float = float("nan")
+    certificate: Any = None
+    success: bool | None = None
 
 
-def _certpose(**kwargs: Any) -> Callable[[BenchInstance], _Outcome]:
-    def run(inst: BenchInstance) -> _Outcome:
+def _certpose(**kwargs: Any) -> Callable[[Instance], _Outcome]:
+    def run(inst: Instance) -> _Outcome:
         from certpose.api import register
 
-        res = register(inst.source, inst.target, noise_bound=inst.noise_bound, **kwargs)
-        cert = res.certificate
-        return _Outcome(
-            res.T_target_source,
-            res.status.value,
-            res.solve_time,
-            None if cert is None else bool(cert.certified),
-            float("nan") if cert is None else float(cert.relative_gap),
-        )
+        res = register(inst.source, inst.target, noise_bound=inst.noise_bound,
+                       weights=inst.weights, **kwargs)
+        return _Outcome(res.T_target_source, res.status.value, res.solve_time, res.certificate,
+                        bool(res.success))
 
     return run
 
 
-def _bench_extra(module: str, what: str) -> Any:
-    """Import ``module`` of the ``bench`` extra, or say how to install it."""
-    import importlib
-
-    try:
-        return importlib.import_module(module)
-    except ImportError as exc:
-        raise ImportError(f"{what} needs {module.split('.')[0]}, part of the bench extra: "
-                          f"pip install 'certpose[bench]'") from exc
+_bench_extra = bench_extra
 
 
-def _gtsam_gnc(inst: BenchInstance) -> _Outcome:
+def _gtsam_gnc(inst: Instance) -> _Outcome:
     gtsam = _bench_extra("gtsam", "the gtsam-gnc peer")
 
     graph = gtsam.NonlinearFactorGraph()
-    model = gtsam.noiseModel.Isotropic.Sigma(3, inst.noise_bound)
+    model = gtsam.noiseModel.Isotropic.Sigma(3, inst.scalar_noise_bound)
     # error = T * source_k - target_k, whitened by beta: the same residual as certpose's TLS.
     for a, b in zip(inst.source, inst.target, strict=True):
         graph.add(gtsam.KnownLandmarkFactorPose3(0, b, a, model))
@@ -287,7 +325,7 @@ def _gtsam_gnc(inst: BenchInstance) -> _Outcome:
     return _Outcome(np.asarray(estimate.atPose3(0).matrix()), "")
 
 
-def _o3d_inputs(inst: BenchInstance) -> tuple[Any, Any, Any]:
+def _o3d_inputs(inst: Instance) -> tuple[Any, Any, Any]:
     import open3d as o3d
 
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(inst.source))
@@ -297,7 +335,7 @@ def _o3d_inputs(inst: BenchInstance) -> tuple[Any, Any, Any]:
     return src, dst, corres
 
 
-def _o3d_ransac(inst: BenchInstance) -> _Outcome:
+def _o3d_ransac(inst: Instance) -> _Outcome:
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -306,7 +344,7 @@ def _o3d_ransac(inst: BenchInstance) -> _Outcome:
         src,
         dst,
         corres,
-        inst.noise_bound,
+        inst.scalar_noise_bound,
         reg.TransformationEstimationPointToPoint(False),
         3,
         [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9)],
@@ -315,31 +353,66 @@ def _o3d_ransac(inst: BenchInstance) -> _Outcome:
     return _Outcome(np.asarray(res.transformation), f"fitness={res.fitness:.3f}")
 
 
-def _o3d_fgr(inst: BenchInstance) -> _Outcome:
+def _o3d_fgr(inst: Instance) -> _Outcome:
     import open3d as o3d
 
     reg = o3d.pipelines.registration
     src, dst, corres = _o3d_inputs(inst)
     option = reg.FastGlobalRegistrationOption(
-        use_absolute_scale=True, decrease_mu=True, maximum_correspondence_distance=inst.noise_bound
+        use_absolute_scale=True, decrease_mu=True, maximum_correspondence_distance=inst.scalar_noise_bound
     )
     res = reg.registration_fgr_based_on_correspondence(src, dst, corres, option)
     return _Outcome(np.asarray(res.transformation), f"fitness={res.fitness:.3f}")
 
 
-SOLVERS: dict[str, Callable[[BenchInstance], _Outcome]] = {
+def _teaser(inst: Instance) -> _Outcome:
+    try:
+        import teaserpp_python as tpp
+    except ImportError as exc:
+        raise ImportError("the teaser++ peer needs teaserpp_python, built from TEASER++'s "
+                          "sources (see the README)") from exc
+    params = tpp.RobustRegistrationSolver.Params()
+    params.cbar2 = 1.0
+    params.noise_bound = inst.scalar_noise_bound
+    params.estimate_scaling = False
+    params.rotation_estimation_algorithm = (
+        tpp.RobustRegistrationSolver.ROTATION_ESTIMATION_ALGORITHM.GNC_TLS)
+    params.rotation_gnc_factor = 1.4
+    params.rotation_max_iterations = 100
+    params.rotation_cost_threshold = 1e-12
+    solver = tpp.RobustRegistrationSolver(params)
+    solver.solve(np.ascontiguousarray(inst.source.T), np.ascontiguousarray(inst.target.T))
+    sol = solver.getSolution()
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = np.asarray(sol.rotation), np.asarray(sol.translation).ravel()
+    return _Outcome(T, "valid" if sol.valid else "invalid", success=bool(sol.valid))
+
+
+SOLVERS: dict[str, Callable[[Instance], _Outcome]] = {
     "gnc": _certpose(prune="auto"),
     "gnc-only": _certpose(prune="never"),
     "gnc+certify": _certpose(certify=True),
+    "gnc+cert-pruned": _certpose(certify=True, scope="pruned"),
+    "gnc+cert-rotation": _certpose(certify=True, scope="rotation"),
     "sdp": _certpose(solver="sdp"),
     "gtsam-gnc": _gtsam_gnc,
     "o3d-ransac": _o3d_ransac,
     "o3d-fgr": _o3d_fgr,
+    "teaser++": _teaser,
 }
 """Benchmark solvers by name (see the module docstring)."""
 
 DEFAULT_SOLVERS: tuple[str, ...] = ("gnc", "gnc-only", "gtsam-gnc", "o3d-ransac", "o3d-fgr")
-"""Solvers run when none are named (the SDP-based ones are slow and opt-in)."""
+"""Solvers run when none are named (the SDP-based ones are slow and opt-in; ``teaser++`` is
+added by ``certpose bench`` when ``teaserpp_python`` is importable)."""
+
+
+def teaser_available() -> bool:
+    """Whether ``teaserpp_python`` can be imported (without importing it)."""
+    import importlib.util
+
+    return importlib.util.find_spec("teaserpp_python") is not None
+
 
 def _seed_peers(seed: int) -> None:
     import open3d as o3d
@@ -352,27 +425,14 @@ def _seed_peers(seed: int) -> None:
 
 @dataclass(frozen=True)
 class _Task:
-    """One instance to draw on a worker from its seed, and the solvers still to run on it."""
+    """One instance to make on a worker from its spec, and the solvers still to run on it."""
 
-    n: int
-    ratio: float
-    trial: int
-    seed: int
+    spec: InstanceSpec
     solvers: tuple[str, ...]
 
 
-def instance_seed(seed: int, n: int, ratio: float, trial: int) -> int:
-    """Seed of one instance, from the run's seed and the instance's place in the grid.
-
-    Independent of the order instances are drawn in, so any worker can draw any instance, and
-    a resumed run draws the same ones. Non-negative and below ``2**63`` (a pandas ``int64``).
-    """
-    ss = np.random.SeedSequence([int(seed), int(n), round(float(ratio) * 1e9), int(trial)])
-    return int(ss.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
-
-
 def suite_name(shape_name: str) -> str:
-    """The ``suite`` column: the shape file's stem (``"synthetic"`` for the built-in one)."""
+    """The ``suite`` of the protocol on a shape: the file's stem (``"synthetic"`` built in)."""
     return "synthetic" if shape_name == "synthetic" else Path(shape_name).stem
 
 
@@ -380,58 +440,120 @@ def suite_name(shape_name: str) -> str:
 _WARMED: dict[str, str | None] = {}
 
 
-def _ensure_warm(names: Sequence[str], shape: NDArray[np.float64], noise: float) -> dict[str, str]:
+def _ensure_warm(names: Sequence[str]) -> dict[str, str]:
     """Warm up the solvers not yet run in this process; the skipped ones with the reason."""
     todo = [s for s in names if s not in _WARMED]
     if todo:
         skipped: dict[str, str] = {}
-        _warm_up(todo, shape, noise, skipped)
+        _warm_up(todo, skipped)
         for s in todo:
             _WARMED[s] = skipped.get(s)
     return {s: why for s in names if (why := _WARMED[s]) is not None}
 
 
 def _iter_tasks(
-    tasks: Sequence[_Task], shape: NDArray[np.float64], noise: float, suite: str
+    tasks: Sequence[_Task], shapes: dict[str, NDArray[np.float64]], noise: float
 ) -> Iterator[dict[str, Any]]:
-    """Rows of ``tasks``, drawing each instance from its seed; solver by solver.
+    """Rows of ``tasks``, making each instance from its spec; solver by solver.
 
     One solver at a time over the instances: interleaving solvers measured slower certpose
-    times (cold caches, Open3D's OpenMP threads still spinning).
+    times (cold caches, Open3D's OpenMP threads still spinning). An instance that cannot be
+    made gives one row per solver with the error.
     """
     names = list(dict.fromkeys(s for t in tasks for s in t.solvers))
-    skipped = _ensure_warm(names, shape, noise)
-    insts = [make_instance(shape, t.n, t.ratio, noise=noise, rng=t.seed) for t in tasks]
+    skipped = _ensure_warm(names)
+    insts: list[Instance | Exception] = []
+    for t in tasks:
+        try:
+            insts.append(load_instance(t.spec, shapes, noise))
+        except Exception as exc:  # one bad instance (file) must not stop the run
+            log.warning("cannot make %s/%s: %s", t.spec.suite, t.spec.instance, exc)
+            insts.append(exc)
     for name in names:
         if name in skipped:
             continue
         for task, inst in zip(tasks, insts, strict=True):
             if name in task.solvers:
-                row = _run_one(name, inst, task.n, task.ratio, task.trial, seed=task.seed)
-                row["suite"] = suite
-                yield row
+                yield _run_one(name, inst, task.spec)
 
 
 def _run_batch(
-    tasks: Sequence[_Task], shape: NDArray[np.float64], noise: float, suite: str
+    tasks: Sequence[_Task], shapes: dict[str, NDArray[np.float64]], noise: float
 ) -> tuple[list[dict[str, Any]], dict[str, str]]:
     """A Dask task: the rows of ``tasks`` and the solvers this worker could not run."""
-    rows = list(_iter_tasks(tasks, shape, noise, suite))
+    rows = list(_iter_tasks(tasks, shapes, noise))
     names = list(dict.fromkeys(s for t in tasks for s in t.solvers))
     return rows, {s: why for s in names if (why := _WARMED.get(s)) is not None}
 
 
-def plan_tasks(config: BenchConfig, done: set[tuple[str, int, str]], suite: str) -> list[_Task]:
-    """Instances of ``config``'s grid with the solvers whose rows are not in ``done``."""
+def plan_tasks(
+    specs: Sequence[InstanceSpec], solvers: Sequence[str], done: set[tuple[str, str, str]]
+) -> list[_Task]:
+    """The specs with the solvers whose rows are not in ``done`` (keys ``(suite, instance,
+    solver)``)."""
     tasks = []
-    for n in config.n_values:
-        for ratio in config.outlier_ratios:
-            for trial in range(config.trials):
-                seed = instance_seed(config.seed, n, ratio, trial)
-                todo = tuple(s for s in config.solvers if (suite, seed, s) not in done)
-                if todo:
-                    tasks.append(_Task(n, ratio, trial, seed, todo))
+    for spec in specs:
+        todo = tuple(s for s in solvers if (spec.suite, spec.instance, s) not in done)
+        if todo:
+            tasks.append(_Task(spec, todo))
     return tasks
+
+
+def _suite_specs(
+    config: BenchConfig, shape: NDArray[np.float64] | None, shape_name: str
+) -> tuple[list[InstanceSpec], dict[str, NDArray[np.float64]], dict[str, str]]:
+    """Specs of every suite of ``config``, the protocol shapes by suite, and what each suite
+    was made from (the manifest)."""
+    specs: list[InstanceSpec] = []
+    shapes: dict[str, NDArray[np.float64]] = {}
+    sources: dict[str, str] = {}
+    data = Path(config.data_dir) if config.data_dir is not None else default_data_dir()
+    grid = (config.n_values, config.outlier_ratios, config.trials, config.seed)
+    if not config.suites and not config.problems:
+        if shape is None:
+            from certpose.io.points import synthetic_shape
+
+            shape = synthetic_shape()
+        name = suite_name(shape_name)
+        shapes[name] = check_points(shape, "shape", min_points=3)
+        sources[name] = shape_name
+        specs += protocol_specs(name, *grid)
+    for suite in config.suites:
+        if suite == "synthetic":
+            from certpose.io.points import synthetic_shape
+
+            shapes[suite], sources[suite] = synthetic_shape(), "synthetic"
+            specs += protocol_specs(suite, *grid)
+        elif suite == "bunny":
+            from certpose.io.points import load_bunny
+
+            path = Path(shape_name) if shape_name != "synthetic" else data.joinpath(
+                "bunny", "bun_zipper_res3.ply")
+            if shape is not None and shape_name != "synthetic":
+                shapes[suite] = check_points(shape, "shape", min_points=3)
+            else:
+                if not path.is_file():
+                    raise FileNotFoundError(f"the bunny suite needs '{path}' (give the data "
+                                            "folder with --data DIR, or the file with --bunny).")
+                shapes[suite] = load_bunny(path)
+            sources[suite] = str(path)
+            specs += protocol_specs(suite, *grid)
+        elif suite == "3dmatch":
+            specs += threedmatch_specs(data)
+            sources[suite] = str(data / "3dmatch")
+        elif suite == "eq2":
+            specs += eq2_specs(config.trials, config.seed, data)
+            sources[suite] = f"synthetic mug x {config.trials}" + (
+                f" + {data / 'ycbv'}" if (data / "ycbv").is_dir() else "")
+    for folder in config.problems:
+        found = problem_specs(folder)
+        name = found[0].suite
+        if name in sources:
+            raise ValueError(f"--problems '{folder}' is named {name!r} like another suite of "
+                             "this run; rename the folder.")
+        specs += found
+        sources[name] = str(Path(folder).resolve())
+    return specs, shapes, sources
 
 
 def run_benchmark(
@@ -452,15 +574,19 @@ def run_benchmark(
     Parameters
     ----------
     config : BenchConfig
-        Grid, protocol and solvers.
+        Suites, grid and solvers.
     shape : (M, 3) ndarray, optional
-        Shape points in the unit cube; default :func:`certpose.io.points.synthetic_shape`.
+        Shape points in the unit cube of the protocol suite (no ``config.suites``; or the
+        ``bunny`` suite's when ``shape_name`` is a file); default
+        :func:`certpose.io.points.synthetic_shape`.
     shape_name : str, optional
-        Recorded in the report (e.g. the bunny's path); its stem is the rows' ``suite``.
+        Recorded in the report (e.g. the bunny's path); its stem is the protocol rows' ``suite``
+        when ``config.suites`` is empty.
     progress : bool, optional
         Show a tqdm progress bar on stderr.
     out_dir : path, optional
-        Stream the rows to ``out_dir/trials.csv`` as they finish (checked before any work).
+        Stream the rows to ``out_dir/trials.csv`` as they finish (checked before any work);
+        default a temporary folder, deleted with the report.
     resume : bool, optional
         Keep the rows of ``out_dir`` and run only the missing ones.
     force : bool, optional
@@ -471,51 +597,63 @@ def run_benchmark(
     scheduler : str, optional
         Address of a running Dask scheduler to send the work to.
     batch_size : int, optional
-        Instances per Dask task (default: at most 25, at least 4 tasks per worker).
+        Protocol instances per Dask task (default: at most 50, at least 2 tasks per worker);
+        the others (files, 3DMatch, eq. (2)) go one per task.
 
     Returns
     -------
     BenchReport
-        Per-trial records (all rows of ``out_dir`` when streaming) and per-(solver, N, ratio)
-        aggregates. A solver that raises on an instance is recorded as a failed trial with the
-        error; a solver whose backend is missing is listed in ``skipped``.
+        The summary, computed from the row file (all rows of ``out_dir`` when resuming). A
+        solver that raises on an instance is recorded as a failed trial with the error; a
+        solver whose backend is missing is listed in ``skipped``.
 
     Raises
     ------
     BenchInterrupted
         On Ctrl-C, after the finished rows are written.
     """
+    from certpose.bench.rows import open_rows
+
     tqdm = _bench_extra("tqdm", "certpose bench").tqdm
-
-    if shape is None:
-        from certpose.io.points import synthetic_shape
-
-        shape = synthetic_shape()
-    shape = check_points(shape, "shape", min_points=3)
     if workers is not None and workers < 0:
         raise ValueError(f"`workers` must be >= 0 or None, got {workers}.")
-    suite = suite_name(shape_name)
+    specs, shapes, sources = _suite_specs(config, shape, shape_name)
 
-    writer = None
-    records: list[dict[str, Any]] = []
-    if out_dir is not None:
-        from certpose.bench.rows import open_rows
+    tmp = None
+    if out_dir is None:
+        tmp = tempfile.mkdtemp(prefix="certpose-bench-")
+        out_dir = tmp
+    manifest = {"noise": config.noise, "suites": sources}
+    writer, done = open_rows(out_dir, TRIAL_COLUMNS, manifest, resume=resume, force=force)
+    try:
+        tasks = plan_tasks(specs, config.solvers, done)
+        del specs, done
+        total = sum(len(t.solvers) for t in tasks)
+        skipped = _run_tasks(tasks, shapes, config, writer, total=total, tqdm=tqdm,
+                             progress=progress, workers=workers, scheduler=scheduler,
+                             batch_size=batch_size)
+    finally:
+        writer.close()
+    for name, why in skipped.items():
+        log.warning("skipping solver %s: %s", name, why)
+    summary, scopes = summarize_file(writer.path, order=config.solvers)
+    report = BenchReport(config, shape_name, writer.path, summary, scopes, skipped)
+    if tmp is not None:
+        weakref.finalize(report, shutil.rmtree, tmp, ignore_errors=True)
+    return report
 
-        manifest = {"shape": shape_name, "noise": config.noise, "suite": suite}
-        writer, records = open_rows(out_dir, TRIAL_COLUMNS, manifest, resume=resume, force=force)
-    done = {(str(r["suite"]), int(r["instance_seed"]), str(r["solver"])) for r in records}
-    n_before = len(records)
-    tasks = plan_tasks(config, done, suite)
-    total = sum(len(t.solvers) for t in tasks)
 
+def _run_tasks(
+    tasks: list[_Task], shapes: dict[str, NDArray[np.float64]], config: BenchConfig,
+    writer: Any, *, total: int, tqdm: Any, progress: bool, workers: int | None,
+    scheduler: str | None, batch_size: int | None,
+) -> dict[str, str]:
     skipped: dict[str, str] = {}
     written = 0
 
     def emit(rows: list[dict[str, Any]]) -> None:
         nonlocal written
-        if writer is not None:
-            writer.write_many(rows)  # on disk (fsync) before the next row or batch is run
-        records.extend(rows)
+        writer.write_many(rows)  # on disk (fsync) before the next row or batch is run
         written += len(rows)
 
     try:
@@ -524,49 +662,51 @@ def run_benchmark(
             if not tasks:
                 pass
             elif scheduler is None and workers == 0:
-                skipped.update(_ensure_warm(config.solvers, shape, config.noise))
-                for row in _iter_tasks(tasks, shape, config.noise, suite):
+                skipped.update(_ensure_warm(config.solvers))
+                for row in _iter_tasks(tasks, shapes, config.noise):
                     emit([row])
                     bar.update()
             else:
-                _run_dask(tasks, shape, config.noise, suite, workers=workers,
-                          scheduler=scheduler, batch_size=batch_size, emit=emit, bar=bar,
-                          skipped=skipped)
+                _run_dask(tasks, shapes, config.noise, workers=workers, scheduler=scheduler,
+                          batch_size=batch_size, emit=emit, bar=bar, skipped=skipped)
     except KeyboardInterrupt:
-        where = ""
-        if writer is not None:
-            # Count what is on disk: the interrupt may land between a row's write and `emit`'s
-            # bookkeeping.
-            from certpose.bench.rows import read_rows
+        from certpose.bench.rows import count_rows
 
-            writer.close()
-            written = len(read_rows(writer.path, TRIAL_COLUMNS)) - n_before
-            where = f" to {writer.path}"
+        # Count what is on disk: the interrupt may land between a row's write and `emit`'s
+        # bookkeeping.
+        writer.close()
+        written = count_rows(writer.path) - (writer.initial or 0)
         raise BenchInterrupted(
-            f"interrupted: {written} new row(s) written{where}"
-            + ("; run again with --resume to finish." if writer is not None else ".")
+            f"interrupted: {written} new row(s) written to {writer.path}; run again with "
+            "--resume to finish."
         ) from None
-    finally:
-        if writer is not None:
-            writer.close()
-    if skipped:
-        for name, why in skipped.items():
-            log.warning("skipping solver %s: %s", name, why)
-    order = {s: i for i, s in enumerate(config.solvers)}
-    records.sort(key=lambda r: (r["n"], r["outlier_ratio"], order.get(r["solver"], 99),
-                                r["trial"], r["suite"]))
-    return BenchReport(config, shape_name, records, summarize(records), skipped)
+    return skipped
 
 
 class BenchInterrupted(Exception):
     """Ctrl-C during a run: the finished rows are on disk; the message says where."""
 
 
+def _batches(tasks: Sequence[_Task], size: int) -> Iterator[list[_Task]]:
+    """Protocol tasks in chunks of ``size`` (cheap: per-task overhead would dominate); the
+    others alone (seconds each: they spread over the workers)."""
+    chunk: list[_Task] = []
+    for t in tasks:
+        if t.spec.kind != "protocol":
+            yield [t]
+            continue
+        chunk.append(t)
+        if len(chunk) == size:
+            yield chunk
+            chunk = []
+    if chunk:
+        yield chunk
+
+
 def _run_dask(
     tasks: Sequence[_Task],
-    shape: NDArray[np.float64],
+    shapes: dict[str, NDArray[np.float64]],
     noise: float,
-    suite: str,
     *,
     workers: int | None,
     scheduler: str | None,
@@ -581,7 +721,6 @@ def _run_dask(
     the number of instances; a batch lost with its worker is retried by Dask elsewhere.
     """
     distributed = _bench_extra("distributed", "certpose bench on Dask")
-    import os
 
     if not log.isEnabledFor(logging.DEBUG):
         # Dask logs every cluster start and stop at INFO (set when it is imported).
@@ -604,15 +743,16 @@ def _run_dask(
         client.run(_ignore_sigint)
     try:
         n_slots = max(sum(client.nthreads().values()), 1)
-        size = batch_size or max(1, min(25, math.ceil(len(tasks) / (4 * n_slots))))
-        batches = (tasks[i : i + size] for i in range(0, len(tasks), size))
-        shape_f = client.scatter(shape, broadcast=True)
+        n_protocol = sum(1 for t in tasks if t.spec.kind == "protocol")
+        size = batch_size or max(1, min(50, math.ceil(n_protocol / (2 * n_slots))))
+        batches = _batches(tasks, size)
+        shapes_f = client.scatter(shapes, broadcast=True)
 
         def submit(batch: Sequence[_Task]) -> Any:
-            return client.submit(_run_batch, list(batch), shape_f, noise, suite, pure=False,
+            return client.submit(_run_batch, list(batch), shapes_f, noise, pure=False,
                                  retries=2)
 
-        window = 4 * n_slots
+        window = 2 * n_slots
         first = [submit(b) for _, b in zip(range(window), batches, strict=False)]
         pending = distributed.as_completed(first)
         for fut in pending:
@@ -640,11 +780,14 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _warm_up(
-    solvers: Sequence[str], shape: NDArray[np.float64], noise: float, skipped: dict
-) -> None:
+def _warm_up(solvers: Sequence[str], skipped: dict) -> None:
     """Run each solver once on a throw-away instance (JIT compilation, lazy imports)."""
-    inst = make_instance(shape, 50, 0.5, noise=noise, rng=np.random.default_rng(2**31 - 1))
+    from certpose.data.instances import make_instance
+    from certpose.io.points import synthetic_shape
+
+    b = make_instance(synthetic_shape(), 50, 0.5, noise=0.01,
+                      rng=np.random.default_rng(2**31 - 1))
+    inst = Instance(b.source, b.target, None, b.noise_bound, b.rotation, b.translation, 50, 0.5)
     for name in solvers:
         try:
             SOLVERS[name](inst)
@@ -654,210 +797,128 @@ def _warm_up(
             log.warning("warm-up of %s failed: %s", name, exc)
 
 
-def _run_one(
-    name: str, inst: BenchInstance, n: int, ratio: float, trial: int, *, seed: int
-) -> dict[str, Any]:
-    rec: dict[str, Any] = {"instance_seed": seed, "solver": name, "n": n,
-                           "outlier_ratio": ratio, "trial": trial}
+def _axis_error_deg(R: NDArray[np.float64], R_gt: NDArray[np.float64],
+                    axis: NDArray[np.float64]) -> float:
+    a = axis / np.linalg.norm(axis)
+    return math.degrees(math.acos(float(np.clip((R @ a) @ (R_gt @ a), -1.0, 1.0))))
+
+
+_NAN = float("nan")
+
+
+def _run_one(name: str, inst: Instance | Exception, spec: InstanceSpec) -> dict[str, Any]:
+    rec: dict[str, Any] = {"suite": spec.suite, "instance": spec.instance,
+                           "instance_seed": spec.seed, "solver": name, "trial": spec.trial,
+                           "n": 0, "outlier_ratio": _NAN}
+    fail = dict(success=False, rotation_error_deg=_NAN, translation_error=_NAN,
+                reported_time_ms=_NAN, cost=_NAN, status="exception", certified=None,
+                cert_problem="", lower_bound=_NAN, upper_bound=_NAN, relative_gap=_NAN)
+    if isinstance(inst, Exception):
+        rec.update(fail, time_ms=_NAN, status="bad-instance",
+                   error=f"{type(inst).__name__}: {inst}")
+        return rec
+    rec.update(n=inst.n, outlier_ratio=inst.outlier_ratio)
     if name.startswith("o3d-"):
-        _seed_peers(seed)  # per instance: the same sample whatever ran before on this worker
+        _seed_peers(spec.seed)  # per instance: the same sample whatever ran before on this worker
     t0 = time.perf_counter()
     try:
         out = SOLVERS[name](inst)
     except Exception as exc:  # a peer failing on one instance must not stop the run
         elapsed = time.perf_counter() - t0
-        log.warning("%s failed on N=%d ratio=%g trial %d: %s", name, n, ratio, trial, exc)
-        rec.update(
-            success=False,
-            rotation_error_deg=float("nan"),
-            translation_error=float("nan"),
-            time_ms=elapsed * 1e3,
-            reported_time_ms=float("nan"),
-            status="exception",
-            certified=None,
-            relative_gap=float("nan"),
-            error=f"{type(exc).__name__}: {exc}",
-        )
+        log.warning("%s failed on %s/%s: %s", name, spec.suite, spec.instance, exc)
+        rec.update(fail, time_ms=elapsed * 1e3, error=f"{type(exc).__name__}: {exc}")
         return rec
     elapsed = time.perf_counter() - t0
     T = np.asarray(out.T, dtype=np.float64)
-    if T.shape == (4, 4) and np.all(np.isfinite(T)):
-        rot_err = rotation_error_deg(T[:3, :3], inst.rotation)
+    finite = T.shape == (4, 4) and bool(np.all(np.isfinite(T)))
+    rot_err = trans_err = cost = _NAN
+    if finite:
+        cost = float(inst.problem.cost(T[:3, :3], T[:3, 3]))
+    if finite and inst.rotation is not None:
+        if inst.symmetry_axis is not None:
+            rot_err = _axis_error_deg(T[:3, :3], inst.rotation, inst.symmetry_axis)
+        else:
+            rot_err = rotation_error_deg(T[:3, :3], inst.rotation)
         trans_err = translation_error(T[:3, 3], inst.translation)
-    else:
-        rot_err = trans_err = float("nan")
+        success = bool(rot_err < inst.rotation_tol_deg and trans_err < inst.translation_tol)
+    else:  # no ground truth: the solver's own verdict
+        success = finite and (out.success is None or out.success)
+    cert = out.certificate
     rec.update(
-        success=bool(rot_err < ROTATION_TOL_DEG and trans_err < TRANSLATION_TOL),
+        success=success,
         rotation_error_deg=rot_err,
         translation_error=trans_err,
         time_ms=elapsed * 1e3,
         reported_time_ms=out.reported_time * 1e3,
+        cost=cost,
         status=out.status,
-        certified=out.certified,
-        relative_gap=out.relative_gap,
+        certified=None if cert is None else bool(cert.certified),
+        cert_problem="" if cert is None else str(cert.problem),
+        lower_bound=_NAN if cert is None else float(cert.lower_bound),
+        upper_bound=_NAN if cert is None else float(cert.upper_bound),
+        relative_gap=_NAN if cert is None else float(cert.relative_gap),
         error="",
     )
     return rec
 
 
-def _median(values: Sequence[float]) -> float:
-    arr = np.asarray([v for v in values if v is not None], dtype=np.float64)
-    arr = arr[np.isfinite(arr)]
-    return float(np.median(arr)) if arr.size else float("nan")
-
-
-def summarize(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Aggregate per-trial records by (solver, N, outlier ratio).
-
-    ``time_vs_gtsam`` is the solver's median time over ``gtsam-gnc``'s on the same instances
-    (NaN without ``gtsam-gnc``); ``certified_fraction`` and ``median_relative_gap`` are NaN
-    for solvers that return no certificate.
-    """
-    groups: dict[tuple[str, int, float], list[dict[str, Any]]] = {}
-    for rec in records:
-        groups.setdefault((rec["solver"], rec["n"], rec["outlier_ratio"]), []).append(rec)
-    gtsam_time = {
-        (n, r): _median([x["time_ms"] for x in recs])
-        for (s, n, r), recs in groups.items()
-        if s == "gtsam-gnc"
-    }
-    rows = []
-    for (solver, n, ratio), recs in groups.items():
-        med_time = _median([x["time_ms"] for x in recs])
-        certs = [x["certified"] for x in recs if x["certified"] is not None]
-        rows.append(
-            {
-                "solver": solver,
-                "n": n,
-                "outlier_ratio": ratio,
-                "trials": len(recs),
-                "success_rate": float(np.mean([x["success"] for x in recs])),
-                "median_rotation_error_deg": _median([x["rotation_error_deg"] for x in recs]),
-                "median_translation_error": _median([x["translation_error"] for x in recs]),
-                "median_time_ms": med_time,
-                "median_reported_time_ms": _median([x["reported_time_ms"] for x in recs]),
-                "time_vs_gtsam": med_time / gtsam_time[(n, ratio)]
-                if (n, ratio) in gtsam_time and gtsam_time[(n, ratio)] > 0
-                else float("nan"),
-                "certified_fraction": float(np.mean(certs)) if certs else float("nan"),
-                "median_relative_gap": _median([x["relative_gap"] for x in recs]),
-                "errors": sum(1 for x in recs if x["error"]),
-            }
-        )
-    return rows
-
-
-# --------------------------------------------------------------------------- output
-
-
-def format_table(report: BenchReport) -> str:
-    """A fixed-width text table of the summary (one line per solver, N and ratio)."""
-    head = (
-        f"{'solver':<12} {'N':>5} {'outl':>5} {'succ%':>6} {'rot_deg':>8} {'trans':>8} "
-        f"{'time_ms':>9} {'vs_gtsam':>9} {'cert%':>6} {'gap':>9}"
-    )
-    lines = [head, "-" * len(head)]
-    rows = sorted(report.summary, key=lambda r: (r["n"], r["outlier_ratio"]))
-    order = {s: i for i, s in enumerate(report.config.solvers)}
-    rows.sort(key=lambda r: (r["n"], r["outlier_ratio"], order.get(r["solver"], 99)))
-    last = None
-    for r in rows:
-        if last is not None and (r["n"], r["outlier_ratio"]) != last:
-            lines.append("")
-        last = (r["n"], r["outlier_ratio"])
-        cert = r["certified_fraction"]
-        lines.append(
-            f"{r['solver']:<12} {r['n']:>5} {r['outlier_ratio']:>5.2f} "
-            f"{100 * r['success_rate']:>6.1f} {r['median_rotation_error_deg']:>8.3f} "
-            f"{r['median_translation_error']:>8.4f} {_fmt_time(r['median_time_ms']):>9} "
-            f"{_fmt(r['time_vs_gtsam'], '.4f'):>9} "
-            f"{_fmt(100 * cert if math.isfinite(cert) else cert, '.1f'):>6} "
-            f"{_fmt(r['median_relative_gap'], '.2e'):>9}"
-            + (f"  ({r['errors']} error(s))" if r["errors"] else "")
-        )
-    if report.skipped:
-        lines.append("")
-        lines.extend(f"skipped {name}: {why}" for name, why in report.skipped.items())
-    return "\n".join(lines)
-
-
-def _fmt(x: float, spec: str) -> str:
-    return "-" if x is None or not math.isfinite(x) else format(x, spec)
-
-
-def _fmt_time(ms: float) -> str:
-    if not math.isfinite(ms):
-        return "-"
-    return f"{ms:.3f}" if ms < 10 else f"{ms:.1f}"
-
-
-def plot_report(report: BenchReport, out_dir: str | Path) -> list[Path]:
-    """Write ``bench.png`` (success and time vs outlier ratio) and, when certificates exist,
-    ``tightness.png`` (relative gap vs outlier ratio)."""
-    matplotlib = _bench_extra("matplotlib", "the benchmark plots")
-    matplotlib.use("Agg")  # files only, no display
-    import matplotlib.pyplot as plt
-
-    out = Path(out_dir)
-    rows = report.summary
-    keys = sorted({(r["solver"], r["n"]) for r in rows}, key=lambda k: (k[1], k[0]))
-    fig, (ax_s, ax_t) = plt.subplots(1, 2, figsize=(11, 4.2))
-    for solver, n in keys:
-        sel = sorted((r for r in rows if r["solver"] == solver and r["n"] == n),
-                     key=lambda r: r["outlier_ratio"])
-        x = [r["outlier_ratio"] for r in sel]
-        label = f"{solver} (N={n})"
-        ax_s.plot(x, [100 * r["success_rate"] for r in sel], marker="o", label=label)
-        ax_t.plot(x, [r["median_time_ms"] for r in sel], marker="o", label=label)
-    ax_s.set(xlabel="outlier ratio", ylabel="success rate [%]", ylim=(-5, 105),
-             title="success (rot < 5 deg, trans < 0.05)")
-    ax_t.set(xlabel="outlier ratio", ylabel="median time [ms]", yscale="log", title="time")
-    for ax in (ax_s, ax_t):
-        ax.grid(True, alpha=0.3)
-    ax_t.legend(fontsize=7, loc="best")
-    fig.suptitle(f"certpose bench: {Path(report.shape).name}, sigma={report.config.noise:g}")
-    fig.tight_layout()
-    written = [out / "bench.png"]
-    fig.savefig(written[0], dpi=120)
-    plt.close(fig)
-
-    gap_rows = [r for r in rows if math.isfinite(r["median_relative_gap"])]
-    if gap_rows:
-        fig, ax = plt.subplots(figsize=(5.5, 4.2))
-        for solver, n in sorted({(r["solver"], r["n"]) for r in gap_rows}):
-            sel = [r for r in report.trials if r["solver"] == solver and r["n"] == n
-                   and r["relative_gap"] is not None and math.isfinite(r["relative_gap"])]
-            ax.scatter([r["outlier_ratio"] for r in sel],
-                       [max(r["relative_gap"], 1e-12) for r in sel], s=12, alpha=0.6,
-                       label=f"{solver} (N={n})")
-        ax.set(xlabel="outlier ratio", ylabel="relative duality gap (floored at 1e-12)",
-               yscale="log",
-               title="tightness of the relaxation")
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        written.append(out / "tightness.png")
-        fig.savefig(written[-1], dpi=120)
-        plt.close(fig)
-    return written
-
-
-def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[dict[str, Any]]) -> Path:
-    with path.open("w", newline="", encoding="utf-8") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(columns), extrasaction="ignore")
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({k: "" if row.get(k) is None else row.get(k) for k in columns})
-    return path
-
-
 def _json_clean(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _json_clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_clean(v) for v in value]
-    if isinstance(value, (np.floating, float)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, (np.integer, np.bool_)):
-        return value.item()
-    return value
+    from certpose.io.output import jsonable
+
+    return jsonable(value)
+
+
+def redraw(results_dir: str | os.PathLike[str]) -> tuple[Any, list[Path]]:
+    """Rebuild ``summary.csv``, ``bench.json``, the plots and ``report.md`` of a result folder
+    from its ``trials.csv`` and ``run.json``, without solving.
+
+    Returns
+    -------
+    report : BenchReport
+    written : list of Path
+
+    Raises
+    ------
+    FileNotFoundError
+        The folder or its ``trials.csv`` is missing.
+    ValueError
+        ``trials.csv`` or ``run.json`` is not a certpose bench file.
+    """
+    from dataclasses import fields
+
+    from certpose.bench.rows import MANIFEST_FILE, ROWS_FILE
+
+    out = Path(results_dir)
+    if not out.is_dir():
+        raise FileNotFoundError(f"--report folder '{out}' does not exist.")
+    rows = out / ROWS_FILE
+    if not rows.is_file():
+        raise FileNotFoundError(f"--report folder '{out}' holds no {ROWS_FILE} (not a certpose "
+                                "bench result folder).")
+    config = BenchConfig()
+    old: dict[str, Any] = {}
+    if (out / "bench.json").is_file():
+        try:
+            old = json.loads((out / "bench.json").read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"'{out / 'bench.json'}' is not valid JSON ({exc}).") from None
+        if not isinstance(old, dict):
+            raise ValueError(f"'{out / 'bench.json'}' is not a certpose bench report.")
+        cfg = old.get("config") or {}
+        known = {f.name for f in fields(BenchConfig)}
+        try:
+            config = BenchConfig(**{k: (tuple(v) if isinstance(v, list) else v)
+                                    for k, v in cfg.items() if k in known})
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"'{out / 'bench.json'}' holds an invalid config ({exc}).") from None
+    elif (out / MANIFEST_FILE).is_file():
+        try:
+            json.loads((out / MANIFEST_FILE).read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"'{out / MANIFEST_FILE}' is not valid JSON ({exc}).") from None
+    summary, scopes = summarize_file(rows, order=config.solvers)
+    if not summary:
+        raise ValueError(f"'{rows}' holds no row: nothing to report.")
+    report = BenchReport(config, str(old.get("shape", "synthetic")), rows, summary, scopes,
+                         dict(old.get("skipped") or {}))
+    return report, report.write(out, plot=True, trials=False)

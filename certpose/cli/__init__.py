@@ -2,29 +2,123 @@
 
 Each sub-command lives in its own module exposing ``add_parser(subparsers)``; heavy imports
 happen inside the command functions so ``certpose --help`` stays fast.
+
+Conventions shared by every command (:func:`add_common`): ``--json OUT`` (``-`` for standard
+output, which then carries only the JSON), ``--seed``, ``-q/--quiet``, ``-v/--verbose``, a
+progress bar on stderr for long work, one-line errors (the traceback only with ``--verbose``)
+and the exit codes :data:`EXIT_OK` (0), :data:`EXIT_FAILED` (1: a solve failed, or
+``--require-certificate`` was not met) and :data:`EXIT_USAGE` (2: bad input).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import sys
-from collections.abc import Sequence
+import threading
+import traceback
+from collections.abc import Iterator, Sequence
+from typing import Any
 
 from certpose._version import __version__
 
 _COMMANDS = ("certpose.cli.register", "certpose.cli.bench", "certpose.cli.pose", "certpose.cli.object")
 
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
 
 class CLIError(Exception):
-    """An error reported to the user as one line, with a non-zero exit code."""
+    """Bad input reported to the user as one line (exit code 2)."""
+
+
+class CLIFailure(Exception):
+    """A failure that is not the input's fault, reported as one line (exit code 1)."""
+
+
+def add_common(p: argparse.ArgumentParser, *, seed_help: str | None = None,
+               json_help: str = "also write the result as JSON to OUT ('-': standard output)"
+               ) -> None:
+    """The options every command takes: --json, --seed, --quiet, --verbose."""
+    g = p.add_argument_group("common options")
+    g.add_argument("--json", metavar="OUT", default=None, help=json_help)
+    if seed_help is not None:
+        g.add_argument("--seed", type=int, default=0, help=seed_help)
+    g.add_argument("-q", "--quiet", action="store_true",
+                   help="print nothing but errors (and the JSON of --json -); no progress bar")
+    g.add_argument("-v", "--verbose", action="count", default=0, dest="sub_verbose",
+                   help="more logging (-vv: debug); tracebacks on errors")
+
+
+def say(args: argparse.Namespace, text: str) -> None:
+    """Print a line of the human-readable output unless --quiet or --json -."""
+    if not (getattr(args, "quiet", False) or getattr(args, "json", None) == "-"):
+        print(text)
+
+
+def show_progress(args: argparse.Namespace) -> bool:
+    return not (getattr(args, "quiet", False) or getattr(args, "no_progress", False))
+
+
+def check_json_output(args: argparse.Namespace) -> None:
+    """Check --json OUT before any work."""
+    if getattr(args, "json", None) not in (None, "-"):
+        from certpose.io.output import check_output_path
+
+        check_output_path(args.json, what="--json output")
+
+
+def emit_json(args: argparse.Namespace, payload: Any) -> None:
+    """Write ``payload`` to --json OUT, or print it with --json -."""
+    from certpose.io.output import to_json, write_json
+
+    if args.json == "-":
+        print(to_json(payload))
+    elif args.json is not None:
+        say(args, f"wrote {write_json(args.json, payload)}")
+
+
+@contextlib.contextmanager
+def busy(args: argparse.Namespace, desc: str, *, delay: float = 1.0) -> Iterator[None]:
+    """A progress bar (elapsed seconds) on stderr around work that reports no steps; shown
+    after ``delay`` seconds on a terminal, never with --quiet."""
+    try:
+        from tqdm import tqdm
+    except ImportError:  # the bench extra is not installed: no bar
+        yield
+        return
+    if not (show_progress(args) and sys.stderr.isatty()):
+        yield
+        return
+    stop = threading.Event()
+
+    def tick() -> None:
+        if stop.wait(delay):
+            return
+        with tqdm(desc=desc, bar_format="{desc}: {elapsed}", leave=False,
+                  file=sys.stderr) as bar:
+            while not stop.wait(0.5):
+                bar.refresh()
+
+    thread = threading.Thread(target=tick, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="certpose",
         description="Certifiable robust registration and probabilistic object pose estimation.",
+        epilog="exit codes: 0 success; 1 a solve failed or --require-certificate was not met; "
+               "2 bad input; 130 interrupted. `python -m certpose` is the same program.",
     )
     parser.add_argument("--version", action="version", version=f"certpose {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
@@ -40,21 +134,47 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _message(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, KeyError) and exc.args:
+        text = str(exc.args[0])
+    return text
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(argv)  # exits 2 on unknown options
+    verbose = args.verbose + getattr(args, "sub_verbose", 0)
+    quiet = getattr(args, "quiet", False)
     logging.basicConfig(
-        level=logging.WARNING - 10 * min(args.verbose, 2),
+        level=logging.ERROR if quiet and not verbose else logging.WARNING - 10 * min(verbose, 2),
         format="%(levelname)s %(name)s: %(message)s",
     )
     if not getattr(args, "func", None):
         parser.print_help()
-        return 2
+        return EXIT_USAGE
+    prefix = f"certpose {args.command}: error:"
     try:
         return int(args.func(args) or 0)
-    except (CLIError, ValueError, TypeError, OSError, ImportError, MemoryError) as exc:
-        print(f"certpose {args.command}: error: {exc}", file=sys.stderr)
-        return 1
+    except KeyboardInterrupt:
+        print(f"certpose {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (CLIError, ValueError, TypeError, OSError, KeyError) as exc:
+        if verbose:
+            traceback.print_exc()
+        print(f"{prefix} {_message(exc)}", file=sys.stderr)
+        return EXIT_USAGE
+    except (CLIFailure, ImportError, MemoryError) as exc:
+        if verbose:
+            traceback.print_exc()
+        print(f"{prefix} {_message(exc)}", file=sys.stderr)
+        return EXIT_FAILED
+    except Exception as exc:  # a bug or a backend failure: one line unless --verbose
+        if verbose:
+            traceback.print_exc()
+        print(f"{prefix} {type(exc).__name__}: {_message(exc)} (run with --verbose for the "
+              "traceback)", file=sys.stderr)
+        return EXIT_FAILED
 
 
 if __name__ == "__main__":

@@ -45,16 +45,21 @@ def add_parser(subparsers: Any) -> None:
     b.add_argument("--color-weight", type=float, default=0.5, metavar="W",
                    help="share of colour in the descriptor similarity, in [0, 1] (default: 0.5)")
     b.add_argument("-o", "--output", metavar="OUT.npz", required=True, help="where to save the model")
+    from certpose.cli import add_common
+
+    add_common(b, json_help="also write a summary of the model as JSON to OUT ('-': standard "
+                            "output)")
     b.set_defaults(func=run_build)
 
 
 def run_build(args: argparse.Namespace) -> int:
     import math
 
-    from certpose.cli import CLIError
+    from certpose.cli import CLIError, busy, check_json_output, emit_json, say
     from certpose.estimation.pipeline import build_ycbv_object_model
     from certpose.geometry.appearance import AppearanceBackbone
 
+    check_json_output(args)
     root = Path(args.ycbv)
     if not root.is_dir():
         raise CLIError(f"--ycbv {root} is not a directory")
@@ -69,14 +74,20 @@ def run_build(args: argparse.Namespace) -> int:
         raise CLIError(f"-o {out} must end in .npz")
     if not out.parent.is_dir():
         raise CLIError(f"-o {out}: the folder {out.parent} does not exist")
-    built = build_ycbv_object_model(root, args.views, args.object, args.model,
-                                    backbone=AppearanceBackbone(color_weight=args.color_weight),
-                                    voxel_size=args.voxel_size)
+    with busy(args, "certpose object build"):
+        built = build_ycbv_object_model(
+            root, args.views, args.object, args.model,
+            backbone=AppearanceBackbone(color_weight=args.color_weight),
+            voxel_size=args.voxel_size)
     built.save(out)
     n, seen = len(built.model), int(built.observed.sum())
-    print(f"object model {args.object}: {n} points, {seen} seen by {len(built.views)} view(s) "
-          f"({100.0 * seen / n:.0f}%), the other {n - seen} carry no appearance information")
-    print(f"built from scene(s) {', '.join(built.scenes)}: do not evaluate it on them")
-    print(f"wrote {out}")
+    say(args, f"object model {args.object}: {n} points, {seen} seen by {len(built.views)} "
+              f"view(s) ({100.0 * seen / n:.0f}%), the other {n - seen} carry no appearance "
+              "information")
+    say(args, f"built from scene(s) {', '.join(built.scenes)}: do not evaluate it on them")
+    say(args, f"wrote {out}")
+    emit_json(args, {"object": args.object, "output": str(out), "points": n, "observed": seen,
+                     "views": list(built.views), "scenes": list(built.scenes),
+                     "voxel_size": args.voxel_size, "color_weight": args.color_weight})
     sys.stdout.flush()
     return 0

@@ -26,6 +26,8 @@ examples:
 
 
 def add_parser(subparsers: Any) -> None:
+    from certpose.cli import add_common
+
     p = subparsers.add_parser(
         "pose",
         help="estimate an object pose from an RGB-D frame (YCB-Video, or --demo)",
@@ -49,8 +51,12 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--voxel-size", type=float, default=0.005, metavar="M",
                    help="scene/object voxel size in metres (default: 0.005)")
     p.add_argument("--no-certify", action="store_true", help="skip the eq. (2) certificate")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    p.add_argument("--json", metavar="OUT", default=None, help="also write the result as JSON")
+    p.add_argument("--require-certificate", action="store_true",
+                   help="exit with code 1 unless the eq. (2) solution is certified")
+    p.add_argument("--save-problem", metavar="FILE.npz", default=None,
+                   help="write the eq. (2) problem (scene frame, metres; ground truth "
+                        "T_scene_object when the frame has one) as a problem file for "
+                        "`certpose register --problem` and `certpose bench --problems`")
     smp = p.add_argument_group("pose distribution (importance sampler seeded by the MLE and eq. (2))")
     smp.add_argument("--samples", type=int, default=0, metavar="N",
                      help="sample the pose distribution and keep N resampled particles")
@@ -64,6 +70,7 @@ def add_parser(subparsers: Any) -> None:
                           "its population weighted (the paper's sampler); mcmc: random-walk "
                           "Metropolis on SE(3). The baselines get the same target and number of "
                           "eq. (1) evaluations")
+    add_common(p, seed_help="random seed (default: 0)")
     p.set_defaults(func=run)
 
 
@@ -76,13 +83,18 @@ def _fmt(x: float | None, scale: float = 1.0, unit: str = "", digits: int = 2) -
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from certpose.cli import CLIError
+    from certpose.cli import CLIError, busy, check_json_output, emit_json, say
     from certpose.estimation.mle import MLEParams
     from certpose.estimation.pipeline import PoseParams, run_demo, run_ycbv
-    from certpose.io.output import check_output_path, write_json
+    from certpose.io.output import check_output_path
 
-    if args.json is not None:
-        check_output_path(args.json, what="--json output")
+    check_json_output(args)
+    if args.require_certificate and args.no_certify:
+        raise CLIError("--require-certificate and --no-certify exclude each other")
+    if args.save_problem is not None:
+        if not args.save_problem.endswith(".npz"):
+            raise CLIError(f"--save-problem {args.save_problem} must end in .npz")
+        check_output_path(args.save_problem, what="--save-problem output")
     if args.samples < 0:
         raise CLIError(f"--samples must be >= 0, got {args.samples}")
     if args.particles is not None:
@@ -108,7 +120,8 @@ def run(args: argparse.Namespace) -> int:
                          sampling_method=args.method)
     if args.demo:
         title = "synthetic mug scene (handle hidden behind an occluder)"
-        result = run_demo(params=params, rng=args.seed)
+        with busy(args, "certpose pose"):
+            result = run_demo(params=params, rng=args.seed)
     else:
         root = Path(args.ycbv)
         if not root.is_dir():
@@ -128,69 +141,88 @@ def run(args: argparse.Namespace) -> int:
                                f"{built.model.name}, not of --object {args.object}")
             title += f" (appearance model from {', '.join(built.views) or 'unnamed views'})"
         try:
-            result = run_ycbv(root, args.frame, args.object, args.model, params=params,
-                              rng=args.seed, object_model=built)
+            with busy(args, "certpose pose"):
+                result = run_ycbv(root, args.frame, args.object, args.model, params=params,
+                                  rng=args.seed, object_model=built)
         except KeyError as exc:
             raise CLIError(str(exc.args[0]) if exc.args else str(exc)) from exc
-    print(f"pose of {title}")
-    print(f"status: {result.status} ({'success' if result.success else 'FAILED'})")
-    print("T_camera_object =")
+    say(args, f"pose of {title}")
+    say(args, f"status: {result.status} ({'success' if result.success else 'FAILED'})")
+    say(args, "T_camera_object =")
     for row in result.T_camera_object:
-        print("  [" + "  ".join(f"{v: .6f}" for v in row) + "]")
-    print(f"eq. (1) log-likelihood: {result.log_likelihood:.2f} (winning hypothesis: "
+        say(args, "  [" + "  ".join(f"{v: .6f}" for v in row) + "]")
+    say(args, f"eq. (1) log-likelihood: {result.log_likelihood:.2f} (winning hypothesis: "
           f"{result.hypothesis})")
-    print(f"eq. (2) minimiser on eq. (1): {_fmt(result.eq2_log_likelihood)} "
+    say(args, f"eq. (2) minimiser on eq. (1): {_fmt(result.eq2_log_likelihood)} "
           f"({_fmt(result.eq2_refined_log_likelihood)} after refinement)")
     # The certificate bounds eq. (2) at its minimiser; say so, and whether that is this pose.
-    print(f"certificate: {result.certificate_scope}")
+    say(args, f"certificate: {result.certificate_scope}")
     if len(result.modes) > 1:
-        print(f"competing modes of eq. (1) (within {params.mle.mode_window:g} nats of the best; "
+        say(args, f"competing modes of eq. (1) (within {params.mle.mode_window:g} nats of the best; "
               "eq. (1) barely tells them apart):")
         for k, m in enumerate(result.modes):
             err = m.get("errors")
             extra = "" if err is None else (f", vs ground truth: rotation "
                                              f"{_fmt(err['rotation_deg'], 1, ' deg', 1)}, ADD "
                                              f"{_fmt(err['add'], 100, ' cm')}")
-            print(f"  {k}: eq. (1) {m['log_likelihood']:.2f} "
+            say(args, f"  {k}: eq. (1) {m['log_likelihood']:.2f} "
                   f"({m['log_likelihood'] - result.log_likelihood:+.2f}), rotation "
                   f"{m['rotation_from_best_deg']:.1f} deg from the returned pose, "
                   f"origin {m['origin']}{extra}")
     if result.errors is not None:
         e = result.errors
-        print(f"errors vs ground truth: translation {_fmt(e.translation, 100, ' cm')}, "
+        say(args, f"errors vs ground truth: translation {_fmt(e.translation, 100, ' cm')}, "
               f"symmetry axis {_fmt(e.symmetry_axis_deg, 1, ' deg', 1)}, "
               f"rotation {_fmt(e.rotation_deg, 1, ' deg', 1)}, ADD-S {_fmt(e.add_s, 100, ' cm')}")
     t = result.timings
-    print(f"time: MLE {_fmt(t.get('mle'), 1, ' s')} (scene building "
+    say(args, f"time: MLE {_fmt(t.get('mle'), 1, ' s')} (scene building "
           f"{_fmt(t.get('scene'), 1, ' s')}, object model {_fmt(t.get('object'), 1, ' s')})")
-    print(f"details: {result.message}")
+    say(args, f"details: {result.message}")
     if result.distribution is not None:
         _print_distribution(result, args)
+    if args.save_problem is not None:
+        from certpose.estimation.pipeline import eq2_problem_data
+        from certpose.io.problems import save_problem
+
+        meta = {"name": f"{args.object}@{args.frame}" if not args.demo else f"demo-s{args.seed}",
+                "scene": title, "seed": args.seed}
+        path = save_problem(args.save_problem, **eq2_problem_data(result, **meta))
+        say(args, f"wrote {path} (the eq. (2) problem; ground truth "
+                  f"{'included' if result.T_camera_object_gt is not None else 'unknown'})")
     if args.json is not None:
         payload = {"input": {"demo": bool(args.demo), "ycbv": args.ycbv, "frame": args.frame,
                              "object": args.object, "model": args.model,
                              "object_model": args.object_model, "seed": args.seed},
                    **result.to_dict()}
-        print(f"wrote {write_json(args.json, payload)}")
+        emit_json(args, payload)
     sys.stdout.flush()
-    return 0 if result.success else 1
+    if not result.success:
+        return 1
+    if args.require_certificate and not (result.certificate is not None
+                                         and result.certificate.certified):
+        print("certpose pose: --require-certificate: the eq. (2) solution is not certified "
+              f"({result.certificate_message or 'no certificate'})", file=sys.stderr)
+        return 1
+    return 0
 
 
 def _print_distribution(result: object, args: argparse.Namespace) -> None:
+    from certpose.cli import say
+
     dist, info = result.distribution, result.sampling  # type: ignore[attr-defined]
     k = info.get("pareto_k")
     method = {"is": "importance sampler", "de": "Nevergrad TwoPointsDE, population weighted",
               "mcmc": "random-walk Metropolis"}[info.get("method", "is")]
     ess_kind = "bulk ESS of the chains" if info.get("method") == "mcmc" else "ESS of the weighted draws"
-    print(f"pose distribution ({method}): {len(dist)} particles (T_camera_object), {ess_kind} "
+    say(args, f"pose distribution ({method}): {len(dist)} particles (T_camera_object), {ess_kind} "
           f"{info['ess']:.0f}, Pareto-k {_fmt(k, 1, '', 2)}, temperature {info['temperature']:.3g}, "
           f"{info['evaluations']} eq. (1) evaluations in {info['seconds']:.2f} s; {info['message']}")
     for j, m in enumerate(dist.modes()[:5]):
-        print(f"  mode {j}: mass {m.mass:.3f} ({m.num_particles} particles), translation "
+        say(args, f"  mode {j}: mass {m.mass:.3f} ({m.num_particles} particles), translation "
               f"[{', '.join(f'{v:.4f}' for v in m.translation)}] m")
     if args.particles is not None:
         dist.save(args.particles)
-        print(f"wrote {args.particles}")
+        say(args, f"wrote {args.particles}")
     if args.plot is not None:
         from certpose.estimation.pipeline import YCBV_SYMMETRY_AXES
         from certpose.sampling.plots import plot_marginals
@@ -205,4 +237,4 @@ def _print_distribution(result: object, args: argparse.Namespace) -> None:
                                            f"Pareto-k: {_fmt(k, 1, '', 2)}",
                                            f"temperature: {info['temperature']:.3g}",
                                            f"time: {info['seconds']:.2f} s"])
-        print(f"wrote {args.plot}")
+        say(args, f"wrote {args.plot}")

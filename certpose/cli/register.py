@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from certpose.cli import busy
+
 _EPILOG = """\
 Point files: .npy (N, 3), .csv/.txt (3 columns, comma or whitespace, optional header), .xyz,
 .ply, .pcd. Row k of SRC corresponds to row k of DST. Weights: .npy or .csv/.txt, shape (N,).
@@ -15,6 +17,8 @@ Point files: .npy (N, 3), .csv/.txt (3 columns, comma or whitespace, optional he
 
 
 def add_parser(subparsers: Any) -> None:
+    from certpose.cli import add_common
+
     p = subparsers.add_parser(
         "register",
         help="robustly register corresponding point sets (weighted TLS)",
@@ -24,8 +28,12 @@ def add_parser(subparsers: Any) -> None:
     )
     p.add_argument("source", nargs="?", metavar="SRC", help="source points file")
     p.add_argument("target", nargs="?", metavar="DST", help="target points file (same rows)")
+    p.add_argument("--problem", metavar="FILE.npz", default=None,
+                   help="a problem file (source, target, weights, noise bounds, optional ground "
+                        "truth) instead of SRC DST; written by `certpose pose --save-problem`")
     p.add_argument("--noise-bound", type=float, metavar="B",
-                   help="inlier noise bound beta, in the units of the points (required with files)")
+                   help="inlier noise bound beta, in the units of the points (required with "
+                        "point files; overrides a problem file's bounds)")
     p.add_argument("--weights", metavar="W", help="per-correspondence weights file")
     p.add_argument("--solver", choices=("gnc", "sdp"), default="gnc",
                    help="gnc (default) or sdp (the SDP relaxation, with its certificate)")
@@ -38,9 +46,8 @@ def add_parser(subparsers: Any) -> None:
                    help="seconds the certifier may spend (default: 120 per bound search)")
     p.add_argument("--prune", choices=("auto", "always", "never"), default="auto",
                    help="max-clique pruning before GNC (default: auto)")
-    p.add_argument("--seed", type=int, default=0,
-                   help="seed of the --demo instance (default: 0); the solvers are deterministic")
-    p.add_argument("--json", metavar="OUT", help="write the result (and inputs) as JSON to OUT")
+    p.add_argument("--require-certificate", action="store_true",
+                   help="implies --certify; exit with code 1 unless the pose is certified")
     demo = p.add_argument_group("demo (a built-in synthetic problem with known ground truth)")
     demo.add_argument("--demo", action="store_true", help="run the demo instead of reading files")
     demo.add_argument("--demo-n", type=int, default=100, metavar="N",
@@ -49,19 +56,24 @@ def add_parser(subparsers: Any) -> None:
                       help="outlier fraction in the demo (default: 0.8)")
     demo.add_argument("--demo-noise", type=float, default=0.01, metavar="SIGMA",
                       help="inlier noise std in the demo (default: 0.01; beta = 5.54 sigma)")
+    add_common(p, seed_help="seed of the --demo instance (default: 0); the solvers are "
+                            "deterministic",
+               json_help="write the result (and inputs) as JSON to OUT ('-': standard output)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from certpose.cli import CLIError
-    from certpose.io.output import check_output_path
+    from certpose.cli import CLIError, check_json_output
 
-    if args.json:
-        check_output_path(args.json, what="--json output")
+    check_json_output(args)
+    if args.require_certificate and args.solver == "gnc":
+        args.certify = True
+    if sum([bool(args.demo), args.problem is not None, bool(args.source or args.target)]) > 1:
+        raise CLIError("give one of SRC DST, --problem FILE or --demo")
     if args.demo:
-        if args.source or args.target:
-            raise CLIError("give either SRC DST or --demo, not both")
         return _run_demo(args)
+    if args.problem is not None:
+        return _run_problem(args)
     if not args.source or not args.target:
         raise CLIError("SRC and DST point files are required (or use --demo)")
     if args.noise_bound is None:
@@ -72,13 +84,14 @@ def run(args: argparse.Namespace) -> int:
 
     source, target = read_correspondences(args.source, args.target)
     weights = None if args.weights is None else read_weights(args.weights, n=source.shape[0])
-    result = register(
-        source, target, noise_bound=args.noise_bound, weights=weights, solver=args.solver,
-        certify=args.certify, prune=args.prune, **_cert_options(args),
-    )
-    print(f"certpose register: {source.shape[0]} correspondences, {args.source} -> {args.target}, "
-          f"noise bound {args.noise_bound:g}, solver {args.solver}")
-    print(_summary(result))
+    with busy(args, "certpose register"):
+        result = register(
+            source, target, noise_bound=args.noise_bound, weights=weights, solver=args.solver,
+            certify=args.certify, prune=args.prune, **_cert_options(args),
+        )
+    _say(args, f"certpose register: {source.shape[0]} correspondences, {args.source} -> "
+               f"{args.target}, noise bound {args.noise_bound:g}, solver {args.solver}")
+    _say(args, _summary(result))
     if args.json:
         inputs = {
             "source": str(args.source), "target": str(args.target),
@@ -86,8 +99,54 @@ def run(args: argparse.Namespace) -> int:
             "num_correspondences": int(source.shape[0]), "noise_bound": args.noise_bound,
             "solver": args.solver, "certify": args.certify, "prune": args.prune,
         }
-        _write_json(args.json, {"inputs": inputs, "result": result.to_dict()})
-    return 0 if result.success else 1
+        _write_json(args, {"inputs": inputs, "result": result.to_dict()})
+    return _exit_code(args, result)
+
+
+def _run_problem(args: argparse.Namespace) -> int:
+    from certpose.api import register
+    from certpose.cli import CLIError
+    from certpose.io.problems import load_problem
+
+    prob = load_problem(args.problem)
+    if args.weights is not None:
+        raise CLIError("--weights does not apply to --problem (the file holds the weights)")
+    beta = prob.noise_bound if args.noise_bound is None else args.noise_bound
+    with busy(args, "certpose register"):
+        result = register(
+            prob.source, prob.target, noise_bound=beta, weights=prob.weights,
+            solver=args.solver, certify=args.certify, prune=args.prune, **_cert_options(args),
+        )
+    bound = (f"{beta:g}" if np.ndim(beta) == 0
+             else f"{np.min(beta):g}-{np.max(beta):g} (per correspondence)")
+    meta = ", ".join(f"{k} {v}" for k, v in prob.metadata.items() if k in ("suite", "name"))
+    _say(args, f"certpose register: {prob.n} correspondences from {args.problem}"
+               f"{f' ({meta})' if meta else ''}, noise bound {bound}, solver {args.solver}")
+    _say(args, _summary(result))
+    errors = None
+    if prob.T_target_source is not None:
+        errors = _errors(result, prob.T_target_source[:3, :3], prob.T_target_source[:3, 3])
+        _say(args, "ground truth T_target_source:\n" + _matrix(prob.T_target_source))
+        _say(args, f"rotation error    : {errors['rotation_deg']:.4f} deg\n"
+                   f"translation error : {errors['translation']:.5g}")
+    if args.json:
+        _write_json(args, {
+            "inputs": {"problem": str(args.problem), "metadata": prob.metadata,
+                       "num_correspondences": prob.n, "noise_bound": beta,
+                       "solver": args.solver, "certify": args.certify, "prune": args.prune},
+            "ground_truth": None if prob.T_target_source is None
+            else {"T_target_source": prob.T_target_source.tolist()},
+            "errors": errors,
+            "result": result.to_dict(),
+        })
+    return _exit_code(args, result)
+
+
+def _errors(result: Any, R: np.ndarray, t: np.ndarray) -> dict[str, float]:
+    from solvers.lie import rotation_error_deg, translation_error
+
+    return {"rotation_deg": rotation_error_deg(result.rotation, R),
+            "translation": translation_error(result.translation, t)}
 
 
 def _run_demo(args: argparse.Namespace) -> int:
@@ -99,27 +158,26 @@ def _run_demo(args: argparse.Namespace) -> int:
     inst = make_instance(synthetic_shape(), args.demo_n, args.demo_outliers,
                          noise=args.demo_noise, rng=args.seed)
     beta = inst.noise_bound if args.noise_bound is None else args.noise_bound
-    register(inst.source, inst.target, noise_bound=beta)  # JIT warm-up, untimed
-    t0 = time.perf_counter()
-    result = register(inst.source, inst.target, noise_bound=beta, solver=args.solver,
-                      certify=args.certify, prune=args.prune, **_cert_options(args))
-    elapsed = time.perf_counter() - t0
+    with busy(args, "certpose register --demo"):
+        register(inst.source, inst.target, noise_bound=beta)  # JIT warm-up, untimed
+        t0 = time.perf_counter()
+        result = register(inst.source, inst.target, noise_bound=beta, solver=args.solver,
+                          certify=args.certify, prune=args.prune, **_cert_options(args))
+        elapsed = time.perf_counter() - t0
     rot_err = rotation_error_deg(result.rotation, inst.rotation)
     trans_err = translation_error(result.translation, inst.translation)
     n_out = int(inst.outliers.sum())
-    print(f"certpose register --demo: synthetic shape, {args.demo_n} correspondences, "
-          f"{n_out} outliers ({100 * n_out / args.demo_n:.0f}%), sigma {args.demo_noise:g}, "
-          f"noise bound {beta:g}, seed {args.seed}")
-    print(_summary(result))
-    print("ground truth T_target_source:")
+    _say(args, f"certpose register --demo: synthetic shape, {args.demo_n} correspondences, "
+               f"{n_out} outliers ({100 * n_out / args.demo_n:.0f}%), sigma {args.demo_noise:g}, "
+               f"noise bound {beta:g}, seed {args.seed}")
+    _say(args, _summary(result))
     T_gt = np.eye(4)
     T_gt[:3, :3], T_gt[:3, 3] = inst.rotation, inst.translation
-    print(_matrix(T_gt))
-    print(f"rotation error    : {rot_err:.4f} deg")
-    print(f"translation error : {trans_err:.5f}")
-    print(f"time              : {1e3 * elapsed:.3f} ms (after JIT warm-up)")
+    _say(args, "ground truth T_target_source:\n" + _matrix(T_gt))
+    _say(args, f"rotation error    : {rot_err:.4f} deg\ntranslation error : {trans_err:.5f}\n"
+               f"time              : {1e3 * elapsed:.3f} ms (after JIT warm-up)")
     if args.json:
-        _write_json(args.json, {
+        _write_json(args, {
             "inputs": {"demo": True, "n": args.demo_n, "outlier_ratio": args.demo_outliers,
                        "noise": args.demo_noise, "noise_bound": beta, "seed": args.seed,
                        "solver": args.solver, "certify": args.certify, "prune": args.prune},
@@ -127,7 +185,30 @@ def _run_demo(args: argparse.Namespace) -> int:
             "errors": {"rotation_deg": rot_err, "translation": trans_err},
             "result": result.to_dict(),
         })
-    return 0 if result.success else 1
+    return _exit_code(args, result)
+
+
+def _say(args: argparse.Namespace, text: str) -> None:
+    from certpose.cli import say
+
+    say(args, text)
+
+
+def _exit_code(args: argparse.Namespace, result: Any) -> int:
+    """0; 1 when the solve failed or --require-certificate is not met (said on stderr)."""
+    import sys
+
+    if not result.success:
+        return 1
+    if args.require_certificate:
+        cert = result.certificate
+        if cert is None or not cert.certified:
+            why = "no certificate" if cert is None else (
+                f"the certificate's gap {cert.relative_gap:.3g} exceeds tol {cert.tol:g}")
+            print(f"certpose register: --require-certificate: the pose is not certified ({why})",
+                  file=sys.stderr)
+            return 1
+    return 0
 
 
 def _cert_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -164,7 +245,7 @@ def _summary(result: Any) -> str:
     return "\n".join(lines)
 
 
-def _write_json(path: str, payload: dict[str, Any]) -> None:
-    from certpose.io.output import write_json
+def _write_json(args: argparse.Namespace, payload: dict[str, Any]) -> None:
+    from certpose.cli import emit_json
 
-    print(f"wrote {write_json(path, payload)}")
+    emit_json(args, payload)

@@ -336,6 +336,8 @@ class MLEResult:
         Local maxima of eq. (1) within ``mode_window`` nats of the best, best first (the
         returned pose first); more than one means eq. (1) barely tells them apart (e.g. a box's
         flips without appearance).
+    eq2_problem : Eq2Problem or None
+        The eq. (2) problem that was solved (scene frame; ``certpose pose --save-problem``).
     """
 
     T_scene_object: NDArray[np.float64]
@@ -351,6 +353,7 @@ class MLEResult:
     message: str
     hypotheses: tuple[Hypothesis, ...] = ()
     modes: tuple[PoseMode, ...] = ()
+    eq2_problem: Any = field(default=None, repr=False)
 
     @property
     def success(self) -> bool:
@@ -702,7 +705,7 @@ def estimate_mle(
     log.info("MLE: %s", msg)
     return MLEResult(best.pose, float(best.score), best.source, eq2_result, eq2_ll,
                      eq2_refined_ll, cert, int(search.n_eval), timings, MLEStatus.CONVERGED, msg,
-                     tuple(finals), modes)
+                     tuple(finals), modes, eq2)
 
 
 def global_search(

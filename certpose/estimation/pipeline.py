@@ -40,6 +40,9 @@ __all__ = [
     "run_demo",
     "build_ycbv_object_model",
     "YCBV_SYMMETRY_AXES",
+    "eq2_problem_data",
+    "build_eq2_demo",
+    "build_eq2_ycbv",
 ]
 
 log = logging.getLogger(__name__)
@@ -233,7 +236,9 @@ class PoseResult:
     modes: tuple[dict[str, Any], ...] = ()
     distribution: Any = field(default=None, repr=False)
     sampling: dict[str, Any] = field(default_factory=dict)
-    T_camera_object_gt: Any = field(default=None, repr=False)
+    T_camera_object_gt: NDArray[np.float64] | None = field(default=None, repr=False)
+    T_world_camera: NDArray[np.float64] | None = field(default=None, repr=False)
+    symmetry_axis: tuple[float, float, float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary."""
@@ -267,6 +272,109 @@ class PoseResult:
             self.mle.eq2_result.T_target_source
         return {"T_camera_object": T.tolist(), "problem": self.certificate.problem,
                 "certified": bool(self.certificate.certified)}
+
+
+def eq2_problem_data(result: PoseResult, **metadata: Any) -> dict[str, Any]:
+    """The eq. (2) problem a pose run solved, as keyword arguments of
+    :func:`certpose.io.problems.save_problem` (scene frame, metres).
+
+    The ground truth, when the run had one, is ``T_scene_object``: the frame's
+    ``T_world_camera @ T_camera_object_gt``. ``metadata`` is stored along (plus the
+    symmetry axis and success tolerances of the eq. (2) suite: 10 deg, 2 cm).
+
+    Raises
+    ------
+    ValueError
+        The run built no eq. (2) problem (no object evidence).
+    """
+    if result.mle is None or result.mle.eq2_problem is None:
+        raise ValueError("this pose run built no eq. (2) problem (no object evidence).")
+    return _eq2_data(result.mle.eq2_problem, result.T_world_camera, result.T_camera_object_gt,
+                     result.symmetry_axis, metadata)
+
+
+def _eq2_data(eq2: Any, T_world_camera: Any, T_camera_object_gt: Any, axis: Any,
+              metadata: dict[str, Any]) -> dict[str, Any]:
+    prob = eq2.problem
+    gt = None
+    if T_camera_object_gt is not None:
+        T_wc = np.eye(4) if T_world_camera is None else np.asarray(T_world_camera)
+        gt = T_wc @ np.asarray(T_camera_object_gt)
+    beta = prob.noise_bound
+    meta = {"units": "m", "rotation_tol_deg": EQ2_ROTATION_TOL_DEG,
+            "translation_tol": EQ2_TRANSLATION_TOL, **metadata}
+    if axis is not None:
+        meta["symmetry_axis"] = [float(v) for v in axis]
+    return {"source": prob.source, "target": prob.target, "weights": prob.weights,
+            "noise_bound": float(beta[0]) if prob.scalar_noise_bound else beta,
+            "T_target_source": gt, "metadata": meta}
+
+
+EQ2_ROTATION_TOL_DEG = 10.0
+"""Success of an eq. (2) solve against the object's ground truth: rotation (or symmetry-axis)
+error below 10 degrees..."""
+EQ2_TRANSLATION_TOL = 0.02
+"""...and translation error below 2 cm (eq. (2) is an approximation of eq. (1) on a 5 mm grid:
+its minimiser is not the true pose)."""
+
+
+def build_eq2_demo(
+    *, rng: np.random.Generator | int | None = 0, params: PoseParams | None = None,
+    num_views: int = 4,
+) -> dict[str, Any]:
+    """The eq. (2) problem of the synthetic mug scene drawn from ``rng``, without solving it.
+
+    Returns keyword arguments of :func:`certpose.io.problems.save_problem` (see
+    :func:`eq2_problem_data`).
+    """
+    from certpose.data.synthetic import make_mug_scene
+    from certpose.geometry.features import FPFHBackbone
+    from certpose.geometry.objects import object_from_views
+    from certpose.model.classifier import classify_from_mask
+    from certpose.model.eq2 import build_eq2_problem
+
+    params = params or PoseParams()
+    gen = resolve_rng(rng)
+    backbone = FPFHBackbone()
+    sc = make_mug_scene(rng=gen)
+    scene = _scene_for(sc.frame, sc.object_mask, params, backbone)
+    obj = object_from_views(sc.render_object_views(num_views), backbone,
+                            voxel_size=params.voxel_size, name="mug")
+    cls = classify_from_mask(scene, sc.frame.with_mask(sc.object_mask), params=params.classifier)
+    eq2 = build_eq2_problem(scene, cls, obj, params=params.mle.eq2,
+                            likelihood_params=params.likelihood, rng=gen)
+    return _eq2_data(eq2, sc.frame.T_world_camera, sc.T_camera_object, (0.0, 0.0, 1.0),
+                     {"suite": "eq2", "scene": "synthetic mug"})
+
+
+def build_eq2_ycbv(
+    root: str | Path, frame: str, object_name: str, *, rng: np.random.Generator | int | None = 0,
+    params: PoseParams | None = None,
+) -> dict[str, Any]:
+    """The eq. (2) problem of one object in one YCB-Video frame (geometry-only FPFH model, mask
+    classifier), without solving it; keyword arguments of
+    :func:`certpose.io.problems.save_problem`."""
+    from certpose.geometry.features import FPFHBackbone
+    from certpose.geometry.objects import object_from_points
+    from certpose.io.ycbv import load_model_points, load_ycbv_frame
+    from certpose.model.classifier import classify_from_mask
+    from certpose.model.eq2 import build_eq2_problem
+
+    params = params or PoseParams()
+    gen = resolve_rng(rng)
+    backbone = FPFHBackbone()
+    root = Path(root)
+    yf = load_ycbv_frame(root, frame)
+    mask = yf.object_mask(object_name)
+    points = load_model_points(root / "models" / object_name / "points.xyz")
+    scene = _scene_for(yf.frame, mask, params, backbone)
+    obj = object_from_points(points, backbone, voxel_size=params.voxel_size, name=object_name)
+    cls = classify_from_mask(scene, yf.frame.with_mask(mask), params=params.classifier)
+    eq2 = build_eq2_problem(scene, cls, obj, params=params.mle.eq2,
+                            likelihood_params=params.likelihood, rng=gen)
+    return _eq2_data(eq2, yf.frame.T_world_camera, yf.poses.get(object_name),
+                     YCBV_SYMMETRY_AXES.get(object_name),
+                     {"suite": "eq2", "scene": f"ycbv {frame}", "object": object_name})
 
 
 def _finite_or_none(x: float) -> float | None:
@@ -376,7 +484,11 @@ def estimate_pose(
                       mle.eq2_log_likelihood, mle.eq2_refined_log_likelihood, timings, errors,
                       mle.success, mle.status.value, msg, mle, mle.certificate_scope(),
                       mle.pose_is_certified, tuple(modes), distribution, sampling,
-                      None if T_camera_object_gt is None else np.asarray(T_camera_object_gt, dtype=np.float64))
+                      None if T_camera_object_gt is None
+                      else np.asarray(T_camera_object_gt, dtype=np.float64),
+                      np.asarray(T_world_camera, dtype=np.float64),
+                      None if symmetry_axis is None
+                      else tuple(float(v) for v in np.ravel(symmetry_axis)))
 
 
 def _sample(scene: Any, cls: Any, object_model: Any, mle: Any, T_cw: NDArray[np.float64],

@@ -16,20 +16,24 @@ from certpose.io.points import (
     scale_to_unit_cube,
     synthetic_shape,
 )
+from certpose.io.problems import ProblemFile, load_problem, save_problem
 from certpose.io.ycbv import YCBVFrame, load_class_names, load_model_points, load_ycbv_frame
 
 __all__ = [
     "POINT_SUFFIXES",
+    "ProblemFile",
     "WEIGHT_SUFFIXES",
     "YCBVFrame",
     "check_output_path",
     "load_bunny",
     "load_class_names",
     "load_model_points",
+    "load_problem",
     "load_ycbv_frame",
     "read_correspondences",
     "read_points",
     "read_weights",
+    "save_problem",
     "scale_to_unit_cube",
     "synthetic_shape",
     "to_json",
