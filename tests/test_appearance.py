@@ -159,11 +159,11 @@ def test_cli_object_build_then_pose(root, tmp_path, capsys):
     assert BuiltObjectModel.load(out).scenes == ("0000",)
     # A model of another object is refused.
     assert main(["pose", "--ycbv", str(root), "--frame", "0000/000003", "--object", "025_mug",
-                 "--object-model", str(out), "--no-certify"]) == 1
+                 "--object-model", str(out), "--no-certify"]) == 2
     assert "not of --object 025_mug" in capsys.readouterr().err
     # Errors are one line.
     assert main(["object", "build", "--ycbv", str(root), "--object", "006_mustard_bottle",
-                 "--views", "0000/000001", "-o", str(tmp_path / "m.npz")]) == 1
+                 "--views", "0000/000001", "-o", str(tmp_path / "m.npz")]) == 2
     err = capsys.readouterr().err
     assert "no pose" in err and err.count("\n") == 1
     js = tmp_path / "pose.json"

@@ -127,11 +127,11 @@ def test_missing_files_and_bad_names(tmp_path):
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
-    assert main(["pose", "--ycbv", str(tmp_path / "missing")]) == 1
+    assert main(["pose", "--ycbv", str(tmp_path / "missing")]) == 2  # bad input
     err = capsys.readouterr().err
     assert "not a directory" in err and err.count("\n") == 1
     root = require_data("ycbv")
-    assert main(["pose", "--ycbv", str(root), "--object", "no_such_object"]) == 1
+    assert main(["pose", "--ycbv", str(root), "--object", "no_such_object"]) == 2
     assert "no_such_object" in capsys.readouterr().err
 
 
@@ -212,7 +212,7 @@ def test_cli_pose_plot_and_method_need_samples(tmp_path, capsys):  # type: ignor
 def test_cli_pose_particles_need_samples(tmp_path, capsys):  # type: ignore[no-untyped-def]
     from certpose.cli import main
 
-    assert main(["pose", "--demo", "--particles", str(tmp_path / "p.npz")]) == 1
+    assert main(["pose", "--demo", "--particles", str(tmp_path / "p.npz")]) == 2
     assert "--particles needs --samples" in capsys.readouterr().err
     assert main(["pose", "--demo", "--samples", "10", "--particles",
-                 str(tmp_path / "missing" / "p.npz")]) == 1
+                 str(tmp_path / "missing" / "p.npz")]) == 2

@@ -177,16 +177,18 @@ def protocol_specs(
     ]
 
 
-def problem_specs(folder: str | os.PathLike[str], suite: str | None = None) -> list[InstanceSpec]:
+def problem_specs(folder: str | os.PathLike[str], suite: str | None = None, *,
+                  check: bool = True) -> list[InstanceSpec]:
     """One spec per ``*.npz`` file under ``folder`` (recursively, sorted); the id is the path
-    relative to ``folder``.
+    relative to ``folder``. With ``check``, every file is read once here (one at a time, not
+    kept) so that a malformed one stops the run before any work.
 
     Raises
     ------
     FileNotFoundError, NotADirectoryError
         ``folder`` is missing or not a folder.
     ValueError
-        It holds no ``.npz`` file.
+        It holds no ``.npz`` file; a file is malformed (``check``).
     """
     root = Path(folder)
     if not root.exists():
@@ -199,6 +201,10 @@ def problem_specs(folder: str | os.PathLike[str], suite: str | None = None) -> l
     name = suite or root.resolve().name
     out = []
     for f in files:
+        if check:
+            from certpose.io.problems import load_problem
+
+            load_problem(f)
         rel = f.relative_to(root).as_posix()
         out.append(InstanceSpec(name, rel, _id_seed(rel), 0, "file", (str(f.resolve()),)))
     return out
@@ -270,8 +276,9 @@ def _from_problem(d: dict[str, Any], *, rotation_tol_deg: float | None = None,
                   translation_tol: float | None = None) -> Instance:
     """An :class:`Instance` from a problem file's fields (or :func:`save_problem`'s keywords)."""
     meta = d.get("metadata") or {}
-    src = np.asarray(d["source"], dtype=np.float64)
-    dst = np.asarray(d["target"], dtype=np.float64)
+    # Copies: some peers (Open3D) need writable arrays, and problems hold read-only ones.
+    src = np.array(d["source"], dtype=np.float64)
+    dst = np.array(d["target"], dtype=np.float64)
     beta = d["noise_bound"]
     beta = float(beta) if np.ndim(beta) == 0 else np.asarray(beta, dtype=np.float64)
     T = d.get("T_target_source")
@@ -284,7 +291,7 @@ def _from_problem(d: dict[str, Any], *, rotation_tol_deg: float | None = None,
         ratio = float(np.mean(r > np.asarray(beta)))
     axis = meta.get("symmetry_axis")
     return Instance(
-        src, dst, np.asarray(d["weights"], dtype=np.float64), beta, R, t, int(src.shape[0]),
+        src, dst, np.array(d["weights"], dtype=np.float64), beta, R, t, int(src.shape[0]),
         ratio,
         float(rotation_tol_deg or meta.get("rotation_tol_deg", ROTATION_TOL_DEG)),
         float(translation_tol or meta.get("translation_tol", TRANSLATION_TOL)),
@@ -302,7 +309,9 @@ def _eq2_synthetic(seed: int) -> Instance:
 @functools.lru_cache(maxsize=2)
 def _threedmatch(folder: str) -> Instance:
     """The pair's FPFH correspondences (cached per process: they take seconds to compute)."""
-    from certpose.data.threedmatch import load_threedmatch_problem
+    from certpose.data.threedmatch import NOISE_BOUND, threedmatch_correspondences
 
-    d = load_threedmatch_problem(Path(folder))
+    c = threedmatch_correspondences(Path(folder))
+    d = {"source": c.source, "target": c.target, "weights": np.ones(c.n),
+         "noise_bound": NOISE_BOUND, "T_target_source": c.T_target_source}
     return _from_problem(d, translation_tol=THREEDMATCH_TRANSLATION_TOL)

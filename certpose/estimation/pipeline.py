@@ -290,7 +290,7 @@ def eq2_problem_data(result: PoseResult, **metadata: Any) -> dict[str, Any]:
     if result.mle is None or result.mle.eq2_problem is None:
         raise ValueError("this pose run built no eq. (2) problem (no object evidence).")
     return _eq2_data(result.mle.eq2_problem, result.T_world_camera, result.T_camera_object_gt,
-                     result.symmetry_axis, metadata)
+                     result.symmetry_axis, {"suite": "eq2", **metadata})
 
 
 def _eq2_data(eq2: Any, T_world_camera: Any, T_camera_object_gt: Any, axis: Any,
