@@ -200,12 +200,12 @@ def test_cli_pose_demo_baseline_and_plot(tmp_path, capsys, method, label):  # ty
 def test_cli_pose_plot_and_method_need_samples(tmp_path, capsys):  # type: ignore[no-untyped-def]
     from certpose.cli import main
 
-    assert main(["pose", "--demo", "--plot", str(tmp_path / "m.png")]) == 1
+    assert main(["pose", "--demo", "--plot", str(tmp_path / "m.png")]) == 2  # bad input
     assert "--plot needs --samples" in capsys.readouterr().err
-    assert main(["pose", "--demo", "--method", "de"]) == 1
+    assert main(["pose", "--demo", "--method", "de"]) == 2
     assert "--method needs --samples" in capsys.readouterr().err
     assert main(["pose", "--demo", "--samples", "10", "--plot",
-                 str(tmp_path / "missing" / "m.png")]) == 1
+                 str(tmp_path / "missing" / "m.png")]) == 2
     assert "missing" in capsys.readouterr().err
 
 
