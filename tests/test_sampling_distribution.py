@@ -158,3 +158,53 @@ def test_modes_two_clusters_with_their_mass():
     assert modes[0].covariance[2, 2] == pytest.approx(1 / 12, rel=0.1)  # uniform on [-0.5, 0.5]
     with pytest.raises(ValueError, match="rotation_scale"):
         d.modes(rotation_scale=0.0)
+
+
+def _gaussian_particles(n, sd, rng):
+    R0 = Rotation.from_rotvec([0.3, -0.2, 1.0]).as_matrix()
+    t0 = np.array([0.1, -0.05, 0.6])
+    X = rng.normal(size=(n, 6)) * sd
+    R = R0 @ Rotation.from_rotvec(X[:, :3]).as_matrix()
+    return PoseDistribution(R, t0 + X[:, 3:], np.full(n, 1.0 / n)), R0, t0
+
+
+def test_credible_level_of_gaussian_follows_chi2():
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(3)
+    sd = np.array([0.02, 0.02, 0.02, 0.004, 0.004, 0.004])
+    d, R0, t0 = _gaussian_particles(1000, sd, rng)
+    for r in (1.0, 2.0, 3.0):
+        # Queries at Mahalanobis radius r. The kernel density is (in expectation) the Gaussian
+        # widened by (1 + h^2), a monotone function of the radius: the particles denser than a
+        # query are those inside radius r, a chi-square(6) fraction. One query's level is noisy
+        # (sd ~0.08 at 1,000 particles): average over directions.
+        levels = []
+        for _ in range(12):
+            u = rng.normal(size=6)
+            x = r * sd * u / np.linalg.norm(u)
+            levels.append(d.credible_level(R0 @ Rotation.from_rotvec(x[:3]).as_matrix(), t0 + x[3:]))
+        assert abs(np.mean(levels) - chi2.cdf(r * r, df=6)) < 0.08, (r, np.mean(levels))
+
+
+def test_credible_level_is_uniform_for_draws_of_the_distribution():
+    from scipy.stats import kstest
+
+    rng = np.random.default_rng(4)
+    sd = np.array([0.05, 0.01, 0.03, 0.002, 0.01, 0.004])
+    d, R0, t0 = _gaussian_particles(1500, sd, rng)
+    # Fresh draws from the same law: their levels are uniform on [0, 1] up to the kernel's widening.
+    q, _, _ = _gaussian_particles(60, sd, np.random.default_rng(5))
+    levels = [d.credible_level(R, t) for R, t in zip(q.rotations, q.translations, strict=True)]
+    assert kstest(levels, "uniform").pvalue > 0.01
+    # A pose far outside is outside every region; the mode itself is inside the smallest.
+    assert d.credible_level(R0 @ Rotation.from_rotvec([0.5, 0, 0]).as_matrix(), t0) == 1.0
+    assert d.credible_level(R0, t0) < 0.05
+
+
+def test_credible_level_bad_input():
+    d, R0, t0 = _gaussian_particles(50, np.full(6, 0.01), np.random.default_rng(0))
+    with pytest.raises(ValueError, match="not a rotation"):
+        d.credible_level(2.0 * R0, t0)
+    with pytest.raises(ValueError, match="max_particles"):
+        d.credible_level(R0, t0, max_particles=0)
