@@ -126,21 +126,24 @@ def consistency_matrix(at, bt, beta, cbar):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def multistart_greedy_clique(adj, deg, order):  # pragma: no cover - compiled
+def multistart_greedy_clique(adj, deg, order, max_starts):  # pragma: no cover - compiled
     """Best of the greedy cliques grown inside each vertex's neighbourhood (by degree order).
 
-    ``order`` lists the vertices by decreasing degree. A cheap, strong lower bound on the
-    maximum clique: O(N * d * c) for degree d and clique size c.
+    ``order`` lists the vertices by decreasing degree; at most ``max_starts`` of them start a
+    clique. A cheap, strong lower bound on the maximum clique: O(starts * d * c) for degree d
+    and clique size c.
     """
     n = adj.shape[0]
     best = np.empty(0, dtype=np.int64)
     in_best = np.zeros(n, dtype=np.bool_)
     members = np.empty(n, dtype=np.int64)
+    starts = 0
     for v in order:
-        if deg[v] + 1 <= best.shape[0]:
+        if deg[v] + 1 <= best.shape[0] or starts >= max_starts:
             break  # later starts have lower degree: none can beat the best clique
         if in_best[v]:
             continue  # its neighbourhood was just explored from inside the best clique
+        starts += 1
         members[0] = v
         m = 1
         for u in order:
@@ -199,3 +202,132 @@ def scalar_tls(v, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
             best_x = x
             found = True
     return best_x, best_cost, found
+
+
+
+@njit(cache=True)
+def _colour_sort(adj, cand, m, out_v, out_c, rest, klass):  # pragma: no cover - compiled
+    """Greedy colouring of ``cand[:m]``, one colour class at a time; writes the vertices sorted
+    by colour to ``out_v[:m]`` and their colours (1-based, non-decreasing) to ``out_c[:m]``.
+
+    The colour of the ``k``-th output vertex bounds the largest clique among ``out_v[:k+1]``
+    (Tomita's MCQ). ``rest`` and ``klass`` (>= m) are scratch.
+    """
+    left = m
+    for i in range(m):
+        rest[i] = cand[i]
+    pos = 0
+    colour = 0
+    while left > 0:
+        colour += 1
+        size = 0
+        kept = 0
+        for i in range(left):
+            v = rest[i]
+            clash = False
+            for q in range(size):
+                if adj[v, klass[q]] != 0:
+                    clash = True
+                    break
+            if clash:
+                rest[kept] = v
+                kept += 1
+            else:
+                klass[size] = v
+                size += 1
+                out_v[pos] = v
+                out_c[pos] = colour
+                pos += 1
+        left = kept
+    return colour
+
+
+@njit(cache=True)
+def max_clique_bnb(adj, order, lower, target, limit, max_nodes):  # pragma: no cover - compiled
+    """Branch and bound for maximum cliques with greedy-colouring bounds (Tomita's MCQ).
+
+    ``order`` lists the vertices (by decreasing degree). With ``target <= 0`` it looks for one
+    clique larger than ``lower`` (a known clique's size): branches whose colour bound cannot
+    beat the best size are cut. With ``target > 0`` it lists up to ``limit`` cliques of exactly
+    ``target`` vertices (``target`` the proven maximum: branches that cannot reach it are cut).
+
+    Returns ``(cliques (limit, size) int64, count, size, complete, nodes)``: ``count`` rows of
+    ``cliques[:, :size]`` are the cliques found (``count = 0`` when nothing beat ``lower``);
+    ``complete`` is False when ``max_nodes`` ran out (or, listing ties, ``limit`` was reached).
+    """
+    n = adj.shape[0]
+    out = np.empty((max(limit, 1), n), dtype=np.int64)
+    rest = np.empty(n, dtype=np.int64)
+    klass = np.empty(n, dtype=np.int64)
+    # Candidate lists of all open levels, stacked in one buffer (grown on demand): level d
+    # holds buf_v/buf_c[start[d]:start[d] + ptr[d]], each level a subset of the one below.
+    cap = 4 * n + 16
+    buf_v = np.empty(cap, dtype=np.int64)
+    buf_c = np.empty(cap, dtype=np.int64)
+    start = np.zeros(n + 2, dtype=np.int64)
+    ptr = np.zeros(n + 2, dtype=np.int64)
+    clique = np.empty(n + 1, dtype=np.int64)
+    tmp = np.empty(n, dtype=np.int64)
+    if n == 0:
+        return out[:, :0], 0, 0, True, 0
+    _colour_sort(adj, order, n, buf_v, buf_c, rest, klass)
+    ptr[0] = n
+    ties = target > 0
+    best = target if ties else lower
+    count = 0
+    nodes = 0
+    depth = 0
+    complete = True
+    while depth >= 0:
+        i = ptr[depth] - 1
+        s0 = start[depth]
+        # Colours are non-decreasing along a level: once the bound fails here, it fails for
+        # every vertex left at this level.
+        if i < 0:
+            depth -= 1
+            continue
+        bound = depth + buf_c[s0 + i]
+        if bound < best or (bound == best and not ties):
+            depth -= 1
+            continue
+        ptr[depth] = i
+        v = buf_v[s0 + i]
+        clique[depth] = v
+        nodes += 1
+        if nodes > max_nodes:
+            complete = False
+            break
+        m = 0
+        for q in range(i):
+            u = buf_v[s0 + q]
+            if adj[v, u] != 0:
+                tmp[m] = u
+                m += 1
+        if m == 0:
+            size = depth + 1
+            if ties:
+                if size == target:
+                    out[count, :size] = clique[:size]
+                    count += 1
+                    if count >= limit:
+                        complete = False
+                        break
+            elif size > best:
+                best = size
+                out[0, :size] = clique[:size]
+                count = 1
+            continue
+        s1 = s0 + i  # level depth + 1 starts after the live part of this level
+        if s1 + m > cap:
+            cap = 2 * (s1 + m)
+            nv = np.empty(cap, dtype=np.int64)
+            nc = np.empty(cap, dtype=np.int64)
+            nv[:s1] = buf_v[:s1]
+            nc[:s1] = buf_c[:s1]
+            buf_v, buf_c = nv, nc
+        _colour_sort(adj, tmp, m, buf_v[s1:], buf_c[s1:], rest, klass)
+        depth += 1
+        start[depth] = s1
+        ptr[depth] = m
+    size = target if ties else (best if count > 0 else 0)
+    return out[:, :size], count, size, complete, nodes
