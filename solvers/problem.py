@@ -71,6 +71,31 @@ class WeightedTLSProblem:
         object.__setattr__(self, "weights", w)
         object.__setattr__(self, "cbar2", c2)
 
+    @classmethod
+    def _from_checked(
+        cls,
+        source: NDArray[np.float64],
+        target: NDArray[np.float64],
+        noise_bound: NDArray[np.float64],
+        weights: NDArray[np.float64],
+        cbar2: float,
+    ) -> WeightedTLSProblem:
+        """A problem from arrays derived from a validated problem (no second validation).
+
+        For the library's own transformations of a checked problem (e.g. an exact rescaling):
+        validation costs more than a small solve. The arrays must be float64, finite, of the
+        right shapes, with positive ``noise_bound`` and non-negative ``weights``.
+        """
+        self = object.__new__(cls)
+        for arr in (source, target, noise_bound, weights):
+            arr.setflags(write=False)
+        object.__setattr__(self, "source", source)
+        object.__setattr__(self, "target", target)
+        object.__setattr__(self, "noise_bound", noise_bound)
+        object.__setattr__(self, "weights", weights)
+        object.__setattr__(self, "cbar2", float(cbar2))
+        return self
+
     @property
     def n(self) -> int:
         """Number of correspondences."""

@@ -331,3 +331,45 @@ def max_clique_bnb(adj, order, lower, target, limit, max_nodes):  # pragma: no c
         ptr[depth] = m
     size = target if ties else (best if count > 0 else 0)
     return out[:, :size], count, size, complete, nodes
+
+
+@njit(cache=True)
+def weighted_spread(points, weights):  # pragma: no cover - compiled
+    """``(count, scale, ev)`` of the points of positive weight: their number, the largest
+    absolute coordinate, and the square roots of the eigenvalues (descending, (3,)) of their
+    weighted covariance, computed on the points divided by ``scale`` (any finite scale)."""
+    n = points.shape[0]
+    count = 0
+    wmax = 0.0
+    scale = 0.0
+    for k in range(n):
+        if weights[k] > 0.0:
+            count += 1
+            wmax = max(wmax, weights[k])
+            for i in range(3):
+                scale = max(scale, abs(points[k, i]))
+    ev = np.zeros(3)
+    if count == 0 or not scale > 0.0:
+        return count, scale, ev
+    wsum = 0.0
+    mean = np.zeros(3)
+    for k in range(n):
+        if weights[k] > 0.0:
+            wk = weights[k] / wmax
+            wsum += wk
+            for i in range(3):
+                mean[i] += wk * points[k, i] / scale
+    mean /= wsum
+    cov = np.zeros((3, 3))
+    for k in range(n):
+        if weights[k] > 0.0:
+            wk = weights[k] / wmax
+            for i in range(3):
+                di = points[k, i] / scale - mean[i]
+                for j in range(3):
+                    cov[i, j] += wk * di * (points[k, j] / scale - mean[j])
+    cov /= wsum
+    lam = np.linalg.eigvalsh(cov)
+    for i in range(3):
+        ev[i] = scale * np.sqrt(max(lam[2 - i], 0.0))
+    return count, scale, ev

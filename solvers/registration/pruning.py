@@ -209,11 +209,28 @@ def vote_translation(
     and weights. The result is exact per axis, not jointly; callers compare it with their own
     translation on the full cost.
     """
+    from solvers.registration import _kernels
+
     idx = np.arange(problem.n) if indices is None else np.asarray(indices)
     R = np.asarray(rotation, dtype=np.float64)
     resid = problem.target[idx] - problem.source[idx] @ R.T
     beta, w = problem.noise_bound[idx], problem.weights[idx]
-    return np.array([scalar_tls(resid[:, d], beta, w, problem.cbar2)[0] for d in range(3)])
+    # scalar_tls per axis, its setup shared (this runs once per pruned solve: small-N overhead).
+    n = resid.shape[0]
+    if n == 0:
+        raise ValueError("`indices` must not be empty.")
+    cbar2 = float(problem.cbar2)
+    beta = _kernels.as_kernel_array(beta)
+    w = _kernels.as_kernel_array(w)
+    vals = np.ascontiguousarray(resid.T)
+    half = beta * np.sqrt(cbar2)
+    ends = np.concatenate([vals - half, vals + half], axis=1)
+    order = np.argsort(ends, axis=1, kind="stable")
+    t = np.empty(3)
+    for d in range(3):
+        x, _, found = _kernels.scalar_tls(vals[d], beta, w, cbar2, ends[d], order[d])
+        t[d] = x if found else np.median(vals[d])  # no piece beats all-outliers: any x
+    return t
 
 
 def prune_max_clique(

@@ -105,20 +105,15 @@ def degeneracy(
     line free. Spread is judged against the noise bound, below which it is indistinguishable
     from noise.
     """
-    w = np.asarray(weights, dtype=np.float64)
-    keep = w > 0
-    count = int(np.count_nonzero(keep))
+    from solvers.registration import _kernels  # numba: a 3x3 eigenproblem, no numpy overhead
+
+    arr = _kernels.as_kernel_array
+    # Spread judged in units of the points' extent, so any scale works (1e-200 .. 1e200).
+    count, scale, ev = _kernels.weighted_spread(arr(points), arr(weights))
     if count < 3:
         return f"only {count} inlier(s); at least 3 non-collinear points are needed"
-    p, wk = np.asarray(points, dtype=np.float64)[keep], w[keep] / w[keep].max()
-    # Judge the spread in units of the points' extent, so any scale works (1e-200 .. 1e200).
-    scale = float(np.abs(p).max())
     if not scale > 0:
         return "the inliers are coincident (all at the origin)"
-    p = p / scale
-    centred = p - (wk @ p) / wk.sum()
-    cov = (centred * wk[:, None]).T @ centred / wk.sum()
-    ev = scale * np.sqrt(np.clip(np.linalg.eigvalsh(cov)[::-1], 0.0, None))
     # Below ~1e-12 of the extent, spread is floating-point rounding, not geometry.
     floor = max(noise_bound, 1e-12 * scale)
     if ev[0] <= floor:
@@ -315,8 +310,9 @@ def to_unit_scale(problem: WeightedTLSProblem) -> tuple[WeightedTLSProblem, floa
     beta = np.maximum(problem.noise_bound / scale, _MIN_RELATIVE_NOISE_BOUND)
     if scale == 1.0 and np.array_equal(beta, problem.noise_bound):
         return problem, 1.0
-    return WeightedTLSProblem(problem.source / scale, problem.target / scale, noise_bound=beta,
-                              weights=problem.weights, cbar2=problem.cbar2), scale
+    # Division by a power of two is exact (and keeps the data valid): no second validation.
+    return WeightedTLSProblem._from_checked(problem.source / scale, problem.target / scale, beta,
+                                            problem.weights, problem.cbar2), scale
 
 
 def from_unit_scale(result: RegistrationResult, scale: float) -> RegistrationResult:
