@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -68,3 +69,18 @@ def test_pose_from_rgbd_real_frame() -> None:
                 "--object", "025_mug")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "add_s=" in proc.stdout
+
+
+@pytest.mark.slow
+def test_bench_dense_quick(tmp_path: Path) -> None:
+    require_data("3dmatch", "gt.npy")
+    require_data("bunny", "bun_zipper_res3.ply")
+    out = tmp_path / "dense.json"
+    proc = _run("bench_dense.py", "--quick", "--json", str(out))
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(out.read_text())
+    m = report["3dmatch"]
+    assert m["success"] and m["graph_edges"] > 10_000, m
+    assert report["graphs"]["dense"]["median_edges"] > 10 * report["graphs"]["sparse"]["median_edges"]
+    assert set(report["bunny_n100"]) == {"0", "0.5", "0.8", "0.9", "0.95"}
+    assert "load average" in proc.stdout
