@@ -32,7 +32,11 @@ import numpy as np
 
 from certpose.api import register
 from certpose.data.instances import make_instance
-from certpose.data.threedmatch import NOISE_BOUND, default_threedmatch_dir, threedmatch_correspondences
+from certpose.data.threedmatch import (
+    NOISE_BOUND,
+    default_threedmatch_dir,
+    threedmatch_correspondences,
+)
 from certpose.io.points import load_bunny
 from solvers.lie import rotation_error_deg, translation_error
 
