@@ -84,3 +84,17 @@ def test_bench_dense_quick(tmp_path: Path) -> None:
     assert report["graphs"]["dense"]["median_edges"] > 10 * report["graphs"]["sparse"]["median_edges"]
     assert set(report["bunny_n100"]) == {"0", "0.5", "0.8", "0.9", "0.95"}
     assert "load average" in proc.stdout
+
+
+@pytest.mark.slow
+def test_distribution_to_samplers_example() -> None:
+    """The demo's pose distribution starts emcee, a gtsam graph and Nevergrad (all real)."""
+    proc = _run("distribution_to_samplers.py", "--samples", "500", "--steps", "10",
+                "--de-budget", "500")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines = {x.split(":")[0]: x for x in proc.stdout.splitlines()}
+    assert "chain shape (10, 32, 6)" in lines["emcee"]
+    cm = float(lines["emcee"].split("final walkers ")[1].split(" cm")[0])
+    assert cm < 1.0, proc.stdout  # the walkers stay on the mug
+    assert "x1 2.00 cm away" in lines["gtsam"]
+    assert "500 evaluations from 32 suggested poses" in lines["nevergrad"]
