@@ -98,3 +98,23 @@ def test_distribution_to_samplers_example() -> None:
     assert cm < 1.0, proc.stdout  # the walkers stay on the mug
     assert "x1 2.00 cm away" in lines["gtsam"]
     assert "500 evaluations from 32 suggested poses" in lines["nevergrad"]
+
+
+@pytest.mark.slow
+def test_bench_samplers_demo(tmp_path: Path) -> None:
+    """The side-by-side benchmark: three methods, one target, one wall-clock budget."""
+    import json
+    import math
+
+    out = tmp_path / "bench.json"
+    proc = _run("bench_samplers.py", "--no-ycbv", "--json", str(out))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["method"] for r in rows] == ["IS (ours)", "Nevergrad DE", "MCMC (RWM)"]
+    assert len({r["temperature"] for r in rows}) == 1
+    budget = rows[0]["seconds"]
+    for r in rows:
+        assert r["ess"] > 0 and math.isfinite(r["log_p_gt"]) and 0 <= r["arc_coverage"] <= 1
+        # The baselines stop at ours' sampling time (plus at most one batch of evaluations).
+        assert r["seconds"] <= budget + 1.0, r
+    assert "ours best or tied on" in proc.stdout
