@@ -113,6 +113,10 @@ class MCMCParams:
     rotation_step, translation_step : float
         Initial proposal standard deviations (rad, m).
     target_acceptance : float
+    start_window : float
+        Chains start only at the seeds whose tempered target is within this many nats of the
+        best seed's (round robin); a chain started hundreds of nats below would spend the whole
+        budget climbing.
     adapt_every : int
         Steps between covariance updates during warm-up.
     temperature : float
@@ -128,6 +132,7 @@ class MCMCParams:
     rotation_step: float = 0.02
     translation_step: float = 0.002
     target_acceptance: float = 0.234
+    start_window: float = 20.0
     adapt_every: int = 10
     temperature: float = 1.0
     resample: int = 0
@@ -143,7 +148,7 @@ class MCMCParams:
             raise ValueError(f"Expected `target_acceptance` in (0, 1), got {self.target_acceptance}.")
         if int(self.adapt_every) < 1:
             raise ValueError(f"Expected `adapt_every` >= 1, got {self.adapt_every}.")
-        _check_positive(self, "rotation_step", "translation_step", "temperature")
+        _check_positive(self, "rotation_step", "translation_step", "temperature", "start_window")
         if int(self.resample) < 0:
             raise ValueError(f"Expected `resample` >= 0, got {self.resample}.")
 
@@ -318,8 +323,9 @@ def mcmc_sample(
     log_target : callable
         ``log_target(T)`` with ``T`` (B, 4, 4) returns (B,) values.
     seeds : (K, 4, 4) or (4, 4) array_like
-        Starting poses; chain ``c`` starts at ``seeds[c % K]`` (e.g. the MLE, or draws of
-        :func:`certpose.sampling.initialisers.initial_poses`). The first seed is the chart's
+        Starting poses (e.g. the MLE's seeds, or draws of
+        :func:`certpose.sampling.initialisers.initial_poses`); the chains start round robin at
+        those within ``params.start_window`` nats of the best. The first seed is the chart's
         reference for the ESS.
     params : MCMCParams, optional
     rng : numpy Generator, int or None
@@ -332,15 +338,14 @@ def mcmc_sample(
     S0 = _check_seeds(seeds)
     gen = _resolve_rng(rng)
     C, temp = int(p.chains), float(p.temperature)
-    T = S0[np.arange(C) % len(S0)].copy()
     t0 = time.perf_counter()
-    lp = _eval(log_target, T) / temp
-    if not np.any(np.isfinite(lp)):
+    ls = _eval(log_target, S0) / temp
+    if not np.any(np.isfinite(ls)):
         raise ValueError("every seed has zero target density; check the seeds.")
-    # Chains started where the target vanishes restart at the best seed.
-    bad = ~np.isfinite(lp)
-    T[bad], lp[bad] = T[int(np.argmax(lp))], lp.max()
-    n_eval = C
+    starts = S0[np.flatnonzero(ls >= ls.max() - p.start_window)]
+    T = starts[np.arange(C) % len(starts)].copy()
+    lp = _eval(log_target, T) / temp
+    n_eval = len(S0) + C
     budget = int(p.max_evaluations)
     cov = np.diag([p.rotation_step**2] * 3 + [p.translation_step**2] * 3)
     log_s = 0.0
