@@ -118,3 +118,15 @@ def test_bench_samplers_demo(tmp_path: Path) -> None:
         # The baselines stop at ours' sampling time (plus at most one batch of evaluations).
         assert r["seconds"] <= budget + 1.0, r
     assert "ours best or tied on" in proc.stdout
+
+
+@pytest.mark.slow  # four bench processes, two of them with a Dask cluster
+def test_bench_dask_scaling_example() -> None:
+    proc = _run("bench_dask_scaling.py", "--instances", "10", "20", "--workers", "0", "1",
+                "--solvers", "gnc-only", "--synthetic")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    rows = [line.split() for line in proc.stdout.splitlines() if line[:9].strip().isdigit()]
+    assert [(r[0], r[1], r[2]) for r in rows] == [("10", "0", "10"), ("10", "1", "10"),
+                                                 ("20", "0", "20"), ("20", "1", "20")]
+    assert all(float(r[5]) > 10 for r in rows)  # a driver's peak RSS in MiB
+    assert "load average" in proc.stdout

@@ -350,6 +350,11 @@ def write_markdown(
         f"{platform.python_version()}; load average when this report was written: {load}",
         f"- rows: `{payload.get('rows', 'trials.csv')}`",
     ]
+    run = payload.get("run") or {}
+    if run:
+        lines.append(f"- run: {_md_num(run.get('wall_seconds'), '.1f')} s wall-clock, workers "
+                     f"{run.get('workers')}, {run.get('rows_written')} row(s) written, driver "
+                     f"peak RSS {_md_num(run.get('driver_peak_rss_mb'), '.0f')} MiB")
     if payload.get("skipped"):
         lines.append("- skipped: " + "; ".join(f"{k} ({v})" for k, v in payload["skipped"].items()))
     for suite in sorted({r["suite"] for r in summary}):

@@ -213,6 +213,10 @@ class BenchReport:
         :data:`SCOPE_COLUMNS`): certified fraction and gaps.
     skipped : dict
         Solvers that could not run, with the reason.
+    run : dict
+        How this run went: ``wall_seconds`` (the whole call, cluster start included),
+        ``rows_written``, ``workers`` and ``driver_peak_rss_mb`` (this process's peak resident
+        memory, which the streamed rows keep flat as the number of instances grows).
     """
 
     config: BenchConfig
@@ -221,6 +225,7 @@ class BenchReport:
     summary: list[dict[str, Any]]
     scopes: list[dict[str, Any]] = field(default_factory=list)
     skipped: dict[str, str] = field(default_factory=dict)
+    run: dict[str, Any] = field(default_factory=dict)
 
     @property
     def trials(self) -> list[dict[str, Any]]:
@@ -244,6 +249,7 @@ class BenchReport:
                             "axis when symmetric), 0.02 m; problem files: their metadata",
                 },
                 "skipped": self.skipped,
+                "run": self.run,
                 "summary": self.summary,
                 "certificates": self.scopes,
             }
@@ -614,6 +620,7 @@ def run_benchmark(
     """
     from certpose.bench.rows import open_rows
 
+    t_start = time.perf_counter()
     tqdm = _bench_extra("tqdm", "certpose bench").tqdm
     if workers is not None and workers < 0:
         raise ValueError(f"`workers` must be >= 0 or None, got {workers}.")
@@ -637,7 +644,11 @@ def run_benchmark(
     for name, why in skipped.items():
         log.warning("skipping solver %s: %s", name, why)
     summary, scopes = summarize_file(writer.path, order=config.solvers)
-    report = BenchReport(config, shape_name, writer.path, summary, scopes, skipped)
+    run = {"wall_seconds": time.perf_counter() - t_start, "rows_written": writer.count,
+           "workers": "scheduler" if scheduler is not None else (
+               os.cpu_count() if workers is None else workers),
+           "driver_peak_rss_mb": _peak_rss_mb()}
+    report = BenchReport(config, shape_name, writer.path, summary, scopes, skipped, run)
     if tmp is not None:
         weakref.finalize(report, shutil.rmtree, tmp, ignore_errors=True)
     return report
@@ -681,6 +692,16 @@ def _run_tasks(
             "--resume to finish."
         ) from None
     return skipped
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident set size in MiB (NaN where unknown)."""
+    try:
+        import resource
+    except ImportError:  # not on this platform
+        return float("nan")
+    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return kb / 1024.0 if os.uname().sysname != "Darwin" else kb / 2**20
 
 
 class BenchInterrupted(Exception):
@@ -920,5 +941,5 @@ def redraw(results_dir: str | os.PathLike[str]) -> tuple[Any, list[Path]]:
     if not summary:
         raise ValueError(f"'{rows}' holds no row: nothing to report.")
     report = BenchReport(config, str(old.get("shape", "synthetic")), rows, summary, scopes,
-                         dict(old.get("skipped") or {}))
+                         dict(old.get("skipped") or {}), dict(old.get("run") or {}))
     return report, report.write(out, plot=True, trials=False)
