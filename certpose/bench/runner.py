@@ -67,7 +67,7 @@ import shutil
 import tempfile
 import time
 import weakref
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -493,24 +493,24 @@ def _run_batch(
 
 
 def plan_tasks(
-    specs: Sequence[InstanceSpec], solvers: Sequence[str], done: set[tuple[str, str, str]]
-) -> list[_Task]:
+    specs: Iterable[InstanceSpec], solvers: Sequence[str], done: set[tuple[str, str, str]]
+) -> Iterator[_Task]:
     """The specs with the solvers whose rows are not in ``done`` (keys ``(suite, instance,
-    solver)``)."""
-    tasks = []
+    solver)``), one at a time (a grid of any size is never held in memory)."""
     for spec in specs:
         todo = tuple(s for s in solvers if (spec.suite, spec.instance, s) not in done)
         if todo:
-            tasks.append(_Task(spec, todo))
-    return tasks
+            yield _Task(spec, todo)
 
 
 def _suite_specs(
     config: BenchConfig, shape: NDArray[np.float64] | None, shape_name: str
-) -> tuple[list[InstanceSpec], dict[str, NDArray[np.float64]], dict[str, str]]:
-    """Specs of every suite of ``config``, the protocol shapes by suite, and what each suite
-    was made from (the manifest)."""
-    specs: list[InstanceSpec] = []
+) -> tuple[Callable[[], Iterator[InstanceSpec]], dict[str, NDArray[np.float64]], dict[str, str]]:
+    """A generator function of the specs of every suite of ``config`` (the protocol grids are
+    drawn lazily), the protocol shapes by suite, and what each suite was made from (the
+    manifest). Files and data folders are checked here, before any work."""
+    parts: list[Callable[[], Iterable[InstanceSpec]]] = []
+    specs = _Parts(parts)
     shapes: dict[str, NDArray[np.float64]] = {}
     sources: dict[str, str] = {}
     data = Path(config.data_dir) if config.data_dir is not None else default_data_dir()
@@ -523,13 +523,13 @@ def _suite_specs(
         name = suite_name(shape_name)
         shapes[name] = check_points(shape, "shape", min_points=3)
         sources[name] = shape_name
-        specs += protocol_specs(name, *grid)
+        specs.lazy(protocol_specs, name, *grid)
     for suite in config.suites:
         if suite == "synthetic":
             from certpose.io.points import synthetic_shape
 
             shapes[suite], sources[suite] = synthetic_shape(), "synthetic"
-            specs += protocol_specs(suite, *grid)
+            specs.lazy(protocol_specs, suite, *grid)
         elif suite == "bunny":
             from certpose.io.points import load_bunny
 
@@ -543,7 +543,7 @@ def _suite_specs(
                                             "folder with --data DIR, or the file with --bunny).")
                 shapes[suite] = load_bunny(path)
             sources[suite] = str(path)
-            specs += protocol_specs(suite, *grid)
+            specs.lazy(protocol_specs, suite, *grid)
         elif suite == "3dmatch":
             specs += threedmatch_specs(data)
             sources[suite] = str(data / "3dmatch")
@@ -560,6 +560,24 @@ def _suite_specs(
         specs += found
         sources[name] = str(Path(folder).resolve())
     return specs, shapes, sources
+
+
+class _Parts:
+    """Specs from several suites: lists, and protocol grids drawn again on each call."""
+
+    def __init__(self, parts: list[Callable[[], Iterable[InstanceSpec]]]) -> None:
+        self.parts = parts
+
+    def __iadd__(self, specs: list[InstanceSpec]) -> _Parts:
+        self.parts.append(lambda: specs)
+        return self
+
+    def lazy(self, fn: Callable[..., Iterable[InstanceSpec]], *args: Any) -> None:
+        self.parts.append(lambda: fn(*args))
+
+    def __call__(self) -> Iterator[InstanceSpec]:
+        for part in self.parts:
+            yield from part()
 
 
 def run_benchmark(
@@ -624,7 +642,7 @@ def run_benchmark(
     tqdm = _bench_extra("tqdm", "certpose bench").tqdm
     if workers is not None and workers < 0:
         raise ValueError(f"`workers` must be >= 0 or None, got {workers}.")
-    specs, shapes, sources = _suite_specs(config, shape, shape_name)
+    make_specs, shapes, sources = _suite_specs(config, shape, shape_name)
 
     tmp = None
     if out_dir is None:
@@ -633,10 +651,13 @@ def run_benchmark(
     manifest = {"noise": config.noise, "suites": sources}
     writer, done = open_rows(out_dir, TRIAL_COLUMNS, manifest, resume=resume, force=force)
     try:
-        tasks = plan_tasks(specs, config.solvers, done)
-        del specs, done
-        total = sum(len(t.solvers) for t in tasks)
-        skipped = _run_tasks(tasks, shapes, config, writer, total=total, tqdm=tqdm,
+        total = n_protocol = 0
+        for t in plan_tasks(make_specs(), config.solvers, done):  # counted, not kept
+            total += len(t.solvers)
+            n_protocol += t.spec.kind == "protocol"
+        tasks = plan_tasks(make_specs(), config.solvers, done)
+        skipped = _run_tasks(tasks, shapes, config, writer, total=total, n_protocol=n_protocol,
+                             tqdm=tqdm,
                              progress=progress, workers=workers, scheduler=scheduler,
                              batch_size=batch_size)
     finally:
@@ -655,9 +676,9 @@ def run_benchmark(
 
 
 def _run_tasks(
-    tasks: list[_Task], shapes: dict[str, NDArray[np.float64]], config: BenchConfig,
-    writer: Any, *, total: int, tqdm: Any, progress: bool, workers: int | None,
-    scheduler: str | None, batch_size: int | None,
+    tasks: Iterator[_Task], shapes: dict[str, NDArray[np.float64]], config: BenchConfig,
+    writer: Any, *, total: int, n_protocol: int, tqdm: Any, progress: bool,
+    workers: int | None, scheduler: str | None, batch_size: int | None,
 ) -> dict[str, str]:
     skipped: dict[str, str] = {}
     written = 0
@@ -670,16 +691,19 @@ def _run_tasks(
     try:
         with tqdm(total=total, desc="certpose bench", unit="solve", disable=not progress,
                   leave=False) as bar:
-            if not tasks:
+            if total == 0:
                 pass
             elif scheduler is None and workers == 0:
                 skipped.update(_ensure_warm(config.solvers))
-                for row in _iter_tasks(tasks, shapes, config.noise):
-                    emit([row])
-                    bar.update()
+                # In chunks, as on Dask: the instances of one chunk at a time in memory.
+                for chunk in _batches(tasks, batch_size or 50):
+                    for row in _iter_tasks(chunk, shapes, config.noise):
+                        emit([row])
+                        bar.update()
             else:
-                _run_dask(tasks, shapes, config.noise, workers=workers, scheduler=scheduler,
-                          batch_size=batch_size, emit=emit, bar=bar, skipped=skipped)
+                _run_dask(tasks, shapes, config.noise, n_protocol=n_protocol, workers=workers,
+                          scheduler=scheduler, batch_size=batch_size, emit=emit, bar=bar,
+                          skipped=skipped)
     except KeyboardInterrupt:
         from certpose.bench.rows import count_rows
 
@@ -708,7 +732,7 @@ class BenchInterrupted(Exception):
     """Ctrl-C during a run: the finished rows are on disk; the message says where."""
 
 
-def _batches(tasks: Sequence[_Task], size: int) -> Iterator[list[_Task]]:
+def _batches(tasks: Iterable[_Task], size: int) -> Iterator[list[_Task]]:
     """Protocol tasks in chunks of ``size`` (cheap: per-task overhead would dominate); the
     others alone (seconds each: they spread over the workers)."""
     chunk: list[_Task] = []
@@ -725,10 +749,11 @@ def _batches(tasks: Sequence[_Task], size: int) -> Iterator[list[_Task]]:
 
 
 def _run_dask(
-    tasks: Sequence[_Task],
+    tasks: Iterable[_Task],
     shapes: dict[str, NDArray[np.float64]],
     noise: float,
     *,
+    n_protocol: int,
     workers: int | None,
     scheduler: str | None,
     batch_size: int | None,
@@ -764,7 +789,6 @@ def _run_dask(
         client.run(_ignore_sigint)
     try:
         n_slots = max(sum(client.nthreads().values()), 1)
-        n_protocol = sum(1 for t in tasks if t.spec.kind == "protocol")
         size = batch_size or max(1, min(50, math.ceil(n_protocol / (2 * n_slots))))
         batches = _batches(tasks, size)
         shapes_f = client.scatter(shapes, broadcast=True)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import functools
 import os
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -168,13 +169,14 @@ def _id_seed(text: str) -> int:
 
 def protocol_specs(
     suite: str, n_values: tuple[int, ...], ratios: tuple[float, ...], trials: int, seed: int
-) -> list[InstanceSpec]:
-    """The protocol's grid: one spec per (N, ratio, trial)."""
-    return [
-        InstanceSpec(suite, f"N{n}-r{ratio:g}-t{trial}-s{seed}",
-                     instance_seed(seed, n, ratio, trial), trial, "protocol", (n, ratio))
-        for n in n_values for ratio in ratios for trial in range(trials)
-    ]
+) -> Iterator[InstanceSpec]:
+    """The protocol's grid: one spec per (N, ratio, trial), drawn one at a time."""
+    for n in n_values:
+        for ratio in ratios:
+            for trial in range(trials):
+                yield InstanceSpec(suite, f"N{n}-r{ratio:g}-t{trial}-s{seed}",
+                                   instance_seed(seed, n, ratio, trial), trial, "protocol",
+                                   (n, ratio))
 
 
 def problem_specs(folder: str | os.PathLike[str], suite: str | None = None, *,
@@ -230,8 +232,7 @@ def threedmatch_specs(data_dir: str | os.PathLike[str]) -> list[InstanceSpec]:
 def eq2_specs(trials: int, seed: int, data_dir: str | os.PathLike[str] | None) -> list[InstanceSpec]:
     """``trials`` synthetic mug scenes and, when ``data_dir/ycbv`` exists, the YCB-Video frames
     of :data:`EQ2_YCBV_FRAMES`."""
-    specs = [InstanceSpec("eq2", f"synthetic-s{s}", instance_seed(seed, 0, 0.0, t), t,
-                          "eq2-synthetic")
+    specs = [InstanceSpec("eq2", f"synthetic-s{s}", s, t, "eq2-synthetic")
              for t, s in enumerate(range(seed, seed + trials))]
     ycbv = None if data_dir is None else Path(data_dir) / "ycbv"
     if ycbv is not None and ycbv.is_dir():
