@@ -280,3 +280,147 @@ def clique_bnb(a, b, v, wout, upper, allowance, max_nodes):  # pragma: no cover 
         phase[depth] = 0
         depth -= 1
     return best, bestR, bestt, True, nodes, found
+
+
+@njit(cache=True)
+def _grow(buf, need):  # pragma: no cover - compiled
+    if need <= buf.shape[0]:
+        return buf
+    out = np.empty(max(need, 2 * buf.shape[0]), dtype=buf.dtype)
+    out[: buf.shape[0]] = buf
+    return out
+
+
+@njit(cache=True)
+def heavy_maximal_cliques(adj, w, s_min, thr, limit, max_nodes):  # pragma: no cover - compiled
+    """The maximal cliques of ``adj`` with at least ``s_min`` vertices and weight ``> thr``.
+
+    Bron-Kerbosch with Tomita's pivot (a vertex of ``P u X`` with the most neighbours in
+    ``P``), iterative, cutting every branch whose clique plus candidates has fewer than
+    ``s_min`` vertices or weight ``<= thr`` (no clique below it qualifies). Unlike a library
+    listing, it stops: after ``max_nodes`` branches or at ``limit + 1`` cliques.
+
+    Returns ``(flat, offsets, count, complete, nodes)``: clique ``k`` is
+    ``flat[offsets[k]:offsets[k + 1]]``; ``complete`` is False when either limit stopped it.
+    """
+    n = adj.shape[0]
+    flat = np.empty(16 * n + 16, dtype=np.int64)
+    offsets = np.zeros(limit + 2, dtype=np.int64)
+    count = 0
+    nodes = 0
+    # Per level d: P at bufP[sp[d]:sp[d] + nP[d]], X at bufX[sx[d]:sx[d] + nX[d]] (room for
+    # every P vertex to move to X), the branch vertices at bufB[sb[d]:sb[d] + nB[d]] (next at
+    # bi[d]); the clique R = rr[:d] of weight wr[d].
+    cap = 4 * n + 16
+    bufP = np.empty(cap, dtype=np.int64)
+    bufX = np.empty(2 * cap, dtype=np.int64)
+    bufB = np.empty(cap, dtype=np.int64)
+    sp = np.zeros(n + 2, dtype=np.int64)
+    nP = np.zeros(n + 2, dtype=np.int64)
+    sx = np.zeros(n + 2, dtype=np.int64)
+    nX = np.zeros(n + 2, dtype=np.int64)
+    sb = np.zeros(n + 2, dtype=np.int64)
+    nB = np.zeros(n + 2, dtype=np.int64)
+    bi = np.zeros(n + 2, dtype=np.int64)
+    rr = np.empty(n + 1, dtype=np.int64)
+    wr = np.zeros(n + 2)
+    tP = np.empty(n, dtype=np.int64)
+    tX = np.empty(n, dtype=np.int64)
+    complete = True
+    total = 0.0
+    for v in range(n):
+        bufP[v] = v
+        total += w[v]
+    if n < s_min or total <= thr:
+        return flat[:0], offsets[:1], 0, True, 0
+    nP[0] = n
+    sx[0] = n
+    nX[0] = 0
+    # Level 0's pivot and branch list.
+    depth = 0
+    ready = False  # level `depth` needs its pivot and branch list
+    while depth >= 0:
+        if not ready:
+            p0, x0 = sp[depth], sx[depth]
+            best_u, best_k = -1, -1
+            for q in range(nP[depth] + nX[depth]):
+                u = bufP[p0 + q] if q < nP[depth] else bufX[x0 + q - nP[depth]]
+                k = 0
+                for r in range(nP[depth]):
+                    k += adj[u, bufP[p0 + r]]
+                if k > best_k:
+                    best_k, best_u = k, u
+            b0 = sb[depth]
+            m = 0
+            for r in range(nP[depth]):
+                u = bufP[p0 + r]
+                if u == best_u or adj[best_u, u] == 0:
+                    bufB[b0 + m] = u
+                    m += 1
+            nB[depth] = m
+            bi[depth] = 0
+            ready = True
+        if bi[depth] >= nB[depth]:
+            depth -= 1
+            continue
+        v = bufB[sb[depth] + bi[depth]]
+        bi[depth] += 1
+        nodes += 1
+        if nodes > max_nodes:
+            complete = False
+            break
+        p0, x0 = sp[depth], sx[depth]
+        mp = 0
+        wp = 0.0
+        for r in range(nP[depth]):
+            u = bufP[p0 + r]
+            if adj[v, u] != 0:
+                tP[mp] = u
+                mp += 1
+                wp += w[u]
+        mx = 0
+        for r in range(nX[depth]):
+            u = bufX[x0 + r]
+            if adj[v, u] != 0:
+                tX[mx] = u
+                mx += 1
+        # v leaves P for X at this level (its branch is explored now).
+        for r in range(nP[depth]):
+            if bufP[p0 + r] == v:
+                bufP[p0 + r] = bufP[p0 + nP[depth] - 1]
+                nP[depth] -= 1
+                break
+        bufX[x0 + nX[depth]] = v
+        nX[depth] += 1
+        rr[depth] = v
+        wv = wr[depth] + w[v]
+        size = depth + 1
+        if size + mp < s_min or wv + wp <= thr:
+            continue  # no clique of this branch qualifies
+        if mp == 0:
+            if mx == 0 and wv > thr:  # maximal, large and heavy enough
+                if count >= limit:
+                    complete = False
+                    count += 1
+                    break
+                flat = _grow(flat, offsets[count] + size)
+                flat[offsets[count]: offsets[count] + size] = rr[:size]
+                offsets[count + 1] = offsets[count] + size
+                count += 1
+            continue
+        # Descend: level depth + 1 stacked after this level's regions.
+        d1 = depth + 1
+        sp[d1] = sp[depth] + nP[depth] + 1
+        sx[d1] = sx[depth] + nX[depth] + nP[depth] + 1
+        sb[d1] = sb[depth] + nB[depth]
+        bufP = _grow(bufP, sp[d1] + mp)
+        bufX = _grow(bufX, sx[d1] + mp + mx)
+        bufB = _grow(bufB, sb[d1] + mp)
+        bufP[sp[d1]: sp[d1] + mp] = tP[:mp]
+        bufX[sx[d1]: sx[d1] + mx] = tX[:mx]
+        nP[d1] = mp
+        nX[d1] = mx
+        wr[d1] = wv
+        depth = d1
+        ready = False
+    return flat[: offsets[min(count, limit)]], offsets[: min(count, limit) + 1], count, complete, nodes

@@ -35,7 +35,13 @@ from numpy.typing import NDArray
 
 from solvers.problem import WeightedTLSProblem
 
-__all__ = ["consistency_edges", "candidate_cliques", "CliqueOptimum", "clique_optimum"]
+__all__ = [
+    "consistency_edges",
+    "candidate_cliques",
+    "clique_number_bound",
+    "CliqueOptimum",
+    "clique_optimum",
+]
 
 log = logging.getLogger(__name__)
 
@@ -69,17 +75,13 @@ def consistency_edges(problem: WeightedTLSProblem, vertices: NDArray[np.int64]) 
     return np.concatenate(out) if out else np.empty((0, 2), dtype=np.int64)
 
 
-def candidate_cliques(
-    problem: WeightedTLSProblem, upper: float, *, limit: int
-) -> tuple[list[NDArray[np.int64]], bool]:
-    """The maximal cliques ``C`` (indices of ``problem``) with ``cbar2 W(not C) < upper``.
-
-    Only terms of positive weight are vertices (the others cost nothing anywhere). Returns the
-    cliques sorted by decreasing weight and ``complete`` (False when there were more than
-    ``limit``; the list is then empty).
-    """
-    import igraph as ig
-
+def _core(
+    problem: WeightedTLSProblem, upper: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], int, float] | None:
+    """Terms of positive weight ``act``, the ``(s_min - 1)``-core ``keep`` (positions in
+    ``act``) of their consistency graph with its ``edges`` (positions in ``keep``), ``s_min``
+    (the fewest terms a clique needs to weigh more than ``thr``) and ``thr``; ``None`` when
+    no clique can beat ``upper`` (or the whole problem is one "clique": ``s_min = 0``)."""
     w = problem.weights
     act = np.flatnonzero(w > 0)
     c2 = problem.cbar2
@@ -87,16 +89,15 @@ def candidate_cliques(
     # A clique of weight <= thr costs at least cbar2 (total - thr) >= upper; slack for rounding.
     thr = total - upper * (1 + 1e-9) / c2 - 1e-12 * total
     if act.size == 0 or thr < 0:
-        # Even the empty inlier set could beat `upper`: the whole problem is one "clique".
-        return [act], True
+        return act, np.arange(act.size), np.empty((0, 2), dtype=np.int64), 0, thr
     ws = np.sort(w[act])[::-1]
     above = np.flatnonzero(np.cumsum(ws) > thr)
     if above.size == 0:
-        return [], True
+        return None
     s_min = int(above[0]) + 1
     edges = consistency_edges(problem, act)
-    # Peel to the (s_min - 1)-core in numpy first: building an igraph graph from a dense edge
-    # list costs seconds, and the core is usually tiny (high outlier rates) or complete (low).
+    # Peel to the (s_min - 1)-core in numpy first: the core is usually tiny (high outlier
+    # rates) or complete (low).
     alive = np.ones(act.size, dtype=bool)
     while True:
         live = alive[edges[:, 0]] & alive[edges[:, 1]]
@@ -108,22 +109,82 @@ def candidate_cliques(
         alive &= ~drop
     keep = np.flatnonzero(alive)
     if keep.size < s_min:
+        return None
+    remap = np.full(act.size, -1, dtype=np.int64)
+    remap[keep] = np.arange(keep.size)
+    return act, keep, remap[edges], s_min, thr
+
+
+def _adjacency(m: int, edges: NDArray[np.int64]) -> NDArray[np.uint8]:
+    adj = np.zeros((m, m), dtype=np.uint8)
+    adj[edges[:, 0], edges[:, 1]] = 1
+    adj[edges[:, 1], edges[:, 0]] = 1
+    return adj
+
+
+def candidate_cliques(
+    problem: WeightedTLSProblem, upper: float, *, limit: int, max_nodes: int | None = None
+) -> tuple[list[NDArray[np.int64]], bool]:
+    """The maximal cliques ``C`` (indices of ``problem``) with ``cbar2 W(not C) < upper``.
+
+    Only terms of positive weight are vertices (the others cost nothing anywhere). Returns the
+    cliques sorted by decreasing weight and ``complete`` (False when there were more than
+    ``limit``, or when the listing used up ``max_nodes`` branches: the list is then empty).
+    Dense graphs (real features) can hold millions of maximal cliques: the listing is a
+    compiled Bron-Kerbosch that stops at either limit, not a library call that lists them all.
+    """
+    core = _core(problem, upper)
+    if core is None:
         return [], True
+    act, keep, edges, s_min, thr = core
+    if s_min == 0:
+        return [act], True  # even the empty inlier set could beat `upper`
     m = keep.size
     if edges.shape[0] == m * (m - 1) // 2:
         return [act[keep]], True  # complete (low outlier rates): one clique
-    remap = np.full(act.size, -1, dtype=np.int64)
-    remap[keep] = np.arange(m)
-    sub = ig.Graph(n=m, edges=remap[edges].tolist())
-    found = []
-    for c in sub.maximal_cliques(min=s_min):
-        idx = act[keep[np.asarray(c, dtype=np.int64)]]
-        if float(w[idx].sum()) > thr:
-            found.append(np.sort(idx))
-            if len(found) > limit:
-                return [], False
-    found.sort(key=lambda c: -float(w[c].sum()))
+    from solvers.certify._kernels import heavy_maximal_cliques
+
+    w = np.ascontiguousarray(problem.weights[act[keep]])
+    budget = np.iinfo(np.int64).max if max_nodes is None else int(max_nodes)
+    flat, offsets, count, complete, nodes = heavy_maximal_cliques(
+        _adjacency(m, edges), w, s_min, float(thr), int(limit), budget)
+    if not complete:
+        log.info("clique listing stopped (%d cliques, %d of %d nodes)", count, nodes, budget)
+        return [], False
+    found = [np.sort(act[keep[flat[offsets[k]:offsets[k + 1]]]]) for k in range(count)]
+    found.sort(key=lambda c: -float(problem.weights[c].sum()))
     return found, True
+
+
+def clique_number_bound(
+    problem: WeightedTLSProblem, upper: float, *, max_nodes: int | None = None
+) -> float:
+    """A sound lower bound on the problem's optimum from the clique number alone.
+
+    Every pose's strict inliers form a clique, so no pose keeps more than ``omega`` terms (the
+    maximum clique of the consistency graph with slack) and its cost is at least
+    ``cbar2 (W - the omega largest weights)``. Weak next to the clique decomposition, but it
+    takes one maximum-clique search (milliseconds on dense graphs) rather than a listing of
+    every maximal clique. When the search runs out of ``max_nodes``, ``omega`` is bounded by the
+    core's size instead. Returns at most ``upper``.
+    """
+    from solvers.registration.pruning import maximum_cliques
+
+    core = _core(problem, upper)
+    if core is None:
+        return float(upper)  # no clique beats `upper`: every pose costs at least it
+    act, keep, edges, s_min, _ = core
+    if s_min == 0:
+        return 0.0
+    adj = _adjacency(keep.size, edges)
+    cliques, exact = maximum_cliques(adj, limit=1, exact_max_vertices=None, max_nodes=max_nodes)
+    omega = cliques[0].size if exact else keep.size
+    # Cliques outside the core have fewer than s_min terms and cannot beat `upper`.
+    ws = np.sort(problem.weights[act])[::-1]
+    total = float(problem.weights.sum())
+    lower = problem.cbar2 * (total - float(ws[:omega].sum()))
+    lower -= 1e-12 * problem.cbar2 * total  # rounding of the sums
+    return float(min(max(lower, 0.0), upper))
 
 
 @dataclass(frozen=True)
