@@ -305,7 +305,7 @@ def heavy_maximal_cliques(adj, w, s_min, thr, limit, max_nodes):  # pragma: no c
     """
     n = adj.shape[0]
     flat = np.empty(16 * n + 16, dtype=np.int64)
-    offsets = np.zeros(limit + 2, dtype=np.int64)
+    offsets = np.zeros(min(limit, 1024) + 2, dtype=np.int64)
     count = 0
     nodes = 0
     # Per level d: P at bufP[sp[d]:sp[d] + nP[d]], X at bufX[sx[d]:sx[d] + nX[d]] (room for
@@ -404,6 +404,7 @@ def heavy_maximal_cliques(adj, w, s_min, thr, limit, max_nodes):  # pragma: no c
                     count += 1
                     break
                 flat = _grow(flat, offsets[count] + size)
+                offsets = _grow(offsets, count + 2)
                 flat[offsets[count]: offsets[count] + size] = rr[:size]
                 offsets[count + 1] = offsets[count] + size
                 count += 1
