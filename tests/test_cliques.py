@@ -9,8 +9,13 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from solvers import solve_registration
-from solvers.certify._kernels import _horn_lambda_max
-from solvers.certify.cliques import candidate_cliques, clique_optimum
+from solvers.certify._kernels import _horn_lambda_max, heavy_maximal_cliques
+from solvers.certify.cliques import (
+    candidate_cliques,
+    clique_number_bound,
+    clique_optimum,
+    consistency_edges,
+)
 from solvers.problem import WeightedTLSProblem
 from tests.conftest import make_instance
 from tests.test_certify_audit import FAMILIES, exact_optimum, make_family
@@ -84,3 +89,51 @@ def test_the_optimum_inlier_set_lies_in_a_candidate_clique() -> None:
         # Every returned clique is a clique and could beat the pose.
         for c in cliques:
             assert p.cbar2 * (p.weights.sum() - p.weights[c].sum()) < res.cost * (1 + 1e-9)
+
+
+def test_clique_listing_matches_networkx_and_stops_at_its_limits() -> None:
+    """The compiled Bron-Kerbosch lists exactly networkx's maximal cliques that are large and
+    heavy enough, on random graphs and weights; it stops at `limit` and at the node budget."""
+    import networkx as nx
+
+    rng = np.random.default_rng(1)
+    for it in range(300):
+        n = int(rng.integers(1, 30))
+        upper = np.triu(rng.uniform(size=(n, n)) < rng.uniform(0.1, 0.9), 1)
+        adj = (upper | upper.T).astype(np.uint8)
+        w = rng.uniform(0.1, 2.0, n) if it % 2 else np.ones(n)
+        s_min, thr = int(rng.integers(1, 6)), float(rng.uniform(0, 0.5 * w.sum()))
+        flat, off, count, complete, _ = heavy_maximal_cliques(adj, w, s_min, thr, 10**6, 10**8)
+        got = sorted(tuple(sorted(flat[off[k]:off[k + 1]].tolist())) for k in range(count))
+        want = sorted(tuple(sorted(c)) for c in nx.find_cliques(nx.from_numpy_array(adj))
+                      if len(c) >= s_min and w[c].sum() > thr)
+        assert complete and got == want
+    upper = np.triu(rng.uniform(size=(40, 40)) < 0.5, 1)
+    adj = (upper | upper.T).astype(np.uint8)
+    _, _, count, complete, _ = heavy_maximal_cliques(adj, np.ones(40), 1, 0.0, 5, 10**8)
+    assert not complete and count == 6  # stopped at the sixth clique
+    _, _, _, complete, nodes = heavy_maximal_cliques(adj, np.ones(40), 1, 0.0, 10**6, 20)
+    assert not complete and nodes == 21
+
+
+@pytest.mark.parametrize("family", ["uniform", "uneven", "beta", "all_outliers", "cbar2"])
+def test_clique_number_bound_is_sound_and_is_the_clique_number(family: str) -> None:
+    import networkx as nx
+
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        p = make_family(rng, family, 9)
+        opt = exact_optimum(p)
+        lower = clique_number_bound(p, float(p.cbar2 * p.weights.sum()) + 1.0)
+        assert lower <= opt * (1 + 1e-9) + 1e-12
+        # With an upper bound no clique can miss, it is cbar2 (W - the omega heaviest).
+        act = np.flatnonzero(p.weights > 0)
+        g = nx.Graph()
+        g.add_nodes_from(range(act.size))
+        g.add_edges_from(consistency_edges(p, act).tolist())
+        omega = max(len(c) for c in nx.find_cliques(g)) if act.size else 0
+        top = np.sort(p.weights[act])[::-1][:omega].sum()
+        assert lower == pytest.approx(max(p.cbar2 * (p.weights.sum() - top), 0.0),
+                                      rel=1e-9, abs=1e-9)
+        # Never above the cost it is given.
+        assert clique_number_bound(p, 0.5 * opt) <= 0.5 * opt

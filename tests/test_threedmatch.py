@@ -20,6 +20,11 @@ def pair_dir():
     return require_data("3dmatch", "gt.npy").parent
 
 
+@pytest.fixture(scope="module")
+def corr(pair_dir):
+    return threedmatch_correspondences(pair_dir)
+
+
 def test_default_dir_is_the_shared_data(pair_dir):
     assert default_threedmatch_dir().resolve() == pair_dir.resolve()
 
@@ -31,13 +36,15 @@ def test_load_pair(pair_dir):
     assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6)
 
 
-def test_correspondences_hold_inliers_and_are_deterministic(pair_dir):
-    corr = threedmatch_correspondences(pair_dir)
+def test_correspondences_hold_inliers(corr):
     assert corr.source.shape == corr.target.shape and corr.source.shape[1] == 3
     assert 500 <= corr.n <= 2000  # "about a thousand", like TEASER++'s example
     inliers = corr.residuals() < 2 * NOISE_BOUND
     # Real FPFH matches: mostly outliers, but enough inliers to register.
     assert 30 <= inliers.sum() <= 0.5 * corr.n
+
+
+def test_correspondences_are_deterministic(pair_dir, corr):
     again = threedmatch_correspondences(pair_dir)
     np.testing.assert_array_equal(corr.source, again.source)
     np.testing.assert_array_equal(corr.target, again.target)
@@ -73,3 +80,31 @@ def test_malformed_arrays(tmp_path):
         load_threedmatch_pair(tmp_path)
     with pytest.raises(ValueError, match="`voxel_size` must be positive"):
         fpfh_correspondences(np.zeros((4, 3)), np.zeros((4, 3)), voxel_size=0.0)
+
+
+def test_default_solver_registers_the_pair(corr):
+    from certpose.api import register
+    from solvers.lie import rotation_error_deg
+
+    res = register(corr.source, corr.target, noise_bound=NOISE_BOUND)
+    T, G = res.T_target_source, corr.T_target_source
+    assert res.success
+    assert rotation_error_deg(T[:3, :3], G[:3, :3]) < 5
+    assert np.linalg.norm(T[:3, 3] - G[:3, 3]) < 0.1
+    # A dense graph with tied maximum cliques: the search proved the clique maximum.
+    assert res.info["graph_edges"] > 50_000 and res.info["max_clique_exact"]
+    assert res.info["tied_max_cliques"] > 1
+
+
+def test_certify_on_the_dense_pair_bounds_by_the_clique_number(corr):
+    """Too many maximal cliques to bound one by one: a sound bound from the clique number, not
+    a certificate and not a missing bound."""
+    from certpose.api import register
+
+    res = register(corr.source, corr.target, noise_bound=NOISE_BOUND, certify=True, time_limit=5)
+    cert = res.certificate
+    assert not cert.certified and cert.status.value == "iteration_limit"
+    assert cert.method == "clique_number" and "clique number" in cert.message
+    assert np.isfinite(cert.lower_bound) and cert.lower_bound <= cert.upper_bound
+    # No pose keeps more inliers than the largest consistent set: about N - omega.
+    assert cert.lower_bound >= corr.n - 2 * res.info["max_clique_size"]

@@ -174,8 +174,10 @@ def clique_number_bound(
     if core is None:
         return float(upper)  # no clique beats `upper`: every pose costs at least it
     act, keep, edges, s_min, _ = core
-    if s_min == 0:
+    if act.size == 0:
         return 0.0
+    if s_min == 0:  # every clique could beat `upper`: the whole graph
+        keep, edges = np.arange(act.size), consistency_edges(problem, act)
     adj = _adjacency(keep.size, edges)
     cliques, exact = maximum_cliques(adj, limit=1, exact_max_vertices=None, max_nodes=max_nodes)
     omega = cliques[0].size if exact else keep.size
