@@ -13,7 +13,8 @@ seen in two scenes (never evaluated on the scene whose views built them).
 
 Symmetric objects (BOP's YCB-V list) have no single true pose: their level is taken at the
 best of the ground truth's equivalents under rotations about the model's z axis (every 10 deg)
-and a half turn about x (stated, lenient), and they are reported apart.
+and a half turn about x (stated, lenient), and they are reported apart. A run whose effective
+sample size is below ``MIN_ESS`` has no meaningful level and counts as outside.
 
 usage::
 
@@ -116,8 +117,17 @@ def run_pair(root: Path, frame: str, obj: str, scales: list[float], draws: int,
     return row
 
 
+#: Below this ESS a run's level means nothing (one particle carries the mass): counted outside.
+MIN_ESS = 50.0
+
+
+def _level(row: dict, s: float) -> float:
+    return row["levels"][str(s)] if row["ess"][str(s)] >= MIN_ESS else 1.0
+
+
 def summarise(rows: list[dict], scales: list[float]) -> None:
-    print(f"\n{'pairs':<34} {'scale':>6} {'in 90%':>8} {'in 50%':>8} {'median level':>13}")
+    print(f"\n{'pairs':<34} {'scale':>6} {'in 90%':>8} {'in 50%':>8} {'median level':>13} "
+          f"{'ESS<' + str(int(MIN_ESS)):>8}")
     groups = {
         "non-symmetric, geometry": [r for r in rows if not r["symmetric"] and r["model"] == "geometry"],
         "non-symmetric, appearance": [r for r in rows if not r["symmetric"] and r["model"] == "appearance"],
@@ -128,9 +138,10 @@ def summarise(rows: list[dict], scales: list[float]) -> None:
         if not rs:
             continue
         for s in scales:
-            lv = np.array([r["levels"][str(s)] for r in rs])
+            lv = np.array([_level(r, s) for r in rs])
+            low = sum(r["ess"][str(s)] < MIN_ESS for r in rs)
             print(f"{name + f' ({len(rs)})':<34} {s:>6g} {np.mean(lv <= 0.9):>8.2f} "
-                  f"{np.mean(lv <= 0.5):>8.2f} {np.median(lv):>13.3f}")
+                  f"{np.mean(lv <= 0.5):>8.2f} {np.median(lv):>13.3f} {low:>8d}")
 
 
 def main() -> None:
@@ -139,13 +150,19 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=here.parent / "shared" / "data" / "ycbv")
     ap.add_argument("--scenes", default="0000,0002,0049,0050")
     ap.add_argument("--frames", default="", help="comma-separated frame numbers to keep (e.g. 000001)")
-    ap.add_argument("--scales", type=float, nargs="+", default=[0.5, 1.0, 2.0, 4.0])
-    ap.add_argument("--draws", type=int, default=4000)
+    ap.add_argument("--scales", type=float, nargs="+", default=[1.0, 2.0, 4.0])
+    ap.add_argument("--draws", type=int, default=3000)
     ap.add_argument("--appearance", action="store_true",
                     help="also appearance models from the other scene's views")
     ap.add_argument("--min-px", type=int, default=2000)
     ap.add_argument("--out", type=Path, default=None, help="append one JSON line per pair")
+    ap.add_argument("--summarise", type=Path, default=None, metavar="JSONL",
+                    help="only print the summary of the rows of an earlier --out file")
     args = ap.parse_args()
+    if args.summarise is not None:
+        rows = [json.loads(line) for line in args.summarise.read_text().splitlines() if line.strip()]
+        summarise(rows, args.scales)
+        return
     if not args.data.is_dir():
         raise SystemExit(f"YCB-Video folder not found: {args.data}")
     from certpose.estimation.pipeline import build_ycbv_object_model
