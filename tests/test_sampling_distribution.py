@@ -208,3 +208,14 @@ def test_credible_level_bad_input():
         d.credible_level(2.0 * R0, t0)
     with pytest.raises(ValueError, match="max_particles"):
         d.credible_level(R0, t0, max_particles=0)
+
+
+def test_kernel_of_resampled_set_counts_distinct_particles():
+    # Resampling repeats particles: the bandwidth must not shrink as if every copy were new.
+    rng = np.random.default_rng(9)
+    d, R0, t0 = _gaussian_particles(400, np.full(6, 0.01), rng)
+    big = d.resample(20_000, rng=1)
+    assert big.ess == pytest.approx(20_000)
+    assert big._kernel_count() <= 400
+    # Same kernel (bandwidth x covariance) as the set it was drawn from, to sampling error.
+    np.testing.assert_allclose(big._kernel()[0], d._kernel()[0], rtol=0.1, atol=1e-4)

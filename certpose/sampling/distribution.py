@@ -259,10 +259,16 @@ class PoseDistribution:
             out.append(PoseMode(R, t, cov, mass, len(idx)))
         return sorted(out, key=lambda m: -m.mass)
 
+    def _kernel_count(self) -> float:
+        """Sample size behind Scott's bandwidth: the ESS, at most the number of distinct
+        particles (a resampled set repeats particles; its ESS counts each copy)."""
+        distinct = len(np.unique(self.translations, axis=0))
+        return float(max(min(self.ess, distinct), 1.0))
+
     def _kernel(self) -> tuple[NDArray[np.float64], float]:
         """Cholesky factor of the kernel covariance ``h^2 C`` and the kernel's log-normaliser."""
         _, _, cov = self.mean_and_covariance()
-        h2 = self.ess ** (-2.0 / 10.0)
+        h2 = self._kernel_count() ** (-2.0 / 10.0)
         L = np.linalg.cholesky(h2 * cov + 1e-12 * np.eye(6))
         return L, float(-0.5 * 6 * np.log(2 * np.pi) - np.sum(np.log(np.diag(L))))
 
@@ -286,7 +292,8 @@ class PoseDistribution:
         """Log-density of one pose under a Gaussian kernel density of the particles.
 
         Each particle carries a Gaussian of covariance ``h^2 C`` in the chart around itself, with
-        ``C`` the weighted tangent covariance and ``h`` Scott's factor ``ess^(-1/10)``. The density
+        ``C`` the weighted tangent covariance and ``h`` Scott's factor ``n^(-1/10)``, ``n`` the ESS
+        or, if fewer, the number of distinct particles (resampling repeats them). The density
         is per unit of rotation vector (rad^3) and metre^3; the exp-map Jacobian is ignored, which
         is exact to O(h^2 |omega|^2) for kernels a few degrees wide.
         """
@@ -330,7 +337,7 @@ class PoseDistribution:
         # One chart around the mean for all particles (rather than one per particle, as in
         # log_density): O(n) rotation logarithms, then a Euclidean kernel sum.
         R0, t0, cov = sub.mean_and_covariance()
-        L = np.linalg.cholesky(sub.ess ** (-2.0 / 10.0) * cov + 1e-12 * np.eye(6))
+        L = np.linalg.cholesky(sub._kernel_count() ** (-2.0 / 10.0) * cov + 1e-12 * np.eye(6))
         Z = np.linalg.solve(L, sub.tangent(R0, t0).T).T
         q = np.hstack([Rotation.from_matrix(R0.T @ R).as_rotvec(), t - t0])
         zq = np.linalg.solve(L, q)
