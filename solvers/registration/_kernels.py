@@ -18,6 +18,11 @@ procrustes = procrustes_kernel()  # the one weighted Procrustes, compiled
 
 def as_kernel_array(value, dtype=np.float64):
     """``value`` as a C-contiguous, writable array of ``dtype`` (copied only when needed)."""
+    if type(value) is np.ndarray and value.dtype == dtype:
+        f = value.flags
+        if f.c_contiguous and f.writeable:
+            return value
+        return value.copy(order="C")  # cheaper than np.require on small arrays
     return np.require(value, dtype=dtype, requirements=["C", "W"])
 
 
@@ -162,6 +167,18 @@ def multistart_greedy_clique(adj, deg, order, max_starts):  # pragma: no cover -
             in_best[:] = False
             in_best[best] = True
     return best
+
+
+@njit(cache=True)
+def scalar_tls_rows(vals, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
+    """:func:`scalar_tls` of each row of ``vals`` (d, N), ``ends``/``order`` (d, 2N); returns
+    ``(x (d,), found (d,))``: one call for the three axes of a translation vote."""
+    d = vals.shape[0]
+    x = np.empty(d)
+    found = np.zeros(d, dtype=np.bool_)
+    for r in range(d):
+        x[r], _, found[r] = scalar_tls(vals[r], beta, w, cbar2, ends[r], order[r])
+    return x, found
 
 
 @njit(cache=True)

@@ -226,10 +226,9 @@ def vote_translation(
     half = beta * np.sqrt(cbar2)
     ends = np.concatenate([vals - half, vals + half], axis=1)
     order = np.argsort(ends, axis=1, kind="stable")
-    t = np.empty(3)
-    for d in range(3):
-        x, _, found = _kernels.scalar_tls(vals[d], beta, w, cbar2, ends[d], order[d])
-        t[d] = x if found else np.median(vals[d])  # no piece beats all-outliers: any x
+    t, found = _kernels.scalar_tls_rows(vals, beta, w, cbar2, ends, order)
+    for d in np.flatnonzero(~found):
+        t[d] = np.median(vals[d])  # no piece beats all-outliers: any x is optimal
     return t
 
 
