@@ -157,7 +157,7 @@ def candidate_cliques(
 
 
 def clique_number_bound(
-    problem: WeightedTLSProblem, upper: float, *, max_nodes: int | None = None
+    problem: WeightedTLSProblem, upper: float, *, max_work: int | None = None
 ) -> float:
     """A sound lower bound on the problem's optimum from the clique number alone.
 
@@ -165,7 +165,7 @@ def clique_number_bound(
     maximum clique of the consistency graph with slack) and its cost is at least
     ``cbar2 (W - the omega largest weights)``. Weak next to the clique decomposition, but it
     takes one maximum-clique search (milliseconds on dense graphs) rather than a listing of
-    every maximal clique. When the search runs out of ``max_nodes``, ``omega`` is bounded by the
+    every maximal clique. When the search runs out of ``max_work``, ``omega`` is bounded by the
     core's size instead. Returns at most ``upper``.
     """
     from solvers.registration.pruning import maximum_cliques
@@ -179,7 +179,7 @@ def clique_number_bound(
     if s_min == 0:  # every clique could beat `upper`: the whole graph
         keep, edges = np.arange(act.size), consistency_edges(problem, act)
     adj = _adjacency(keep.size, edges)
-    cliques, exact = maximum_cliques(adj, limit=1, exact_max_vertices=None, max_nodes=max_nodes)
+    cliques, exact = maximum_cliques(adj, limit=1, exact_max_vertices=None, max_work=max_work)
     omega = cliques[0].size if exact else keep.size
     # Cliques outside the core have fewer than s_min terms and cannot beat `upper`.
     ws = np.sort(problem.weights[act])[::-1]

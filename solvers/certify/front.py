@@ -103,8 +103,8 @@ LISTING_SHARE = 0.25
 LISTING_NODES_PER_SECOND = 400_000
 """Branches per second of the maximal-clique listing (measured 340,000 on the 3DMatch pair's
 927-vertex core, load average 10 on 2 cores), for its time limit."""
-CLIQUE_NODES_PER_SECOND = 500_000
-"""Branches per second of the maximum-clique search on dense cores (for its time limit)."""
+CLIQUE_WORK_PER_SECOND = 100_000_000
+"""Adjacency look-ups per second of the maximum-clique search (for its time limit)."""
 
 BNB_MAX_TERMS = 200
 """Largest clique the exact search tries (N = 100 at 0% outliers: 4-12 M nodes, seconds; a
@@ -463,7 +463,7 @@ def _clique_bound(
         # Dense graphs (real features): too many maximal cliques to bound one by one. The
         # clique number still bounds every pose's inlier count: a weak but sound bound.
         remaining = max(budget - (time.perf_counter() - t0), 0.0)
-        lower = clique_number_bound(pn, u, max_nodes=int(remaining / 2 * CLIQUE_NODES_PER_SECOND))
+        lower = clique_number_bound(pn, u, max_work=int(remaining / 2 * CLIQUE_WORK_PER_SECOND))
         return _Bound(lower=lower, accepted=True, status=CertificateStatus.ITERATION_LIMIT,
                       backend_status="cliques:too_many", eigenvalue_ratio=np.nan,
                       method="clique_number",

@@ -260,7 +260,7 @@ def _colour_sort(adj, cand, m, out_v, out_c, rest, klass):  # pragma: no cover -
 
 
 @njit(cache=True)
-def max_clique_bnb(adj, order, lower, target, limit, max_nodes):  # pragma: no cover - compiled
+def max_clique_bnb(adj, order, lower, target, limit, max_work):  # pragma: no cover - compiled
     """Branch and bound for maximum cliques with greedy-colouring bounds (Tomita's MCQ).
 
     ``order`` lists the vertices (by decreasing degree). With ``target <= 0`` it looks for one
@@ -270,7 +270,9 @@ def max_clique_bnb(adj, order, lower, target, limit, max_nodes):  # pragma: no c
 
     Returns ``(cliques (limit, size) int64, count, size, complete, nodes)``: ``count`` rows of
     ``cliques[:, :size]`` are the cliques found (``count = 0`` when nothing beat ``lower``);
-    ``complete`` is False when ``max_nodes`` ran out (or, listing ties, ``limit`` was reached).
+    ``complete`` is False when ``max_work`` ran out (or, listing ties, ``limit`` was reached).
+    Work is counted in adjacency look-ups (candidates scanned plus candidates times colours
+    in each colouring), so the budget bounds time on large dense cores as on small ones.
     """
     n = adj.shape[0]
     out = np.empty((max(limit, 1), n), dtype=np.int64)
@@ -293,6 +295,7 @@ def max_clique_bnb(adj, order, lower, target, limit, max_nodes):  # pragma: no c
     best = target if ties else lower
     count = 0
     nodes = 0
+    work = 0
     depth = 0
     complete = True
     while depth >= 0:
@@ -311,7 +314,8 @@ def max_clique_bnb(adj, order, lower, target, limit, max_nodes):  # pragma: no c
         v = buf_v[s0 + i]
         clique[depth] = v
         nodes += 1
-        if nodes > max_nodes:
+        work += i
+        if work > max_work:
             complete = False
             break
         m = 0
@@ -342,7 +346,7 @@ def max_clique_bnb(adj, order, lower, target, limit, max_nodes):  # pragma: no c
             nv[:s1] = buf_v[:s1]
             nc[:s1] = buf_c[:s1]
             buf_v, buf_c = nv, nc
-        _colour_sort(adj, tmp, m, buf_v[s1:], buf_c[s1:], rest, klass)
+        work += m * _colour_sort(adj, tmp, m, buf_v[s1:], buf_c[s1:], rest, klass)
         depth += 1
         start[depth] = s1
         ptr[depth] = m

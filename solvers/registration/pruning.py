@@ -67,14 +67,16 @@ def _peel_to_core(adj: NDArray[np.uint8], deg: NDArray[np.int64], k: int) -> NDA
 
 GREEDY_STARTS = 16
 """Greedy cliques grown for the lower bound that peels the graph before the exact search."""
+WORK_BUDGET = 10_000_000
+"""Default budget of the exact maximum-clique search, in adjacency look-ups (tens of ms)."""
 
 
 def maximum_cliques(
     adjacency: ArrayLike,
     *,
     limit: int = 16,
-    exact_max_vertices: int | None = 500,
-    max_nodes: int | None = 200_000,
+    exact_max_vertices: int | None = None,
+    max_work: int | None = WORK_BUDGET,
 ) -> tuple[list[NDArray[np.int64]], bool]:
     """Maximum cliques of an undirected graph: one proven maximum, and up to ``limit`` tied.
 
@@ -95,10 +97,11 @@ def maximum_cliques(
         At most this many tied maximum cliques are returned.
     exact_max_vertices : int or None
         Largest reduced graph handed to the exact search; ``None`` always searches exactly.
-    max_nodes : int or None
-        Node budget of the exact search (``None``: unbounded; exponential time in the worst
-        case). When it runs out, the largest clique found is returned, flagged as inexact;
-        when the tie search runs out, the ties found so far are returned.
+    max_work : int or None
+        Budget of the exact search in adjacency look-ups (about 5 ns each; ``None``: unbounded,
+        exponential time in the worst case). When it runs out, the largest clique found is
+        returned, flagged as inexact; the tie search gets a quarter of it and returns the ties
+        found so far.
 
     Returns
     -------
@@ -114,7 +117,7 @@ def maximum_cliques(
     n = adj.shape[0]
     if n == 0:
         return [np.empty(0, dtype=np.int64)], True
-    budget = np.iinfo(np.int64).max if max_nodes is None else int(max_nodes)
+    budget = np.iinfo(np.int64).max if max_work is None else int(max_work)
     deg = adj.sum(axis=1, dtype=np.int64)
     order = np.argsort(-deg, kind="stable")
     best = np.sort(_kernels.multistart_greedy_clique(adj, deg, order, GREEDY_STARTS))
@@ -134,12 +137,13 @@ def maximum_cliques(
     if count:
         best = np.sort(core[found[0]])
     if not exact:
-        log.info("max clique: search stopped after %d nodes; keeping a clique of %d (not proven "
-                 "maximum)", budget, best.size)
+        log.info("max clique: search stopped after %d look-ups; keeping a clique of %d (not "
+                 "proven maximum)", budget, best.size)
         return [best], False
     if limit <= 1:
         return [best], True
-    ties, count, _, _, _ = _kernels.max_clique_bnb(sub, sub_order, 0, best.size, limit, budget)
+    ties, count, _, _, _ = _kernels.max_clique_bnb(sub, sub_order, 0, best.size, limit,
+                                                   max(budget // 4, 1))
     cliques = [best]
     seen = {best.tobytes()}
     for row in ties[:count]:
@@ -153,12 +157,12 @@ def maximum_cliques(
 def max_clique(
     adjacency: ArrayLike,
     *,
-    exact_max_vertices: int | None = 500,
-    max_nodes: int | None = 200_000,
+    exact_max_vertices: int | None = None,
+    max_work: int | None = WORK_BUDGET,
 ) -> tuple[NDArray[np.int64], bool]:
     """One maximum clique (see :func:`maximum_cliques`) and whether it is proven maximum."""
     cliques, exact = maximum_cliques(adjacency, limit=1, exact_max_vertices=exact_max_vertices,
-                                     max_nodes=max_nodes)
+                                     max_work=max_work)
     return cliques[0], exact
 
 
@@ -238,13 +242,13 @@ def prune_max_clique(
     noise_bound: NDArray[np.float64],
     cbar2: float = 1.0,
     *,
-    exact_max_vertices: int | None = 500,
-    max_nodes: int | None = 200_000,
+    exact_max_vertices: int | None = None,
+    max_work: int | None = WORK_BUDGET,
 ) -> tuple[NDArray[np.int64], int, bool]:
     """Indices of one maximum consistent set, the number of graph edges, and exactness."""
     cliques, n_edges, exact = prune_maximum_cliques(
         source, target, noise_bound, cbar2, limit=1, exact_max_vertices=exact_max_vertices,
-        max_nodes=max_nodes,
+        max_work=max_work,
     )
     return cliques[0], n_edges, exact
 
@@ -256,13 +260,13 @@ def prune_maximum_cliques(
     cbar2: float = 1.0,
     *,
     limit: int = 16,
-    exact_max_vertices: int | None = 500,
-    max_nodes: int | None = 200_000,
+    exact_max_vertices: int | None = None,
+    max_work: int | None = WORK_BUDGET,
 ) -> tuple[list[NDArray[np.int64]], int, bool]:
     """Tied maximum consistent sets (up to ``limit``), the number of edges, and exactness."""
     adj = consistency_graph(source, target, noise_bound, np.sqrt(cbar2))
     cliques, exact = maximum_cliques(adj, limit=limit, exact_max_vertices=exact_max_vertices,
-                                     max_nodes=max_nodes)
+                                     max_work=max_work)
     n_edges = int(np.count_nonzero(adj)) // 2
     log.debug("consistency graph: %d vertices, %d edges, %d maximum clique(s) of %d (exact: %s)",
               source.shape[0], n_edges, len(cliques), cliques[0].size, exact)
