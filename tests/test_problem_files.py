@@ -143,8 +143,12 @@ def test_python_m_certpose_help():
 
 @pytest.mark.slow  # the full pose pipeline on the synthetic scene
 def test_pose_save_problem_round_trips_through_register(tmp_path):
-    out = tmp_path / "eq2.npz"
-    assert main(["pose", "--demo", "--no-certify", "--save-problem", str(out), "-q"]) == 0
+    out, js = tmp_path / "eq2.npz", tmp_path / "pose.json"
+    rc = main(["pose", "--demo", "--save-problem", str(out), "--require-certificate", "-q",
+               "--json", str(js)])
+    cert = json.loads(js.read_text())["certificate"]
+    # Exit 0 exactly when the eq. (2) solution is certified (--require-certificate).
+    assert rc == (0 if cert is not None and cert["certified"] else 1)
     p = load_problem(out)
     assert p.metadata["suite"] == "eq2" and p.metadata["symmetry_axis"] == [0.0, 0.0, 1.0]
     assert p.T_target_source is not None and p.n >= 100
