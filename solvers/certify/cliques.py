@@ -53,26 +53,14 @@ def consistency_edges(problem: WeightedTLSProblem, vertices: NDArray[np.int64]) 
 
     Pairs with ``| ||a_ij|| - ||b_ij|| | <= cbar (beta_i + beta_j) (1 + 1e-9) + 8 eps (||a_ij|| +
     ||b_ij||)`` are joined: the slack covers the rounding of the lengths, so no pair of true
-    inliers is ever left out.
+    inliers is ever left out (the pruning's graph, :func:`solvers.registration.pruning.consistency_graph`,
+    with ``rounding_slack``).
     """
-    a = problem.source[vertices]
-    b = problem.target[vertices]
-    beta = problem.noise_bound[vertices]
-    cbar = float(np.sqrt(problem.cbar2))
-    n = vertices.size
-    out = []
-    step = max(1, int(4e6 // max(n, 1)))  # rows per chunk: bounded memory at large N
-    for lo in range(0, n, step):
-        hi = min(n, lo + step)
-        la = np.linalg.norm(a[lo:hi, None, :] - a[None, :, :], axis=2)
-        lb = np.linalg.norm(b[lo:hi, None, :] - b[None, :, :], axis=2)
-        tol = cbar * (beta[lo:hi, None] + beta[None, :]) * (1 + 1e-9) + 8 * _EPS * (la + lb)
-        ok = np.abs(la - lb) <= tol
-        i, j = np.nonzero(ok)
-        i = i + lo
-        keep = i < j
-        out.append(np.stack([i[keep], j[keep]], axis=1))
-    return np.concatenate(out) if out else np.empty((0, 2), dtype=np.int64)
+    from solvers.registration.pruning import consistency_edge_list
+
+    return consistency_edge_list(problem.source[vertices], problem.target[vertices],
+                                 problem.noise_bound[vertices], float(np.sqrt(problem.cbar2)),
+                                 rounding_slack=True)
 
 
 def _core(

@@ -104,30 +104,55 @@ def gnc_tls(a, b, prior_w, inv_beta2, cbar2, max_iter, mu_factor, cost_tol):  # 
     return R, t, gw, it, converged, True
 
 
-@njit(cache=True, fastmath=True)
-def consistency_matrix(at, bt, beta, cbar):  # pragma: no cover - compiled
-    """Dense symmetric adjacency (uint8) of the pairwise-consistency graph.
+@njit(cache=True)
+def _consistent(at, bt, beta, i, j, cbar, rel_slack, abs_slack):  # pragma: no cover - compiled
+    """``| ||a_j - a_i|| - ||b_j - b_i|| | <= cbar (beta_i + beta_j) (1 + rel_slack)
+    + abs_slack (||a_j - a_i|| + ||b_j - b_i||)``: the one pairwise-consistency test."""
+    x0 = at[0, j] - at[0, i]
+    x1 = at[1, j] - at[1, i]
+    x2 = at[2, j] - at[2, i]
+    y0 = bt[0, j] - bt[0, i]
+    y1 = bt[1, j] - bt[1, i]
+    y2 = bt[2, j] - bt[2, i]
+    la = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    lb = np.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
+    return abs(la - lb) <= cbar * (beta[i] + beta[j]) * (1.0 + rel_slack) + abs_slack * (la + lb)
 
-    ``at``/``bt`` are the points transposed, (3, N) contiguous, so the inner loop vectorises.
-    ``i ~ j`` when |‖a_j - a_i‖ - ‖b_j - b_i‖| <= cbar (β_i + β_j); the diagonal is 0.
-    """
+
+@njit(cache=True)
+def consistency_matrix(at, bt, beta, cbar, rel_slack, abs_slack):  # pragma: no cover - compiled
+    """Dense symmetric adjacency (uint8) of the pairwise-consistency graph (:func:`_consistent`);
+    ``at``/``bt`` are the points transposed, (3, N) contiguous. The diagonal is 0."""
     n = at.shape[1]
-    ax, ay, az = at[0], at[1], at[2]
-    bx, by, bz = bt[0], bt[1], bt[2]
-    adj = np.zeros((n, n), dtype=np.uint8)
+    adj = np.empty((n, n), dtype=np.uint8)
     for i in range(n):
         row = adj[i]
+        # Whole rows (each pair tested twice, symmetric by construction): the loop vectorises.
         for j in range(n):
-            x0 = ax[j] - ax[i]
-            x1 = ay[j] - ay[i]
-            x2 = az[j] - az[i]
-            y0 = bx[j] - bx[i]
-            y1 = by[j] - by[i]
-            y2 = bz[j] - bz[i]
-            d = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2) - np.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
-            row[j] = abs(d) <= cbar * (beta[i] + beta[j])
+            row[j] = _consistent(at, bt, beta, i, j, cbar, rel_slack, abs_slack)
         row[i] = 0
     return adj
+
+
+@njit(cache=True)
+def consistency_edge_list(at, bt, beta, cbar, rel_slack, abs_slack):  # pragma: no cover
+    """Edges ``(i, j)``, ``i < j``, (E, 2) int64, of the graph of :func:`consistency_matrix`,
+    without its N^2 bytes (two passes: count, then fill)."""
+    n = at.shape[1]
+    count = 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            if _consistent(at, bt, beta, i, j, cbar, rel_slack, abs_slack):
+                count += 1
+    out = np.empty((count, 2), dtype=np.int64)
+    k = 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            if _consistent(at, bt, beta, i, j, cbar, rel_slack, abs_slack):
+                out[k, 0] = i
+                out[k, 1] = j
+                k += 1
+    return out
 
 
 @njit(cache=True)

@@ -15,6 +15,7 @@ from solvers.problem import WeightedTLSProblem
 
 __all__ = [
     "consistency_graph",
+    "consistency_edge_list",
     "max_clique",
     "maximum_cliques",
     "scalar_tls",
@@ -26,15 +27,13 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
-def consistency_graph(
-    source: ArrayLike, target: ArrayLike, noise_bound: ArrayLike, cbar: float = 1.0
-) -> NDArray[np.uint8]:
-    """Dense adjacency matrix of the pairwise-consistency graph, shape (N, N), uint8.
+# Slack that covers the rounding of the lengths (a few ulps each): with it, no pair of true
+# inliers is ever left out, which the certifier's soundness needs (a supergraph is still sound).
+ROUNDING_REL_SLACK = 1e-9
+ROUNDING_ABS_SLACK = 8 * float(np.finfo(np.float64).eps)
 
-    Correspondences ``i`` and ``j`` are consistent when the lengths of the translation-invariant
-    measurements ``a_j - a_i`` and ``b_j - b_i`` differ by at most ``cbar (beta_i + beta_j)``,
-    which holds for every pair of inliers.
-    """
+
+def _kernel_inputs(source: ArrayLike, target: ArrayLike, noise_bound: ArrayLike):
     from solvers.registration import _kernels  # numba: imported on first solve
 
     at = np.ascontiguousarray(np.asarray(source, dtype=np.float64).T)
@@ -42,11 +41,36 @@ def consistency_graph(
     beta = np.asarray(noise_bound, dtype=np.float64)
     if beta.ndim == 0:
         beta = np.full(at.shape[1], float(beta))
-    beta = np.ascontiguousarray(beta)
-    return _kernels.consistency_matrix(
-        _kernels.as_kernel_array(at), _kernels.as_kernel_array(bt), _kernels.as_kernel_array(beta),
-        float(cbar),
-    )
+    arr = _kernels.as_kernel_array
+    return _kernels, arr(at), arr(bt), arr(beta)
+
+
+def consistency_graph(
+    source: ArrayLike, target: ArrayLike, noise_bound: ArrayLike, cbar: float = 1.0,
+    *, rounding_slack: bool = False,
+) -> NDArray[np.uint8]:
+    """Dense adjacency matrix of the pairwise-consistency graph, shape (N, N), uint8.
+
+    Correspondences ``i`` and ``j`` are consistent when the lengths of the translation-invariant
+    measurements ``a_j - a_i`` and ``b_j - b_i`` differ by at most ``cbar (beta_i + beta_j)``,
+    which holds for every pair of inliers. With ``rounding_slack`` the bound is widened by
+    ``1e-9`` relative and ``8 eps`` times the lengths, so that rounding never drops such a pair
+    (what a certificate needs).
+    """
+    k, at, bt, beta = _kernel_inputs(source, target, noise_bound)
+    rel, eps = (ROUNDING_REL_SLACK, ROUNDING_ABS_SLACK) if rounding_slack else (0.0, 0.0)
+    return k.consistency_matrix(at, bt, beta, float(cbar), rel, eps)
+
+
+def consistency_edge_list(
+    source: ArrayLike, target: ArrayLike, noise_bound: ArrayLike, cbar: float = 1.0,
+    *, rounding_slack: bool = False,
+) -> NDArray[np.int64]:
+    """The edges ``(i, j)``, ``i < j``, shape (E, 2), of :func:`consistency_graph`, without
+    building the N^2-byte matrix."""
+    k, at, bt, beta = _kernel_inputs(source, target, noise_bound)
+    rel, eps = (ROUNDING_REL_SLACK, ROUNDING_ABS_SLACK) if rounding_slack else (0.0, 0.0)
+    return k.consistency_edge_list(at, bt, beta, float(cbar), rel, eps)
 
 
 def _peel_to_core(adj: NDArray[np.uint8], deg: NDArray[np.int64], k: int) -> NDArray[np.int64]:
