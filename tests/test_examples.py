@@ -81,7 +81,9 @@ def test_bench_dense_quick(tmp_path: Path) -> None:
     report = json.loads(out.read_text())
     m = report["3dmatch"]
     assert m["success"] and m["graph_edges"] > 10_000, m
-    assert report["graphs"]["dense"]["median_edges"] > 10 * report["graphs"]["sparse"]["median_edges"]
+    graphs = report["graphs"]
+    assert graphs["dense 0.9"]["median_edges"] > 10 * graphs["sparse 0.9"]["median_edges"]
+    assert graphs["dense 0.9"]["success_rate"] == 1.0
     assert set(report["bunny_n100"]) == {"0", "0.5", "0.8", "0.9", "0.95"}
     assert "load average" in proc.stdout
 
