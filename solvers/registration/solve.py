@@ -307,9 +307,9 @@ def to_unit_scale(problem: WeightedTLSProblem) -> tuple[WeightedTLSProblem, floa
     """
     extent = max(float(np.abs(problem.source).max()), float(np.abs(problem.target).max()))
     scale = float(np.ldexp(1.0, int(np.frexp(extent)[1]))) if extent > 0 else 1.0
+    if scale == 1.0 and float(problem.noise_bound.min()) >= _MIN_RELATIVE_NOISE_BOUND:
+        return problem, 1.0  # already at unit scale (e.g. the second call of a solve)
     beta = np.maximum(problem.noise_bound / scale, _MIN_RELATIVE_NOISE_BOUND)
-    if scale == 1.0 and np.array_equal(beta, problem.noise_bound):
-        return problem, 1.0
     # Division by a power of two is exact (and keeps the data valid): no second validation.
     return WeightedTLSProblem._from_checked(problem.source / scale, problem.target / scale, beta,
                                             problem.weights, problem.cbar2), scale
@@ -327,6 +327,10 @@ def from_unit_scale(result: RegistrationResult, scale: float) -> RegistrationRes
     return replace(result, T_target_source=T)
 
 
+_ALWAYS_AFFORDABLE = 1 << 24
+"""Graphs up to 16 MiB (N = 4096) are not checked against the available memory."""
+
+
 def check_graph_memory(n: int) -> None:
     """Refuse, before allocating, a consistency graph of ``n`` vertices that memory cannot hold.
 
@@ -338,6 +342,8 @@ def check_graph_memory(n: int) -> None:
         With ``n`` and the bytes needed.
     """
     need = n * n
+    if need <= _ALWAYS_AFFORDABLE:
+        return  # spares small solves the system call
     available = _available_memory()
     if available is not None and need > available // 2:
         raise MemoryError(
