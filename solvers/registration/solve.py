@@ -137,11 +137,14 @@ def _finish(
     message: str,
     solver: str,
     info: dict | None = None,
+    r2: NDArray[np.float64] | None = None,
 ) -> RegistrationResult:
+    """The result of the pose ``(R, t)``; ``r2``: its residuals when already computed."""
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-        R, t = np.eye(3), np.zeros(3)
+        R, t, r2 = np.eye(3), np.zeros(3), None
         status, message = SolverStatus.NUMERICAL_ERROR, "non-finite pose estimate"
-    r2 = problem.residuals_sq(R, t)
+    if r2 is None:
+        r2 = problem.residuals_sq(R, t)
     inliers = r2 <= problem.cbar2
     if status is SolverStatus.CONVERGED:
         why = degeneracy(problem.source, problem.weights * inliers, float(problem.noise_bound.min()))
@@ -234,29 +237,30 @@ def _solve_pruned(
                        message=f"the largest consistent set has {size} correspondence(s)",
                        solver="pruned", info=info)
     # Tied maximum cliques (likely with few inliers): solve each, keep the lowest TLS cost.
-    best: tuple[float, NDArray[np.float64], NDArray[np.float64], int, bool] | None = None
+    best: tuple[float, NDArray[np.float64], NDArray[np.float64], int, bool, NDArray[np.float64]] | None = None
     for clique in cliques:
         survivors = active[clique]
         R, t, it, converged, ok = _gnc_core(problem, survivors, params)
         if not ok:
             continue
         t_vote = vote_translation(problem, R, survivors)
-        cost, cost_vote = problem.cost(R, t), problem.cost(R, t_vote)
+        r2, r2_vote = problem.residuals_sq(R, t), problem.residuals_sq(R, t_vote)
+        cost, cost_vote = problem.cost_from_residuals(r2), problem.cost_from_residuals(r2_vote)
         if cost_vote < cost:  # keep whichever translation the full TLS cost prefers
-            t, cost = t_vote, cost_vote
+            t, cost, r2 = t_vote, cost_vote, r2_vote
         if best is None or cost < best[0]:
-            best = (cost, R, t, it, converged)
+            best = (cost, R, t, it, converged, r2)
     if best is None:
         return _finish(problem, np.eye(3), np.zeros(3), iterations=0, t0=t0,
                        status=SolverStatus.NUMERICAL_ERROR, message="GNC on the survivors failed",
                        solver="pruned", info=info)
-    _, R, t, it, converged = best
+    _, R, t, it, converged, r2 = best
     status = SolverStatus.CONVERGED if converged else SolverStatus.MAX_ITERATIONS
     tied = f" (best of {len(cliques)} tied)" if len(cliques) > 1 else ""
     msg = (f"max clique kept {size}/{problem.n}{tied}; GNC converged in {it} iterations"
            if converged else f"GNC on the survivors hit the iteration limit ({params.max_iterations})")
     return _finish(problem, R, t, iterations=it, t0=t0, status=status, message=msg,
-                   solver="pruned", info=info)
+                   solver="pruned", info=info, r2=r2)
 
 
 def _solve_registration(
