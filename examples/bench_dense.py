@@ -18,6 +18,18 @@ Usage::
 
     python examples/bench_dense.py [--repeats 21] [--n 1000] [--trials 50] [--json OUT]
     python examples/bench_dense.py --quick          # a tiny run (the test's)
+
+Measured (2-core machine shared with other sessions, load average 2.8 -> 2.6 over the run;
+``--trials 50``, defaults otherwise):
+
+* 3DMatch pair: median 10.1 ms (was 3.2 s in issue 12's measurement, 0.73 s here before the
+  compiled clique search), 52,696 edges, maximum clique 74 proven, 16 tied cliques solved,
+  rotation error 1.25 deg, translation error 0.028 m.
+* N = 1000: sparse graphs (1,000-5,900 edges) 3.8-4.3 ms; dense graphs (129,000-139,000 edges)
+  10.5 ms at 90% outliers, 17.9 ms at 95%, 55.9 ms (worst 64.0 ms) at 98%, where the exact
+  search runs out of its budget (``PruningParams.clique_max_work``): worst dense / median
+  sparse 16.7x.
+* Bunny N = 100, 0-95% outliers: median 0.27-0.32 ms per solve (0.36-0.43 ms before).
 """
 
 from __future__ import annotations
