@@ -204,7 +204,7 @@ def test_a_tied_mirror_image_clique_does_not_win(rng):
 
 
 def test_peel_to_core_matches_networkx() -> None:
-    """The numpy k-core peeling of the pruning step against networkx's k_core."""
+    """The compiled k-core peeling of the pruning step against networkx's k_core."""
     import networkx as nx
 
     from solvers.registration.pruning import _peel_to_core

@@ -419,3 +419,44 @@ def weighted_spread(points, weights):  # pragma: no cover - compiled
     for i in range(3):
         ev[i] = scale * np.sqrt(max(lam[2 - i], 0.0))
     return count, scale, ev
+
+
+@njit(cache=True)
+def row_degrees(adj):  # pragma: no cover - compiled
+    """Row sums of a 0/1 uint8 matrix as int64 (numpy's widening sum costs more at small N)."""
+    n = adj.shape[0]
+    deg = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        s = 0
+        for j in range(adj.shape[1]):
+            s += adj[i, j]
+        deg[i] = s
+    return deg
+
+
+@njit(cache=True)
+def k_core(adj, deg, k):  # pragma: no cover - compiled
+    """Vertices of the ``k``-core: drop every vertex of degree < ``k`` until none is left."""
+    n = adj.shape[0]
+    d = deg.copy()
+    alive = np.ones(n, dtype=np.bool_)
+    queued = np.zeros(n, dtype=np.bool_)
+    stack = np.empty(n, dtype=np.int64)
+    top = 0
+    for v in range(n):
+        if d[v] < k:
+            stack[top] = v
+            top += 1
+            queued[v] = True
+    while top > 0:
+        top -= 1
+        v = stack[top]
+        alive[v] = False
+        for u in range(n):
+            if adj[v, u] != 0 and alive[u]:
+                d[u] -= 1
+                if d[u] < k and not queued[u]:
+                    queued[u] = True
+                    stack[top] = u
+                    top += 1
+    return np.flatnonzero(alive)
