@@ -190,8 +190,8 @@ def test_cli_pose_demo_baseline_and_plot(tmp_path, capsys, method, label):  # ty
                  "--plot", str(png)]) == 0
     text = capsys.readouterr().out
     assert f"pose distribution ({label}): 300 particles" in text and "mode 0: mass" in text, text
-    # The same evaluation budget as the importance sampler's default (10,000 + 5 x 2,500).
-    assert "22500 eq. (1) evaluations" in text or method == "mcmc"
+    # The same evaluation budget as the importance sampler's default (10,000 + 11 x 500).
+    assert "15500 eq. (1) evaluations" in text or method == "mcmc"
     assert len(PoseDistribution.load(out)) == 300
     data = png.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and struct.unpack(">II", data[16:24]) == (1200, 600)
