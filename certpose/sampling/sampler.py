@@ -9,7 +9,8 @@ Tangent chart (the one of :mod:`certpose.sampling.distribution`): around a centr
 a 6-vector ``x = (w, d)`` is the pose ``R = R_k exp([w]_x)``, ``t = t_k + d`` (rotation vector in
 radians, object-frame perturbation; translation in metres).
 
-Proposal density (exact). A component draws ``x ~ N(0, S_k)``. The density of the resulting pose
+Proposal density (exact). A component draws ``x ~ N(0, S_k)`` (or a multivariate Student t
+with scale ``S_k``, whose density replaces the Gaussian ``N`` below). The density of the resulting pose
 with respect to the product of the Haar measure on SO(3) (normalised to agree with ``d^3 w`` at
 the identity, total volume ``8 pi^2``) and Lebesgue measure on R^3 is
 
@@ -20,7 +21,8 @@ Jacobian of the exponential map of SO(3) (the Haar density in exponential coordi
 sum over ``m`` (``|m| <= 1``, both signs of ``u`` covered by negative ``s``) collects every
 rotation vector that maps to the same rotation. Nothing is estimated: the only truncation is the
 wrap sum, whose neglected terms carry ``exp(-(3 pi)^2 / (2 sigma^2))`` of the mass (< 1e-19 for
-rotation standard deviations up to 1 rad).
+rotation standard deviations up to 1 rad; for Student t components the neglected tail decays
+polynomially: with 5 dof, 1e-4 of a component's mass at the 0.6 rad cap on its scale, 5e-7 at 0.2 rad).
 
 Default temperature. At ``temperature = 1`` eq. (1) counts every object point as an independent
 observation; neighbouring points look at the same voxels and their descriptors (FPFH over a
@@ -42,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
-from scipy.special import logsumexp
+from scipy.special import gammaln, logsumexp
 
 from certpose.sampling.distribution import PoseDistribution
 
@@ -110,6 +112,11 @@ class ISParams:
         Particles after resampling (0 = return the weighted draws).
     progress : bool
         Show a tqdm progress bar over rounds when tqdm is installed.
+    dof : float
+        Degrees of freedom of the components: multivariate Student t in the chart (``inf`` =
+        Gaussian). The final round's ESS hangs on the proposal's tails (an arc of rotations the
+        refits have not reached yet); t components with 5 dof raised the demo's least final ESS
+        over 10 seeds from 1,238 to 1,989 and YCB-V 0000/000002's from 31 to 305.
     max_growth : float
         A refit may widen (or narrow) a component by at most this factor in standard deviation
         per round in any direction (> 1; narrowing is bounded by its square).
@@ -148,6 +155,7 @@ class ISParams:
     resample: int = 0
     progress: bool = False
     max_growth: float = 2.0
+    dof: float = 5.0
     laplace: bool = True
     laplace_step: float = 1.0
     laplace_min: float = 0.1
@@ -173,6 +181,8 @@ class ISParams:
             raise ValueError(f"Expected `temperature` to be positive and finite, got {self.temperature}.")
         if not 0.0 <= self.defensive < 1.0:
             raise ValueError(f"Expected `defensive` in [0, 1), got {self.defensive}.")
+        if not self.dof > 2:
+            raise ValueError(f"Expected `dof` > 2 (inf = Gaussian), got {self.dof}.")
         if not (math.isfinite(self.max_growth) and self.max_growth > 1.0):
             raise ValueError(f"Expected `max_growth` > 1, got {self.max_growth}.")
         if int(self.resample) < 0:
@@ -204,14 +214,20 @@ class TangentMixture:
         Chart covariances (rad^2, m^2; rotation block first).
     weights : (K,)
         Mixture weights (sum to 1).
+    dof : float
+        Degrees of freedom (> 2): each component is a multivariate Student t in the chart with
+        scale matrix ``covariances[k]``; ``inf`` (default) = Gaussian.
     """
 
     rotations: NDArray[np.float64]
     translations: NDArray[np.float64]
     covariances: NDArray[np.float64]
     weights: NDArray[np.float64]
+    dof: float = math.inf
 
     def __post_init__(self) -> None:
+        if not (self.dof > 2):
+            raise ValueError(f"Expected `dof` > 2, got {self.dof}.")
         K = len(self.weights)
         if K == 0:
             raise ValueError("Expected at least one mixture component, got 0.")
@@ -228,6 +244,8 @@ class TangentMixture:
         """Draw ``n`` poses; returns rotations (n, 3, 3) and translations (n, 3)."""
         k = rng.choice(len(self.weights), size=n, p=self.weights)
         x = np.einsum("nij,nj->ni", self._chol[k], rng.standard_normal((n, 6)))
+        if math.isfinite(self.dof):
+            x *= np.sqrt(self.dof / rng.chisquare(self.dof, n))[:, None]
         R = np.einsum("nij,njk->nik", self.rotations[k], _so3_exp(x[:, :3]))
         return R, self.translations[k] + x[:, 3:]
 
@@ -254,8 +272,15 @@ class TangentMixture:
                                 np.broadcast_to(d[:, None, :], (n, len(_WRAPS), 3))], axis=2)
             L = self._chol[k]
             z = np.linalg.solve(L, x.reshape(-1, 6).T).T.reshape(n, len(_WRAPS), 6)
-            log_norm = -3 * math.log(2 * math.pi) - np.log(np.diag(L)).sum()
-            log_gauss = log_norm - 0.5 * np.sum(z * z, axis=2)
+            m2 = np.sum(z * z, axis=2)
+            if math.isfinite(self.dof):
+                nu = self.dof
+                log_norm = (gammaln((nu + 6) / 2) - gammaln(nu / 2) - 3 * math.log(nu * math.pi)
+                            - np.log(np.diag(L)).sum())
+                log_gauss = log_norm - 0.5 * (nu + 6) * np.log1p(m2 / nu)
+            else:
+                log_norm = -3 * math.log(2 * math.pi) - np.log(np.diag(L)).sum()
+                log_gauss = log_norm - 0.5 * m2
             # Near theta = 0 the m = 0 term's Jacobian ratio s^2 / (2 (1 - cos s)) -> 1.
             log_jac = np.where(s == 0, 0.0, np.log(np.maximum(s * s, 1e-300))
                                - np.log(two_one_minus_cos)[:, None])
@@ -350,6 +375,7 @@ def _with_defensive(adapted: TangentMixture, initial: TangentMixture, defensive:
         np.concatenate([adapted.translations, initial.translations]),
         np.concatenate([adapted.covariances, initial.covariances]),
         np.concatenate([adapted.weights * (1.0 - defensive), initial.weights * defensive]),
+        adapted.dof,
     )
 
 
@@ -468,7 +494,7 @@ def _refit(proposal: TangentMixture, logs: NDArray, n_adapted: int, R: NDArray, 
         ws.append(mass)
     if not ws:
         return None
-    return TangentMixture(np.stack(Rs), np.stack(ts), np.stack(Cs), np.asarray(ws) / np.sum(ws))
+    return TangentMixture(np.stack(Rs), np.stack(ts), np.stack(Cs), np.asarray(ws) / np.sum(ws), proposal.dof)
 
 
 def importance_sample(
@@ -512,7 +538,7 @@ def importance_sample(
     if p.laplace:
         covs = _laplace_covariances(_laplace_precisions(log_target, T0, temp, p), p)
         n_eval += K * len(_stencil())
-    initial = TangentMixture(T0[:, :3, :3].copy(), T0[:, :3, 3].copy(), covs, sw / sw.sum())
+    initial = TangentMixture(T0[:, :3, :3].copy(), T0[:, :3, 3].copy(), covs, sw / sw.sum(), p.dof)
     adapted, mix = initial, initial
     t_start = time.perf_counter()
     n_last = int(p.draws)
