@@ -1,6 +1,9 @@
 """Numba kernel of the rotation dual search: the closed-form affine projection.
 
 Compiled once and cached on disk.
+
+Array-to-array slice assignments are written as loops: for those numba compiles a
+shape-mismatch error path that formats strings, seconds of a first run's compilation.
 """
 
 from __future__ import annotations
@@ -256,7 +259,8 @@ def clique_bnb(a, b, v, wout, upper, allowance, max_nodes):  # pragma: no cover 
             phase[depth] = 2
             k = depth
             s = state[depth + 1]
-            s[:] = state[depth]
+            for q in range(s.shape[0]):
+                s[q] = state[depth, q]
             vk = v[k]
             s[0] += vk
             for i in range(3):
@@ -272,7 +276,8 @@ def clique_bnb(a, b, v, wout, upper, allowance, max_nodes):  # pragma: no cover 
             continue
         if phase[depth] == 2:
             phase[depth] = 3
-            state[depth + 1, :] = state[depth]
+            for q in range(state.shape[1]):
+                state[depth + 1, q] = state[depth, q]
             out[depth + 1] = out[depth] + wout[depth]
             phase[depth + 1] = 0
             depth += 1
@@ -287,7 +292,8 @@ def _grow(buf, need):  # pragma: no cover - compiled
     if need <= buf.shape[0]:
         return buf
     out = np.empty(max(need, 2 * buf.shape[0]), dtype=buf.dtype)
-    out[: buf.shape[0]] = buf
+    for q in range(buf.shape[0]):
+        out[q] = buf[q]
     return out
 
 
@@ -405,7 +411,8 @@ def heavy_maximal_cliques(adj, w, s_min, thr, limit, max_nodes):  # pragma: no c
                     break
                 flat = _grow(flat, offsets[count] + size)
                 offsets = _grow(offsets, count + 2)
-                flat[offsets[count]: offsets[count] + size] = rr[:size]
+                for q in range(size):
+                    flat[offsets[count] + q] = rr[q]
                 offsets[count + 1] = offsets[count] + size
                 count += 1
             continue
@@ -417,8 +424,10 @@ def heavy_maximal_cliques(adj, w, s_min, thr, limit, max_nodes):  # pragma: no c
         bufP = _grow(bufP, sp[d1] + mp)
         bufX = _grow(bufX, sx[d1] + mp + mx)
         bufB = _grow(bufB, sb[d1] + mp)
-        bufP[sp[d1]: sp[d1] + mp] = tP[:mp]
-        bufX[sx[d1]: sx[d1] + mx] = tX[:mx]
+        for q in range(mp):
+            bufP[sp[d1] + q] = tP[q]
+        for q in range(mx):
+            bufX[sx[d1] + q] = tX[q]
         nP[d1] = mp
         nX[d1] = mx
         wr[d1] = wv

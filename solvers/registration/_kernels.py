@@ -4,6 +4,9 @@ Kept free of Python objects so each call costs microseconds; compiled once and c
 pass C-contiguous, writable float64 arrays (:func:`as_kernel_array`): numba compiles a separate
 specialisation for read-only arrays, which would double the first run's compile time. Sorting
 is done by the callers in numpy (numba would compile its own mergesort).
+
+Array-to-array slice assignments are written as loops: for those numba compiles a
+shape-mismatch error path that formats strings, seconds of a first run's compilation.
 """
 
 from __future__ import annotations
@@ -353,14 +356,16 @@ def max_clique_bnb(adj, order, lower, target, limit, max_work):  # pragma: no co
             size = depth + 1
             if ties:
                 if size == target:
-                    out[count, :size] = clique[:size]
+                    for q in range(size):
+                        out[count, q] = clique[q]
                     count += 1
                     if count >= limit:
                         complete = False
                         break
             elif size > best:
                 best = size
-                out[0, :size] = clique[:size]
+                for q in range(size):
+                    out[0, q] = clique[q]
                 count = 1
             continue
         s1 = s0 + i  # level depth + 1 starts after the live part of this level
@@ -368,8 +373,9 @@ def max_clique_bnb(adj, order, lower, target, limit, max_work):  # pragma: no co
             cap = 2 * (s1 + m)
             nv = np.empty(cap, dtype=np.int64)
             nc = np.empty(cap, dtype=np.int64)
-            nv[:s1] = buf_v[:s1]
-            nc[:s1] = buf_c[:s1]
+            for q in range(s1):
+                nv[q] = buf_v[q]
+                nc[q] = buf_c[q]
             buf_v, buf_c = nv, nc
         work += m * _colour_sort(adj, tmp, m, buf_v[s1:], buf_c[s1:], rest, klass)
         depth += 1
