@@ -34,7 +34,8 @@ from scipy.spatial.transform import Rotation
 
 from certpose.sampling.chart import check_pose, from_chart, to_chart
 from certpose.sampling.distribution import PoseDistribution
-from certpose.sampling.sampler import LogTarget, _check_seeds, _progress, _resolve_rng
+from certpose.sampling.sampler import LogTarget, _check_seeds, _progress
+from solvers.validation import resolve_rng
 
 __all__ = ["DEParams", "MCMCParams", "SamplerResult", "de_sample", "mcmc_sample"]
 
@@ -248,7 +249,7 @@ def de_sample(
     p = params or DEParams()
     T_ref = check_pose(T_ref)
     x0 = _check_init(init)
-    gen = _resolve_rng(rng)
+    gen = resolve_rng(rng)
     scale = np.array([p.rotation_bound] * 3 + [p.translation_bound] * 3)
     param = ng.p.Array(shape=(6,), lower=-1.0, upper=1.0)
     param.random_state = np.random.RandomState(int(gen.integers(2**31 - 1)))
@@ -336,7 +337,7 @@ def mcmc_sample(
     """
     p = params or MCMCParams()
     S0 = _check_seeds(seeds)
-    gen = _resolve_rng(rng)
+    gen = resolve_rng(rng)
     C, temp = int(p.chains), float(p.temperature)
     t0 = time.perf_counter()
     ls = _eval(log_target, S0) / temp

@@ -34,7 +34,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from certpose.sampling.chart import check_pose, from_chart, to_chart
 from certpose.sampling.distribution import PoseDistribution
-from certpose.sampling.sampler import _resolve_rng
+from solvers.validation import resolve_rng
 
 __all__ = ["emcee_walkers", "gtsam_priors", "initial_chart_points", "initial_poses",
            "nevergrad_parametrization", "nevergrad_population", "pymc_initvals", "reference_pose"]
@@ -103,7 +103,7 @@ def initial_chart_points(
     _check_sigma(rotation_sigma, translation_sigma)
     s = _as_source(source)
     T0 = reference_pose(s) if T_ref is None else check_pose(T_ref)
-    gen = _resolve_rng(rng)
+    gen = resolve_rng(rng)
     if not isinstance(s, PoseDistribution):
         m, C = _spread(s, T0, rotation_sigma, translation_sigma)
         return m + gen.standard_normal((int(n), 6)) * np.sqrt(np.diag(C))

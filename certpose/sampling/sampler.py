@@ -47,6 +47,7 @@ from scipy.spatial.transform import Rotation
 from scipy.special import gammaln, logsumexp
 
 from certpose.sampling.distribution import PoseDistribution
+from solvers.validation import resolve_rng
 
 __all__ = ["ISParams", "ISResult", "TangentMixture", "default_temperature", "importance_sample",
            "perturbed_eq2_seeds", "sample_pose_distribution", "seeds_from_mle"]
@@ -54,10 +55,6 @@ __all__ = ["ISParams", "ISResult", "TangentMixture", "default_temperature", "imp
 log = logging.getLogger(__name__)
 
 LogTarget = Callable[[NDArray[np.float64]], NDArray[np.float64]]
-
-
-def _resolve_rng(rng: np.random.Generator | int | None) -> np.random.Generator:
-    return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
 
 
 def _progress(total: int, desc: str, enabled: bool):  # noqa: ANN202 - tqdm or a no-op
@@ -523,7 +520,7 @@ def importance_sample(
     ISResult
     """
     p = params or ISParams()
-    gen = _resolve_rng(rng)
+    gen = resolve_rng(rng)
     T0 = _check_seeds(seeds)
     temp = 1.0 if p.temperature is None else float(p.temperature)
     K = len(T0)
@@ -665,7 +662,7 @@ def perturbed_eq2_seeds(
         raise ValueError(f"Expected `num` >= 0, got {num}.")
     if not (math.isfinite(scale) and scale > 0):
         raise ValueError(f"Expected `scale` to be positive and finite, got {scale}.")
-    gen = _resolve_rng(rng)
+    gen = resolve_rng(rng)
     out = np.empty((int(num), 4, 4))
     base = np.asarray(eq2.problem.weights, dtype=np.float64)
     for i in range(int(num)):
