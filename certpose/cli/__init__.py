@@ -113,6 +113,17 @@ def busy(args: argparse.Namespace, desc: str, *, delay: float = 1.0) -> Iterator
         thread.join()
 
 
+def warm_kernels(kernels: Sequence[str]) -> None:
+    """Start compiling ``kernels`` in a helper process when numba's cache lacks them (a first run
+    after installing); see :func:`solvers.jit.warm_up`. Only a speed-up: never fails a command."""
+    from solvers.jit import warm_up
+
+    try:
+        warm_up(kernels)
+    except Exception as exc:  # the kernels then compile on first use, as without it
+        logging.getLogger(__name__).debug("kernel warm-up not started: %s", exc)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="certpose",

@@ -70,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
         args.certify = True
     if sum([bool(args.demo), args.problem is not None, bool(args.source or args.target)]) > 1:
         raise CLIError("give one of SRC DST, --problem FILE or --demo")
+    _warm_up(args)
     if args.demo:
         return _run_demo(args)
     if args.problem is not None:
@@ -101,6 +102,15 @@ def run(args: argparse.Namespace) -> int:
         }
         _write_json(args, {"inputs": inputs, "result": result.to_dict()})
     return _exit_code(args, result)
+
+
+def _warm_up(args: argparse.Namespace) -> None:
+    from certpose.cli import warm_kernels
+    from solvers.certify import CERTIFY_KERNELS
+    from solvers.registration import PRUNED_SOLVE_KERNELS
+
+    certify = args.certify or args.solver == "sdp"
+    warm_kernels(PRUNED_SOLVE_KERNELS + (CERTIFY_KERNELS if certify else ()))
 
 
 def _run_problem(args: argparse.Namespace) -> int:

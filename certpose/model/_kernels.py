@@ -9,6 +9,17 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from numba import types as nt
+
+from solvers.jit import kernel
+
+# Argument types of the declared signatures: C-contiguous, writable arrays.
+F1, F2, F3 = nt.float64[::1], nt.float64[:, ::1], nt.float64[:, :, ::1]
+S2, I3, B3 = nt.float32[:, ::1], nt.int32[:, :, ::1], nt.int8[:, :, ::1]
+f4, f8 = nt.float32, nt.float64
+# Everything after the pose: points, descriptors, grid index, cell states, voxel descriptors,
+# log p_O, origin, 1 / voxel size, offset, beta, c_empty, c_unobs.
+_MODEL = (F2, S2, I3, B3, S2, F1, F1, f8, f8, f4, f8, f8)
 
 EMPTY_CODE = -1
 UNOBSERVED_CODE = -2
@@ -78,7 +89,7 @@ def _pose_total(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offs
     return total
 
 
-@njit(fastmath=True, cache=True, nogil=True)
+@kernel(F3, *_MODEL, cost=1.0, fastmath=True, nogil=True)
 def eq1_batch(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
               c_unobs):  # pragma: no cover - compiled
     """Sum of per-point log-localisation terms for each of the ``B`` poses ``T`` (B, 4, 4).
@@ -93,7 +104,7 @@ def eq1_batch(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset
     return out
 
 
-@njit(fastmath=True, cache=True, nogil=True)
+@kernel(F2, *_MODEL, cost=1.0, fastmath=True, nogil=True)
 def eq1_points(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
                c_unobs):  # pragma: no cover - compiled
     """Per-point terms ``(N,)`` for one pose ``T`` (4, 4)."""

@@ -19,7 +19,14 @@ from solvers.certify.front import (
     solve_sdp,
 )
 
+CERTIFY_KERNELS = ("solvers.certify._kernels:heavy_maximal_cliques",
+                   "solvers.registration._kernels:consistency_edge_list")
+"""The compiled kernels a full-problem certificate calls on every graph that is not a clique (for
+:func:`solvers.jit.warm_up`); the per-clique branch and bound and the rotation dual's projection
+compile on first use."""
+
 __all__ = [
+    "CERTIFY_KERNELS",
     "certify_pose",
     "certify_result",
     "certify_rotation",

@@ -10,9 +10,16 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from numba import types as nt
+
+from solvers.jit import kernel
+
+# Argument types of the declared signatures: C-contiguous, writable arrays.
+F1, F2, U2 = nt.float64[::1], nt.float64[:, ::1], nt.uint8[:, ::1]
+f8, i8 = nt.float64, nt.int64
 
 
-@njit(cache=True)
+@kernel(F2, F2, F1, f8, cost=1.0)
 def identity_frame_projection(M, S0, th, c):  # pragma: no cover - compiled
     """Projection of ``M`` onto the rotation dual's affine set (identity frame), see
     :class:`solvers.certify.sdp_dual._IdentityFrameProjector`; ``c = 4 / (K + 3)``."""
@@ -209,7 +216,7 @@ def _ls_value(s):  # pragma: no cover - compiled
     return max(ga + gb - 2.0 * (sv[0] + sv[1] + d * sv[2]), 0.0), R, cb - R @ ca
 
 
-@njit(cache=True)
+@kernel(F2, F2, F1, F1, f8, f8, i8, cost=2.0)
 def clique_bnb(a, b, v, wout, upper, allowance, max_nodes):  # pragma: no cover - compiled
     """Depth-first branch and bound of ``min_S [LS_S^* + sum_{k not in S} wout_k]``.
 
@@ -297,7 +304,7 @@ def _grow(buf, need):  # pragma: no cover - compiled
     return out
 
 
-@njit(cache=True)
+@kernel(U2, F1, i8, f8, i8, i8, cost=2.6)
 def heavy_maximal_cliques(adj, w, s_min, thr, limit, max_nodes):  # pragma: no cover - compiled
     """The maximal cliques of ``adj`` with at least ``s_min`` vertices and weight ``> thr``.
 

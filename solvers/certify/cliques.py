@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from solvers.jit import compiled
 from solvers.problem import WeightedTLSProblem
 
 __all__ = [
@@ -130,7 +131,7 @@ def candidate_cliques(
     m = keep.size
     if edges.shape[0] == m * (m - 1) // 2:
         return [act[keep]], True  # complete (low outlier rates): one clique
-    from solvers.certify._kernels import heavy_maximal_cliques
+    heavy_maximal_cliques = compiled("solvers.certify._kernels").heavy_maximal_cliques
 
     w = np.ascontiguousarray(problem.weights[act[keep]])
     budget = np.iinfo(np.int64).max if max_nodes is None else int(max_nodes)
@@ -287,7 +288,7 @@ def clique_optimum(
     # Rounding allowance of a value computed from the sums (cancellation in saa - sw |ca|^2).
     scale = float(v @ (np.einsum("ij,ij->i", a, a) + np.einsum("ij,ij->i", b, b)))
     allowance = 64 * _EPS * (scale + K * float(wout.max(initial=0.0)) + 1.0)
-    from solvers.certify._kernels import clique_bnb  # numba: compiled on first use
+    clique_bnb = compiled("solvers.certify._kernels").clique_bnb  # numba: compiled on first use
 
     if time_limit is not None:
         # The compiled search cannot read the clock: the limit becomes a node budget.

@@ -42,6 +42,7 @@ from solvers.certify.relaxation import (
     rotation_lifting,
 )
 from solvers.certify.sdp_relaxation import bound_from_dense_dual
+from solvers.jit import compiled
 from solvers.lie import project_to_so3
 
 __all__ = ["DualCertificateResult", "rotation_dual_certificate"]
@@ -199,7 +200,7 @@ class _IdentityFrameProjector:
         self.c = 4.0 / (self.nb + 2)  # 4 / (K + 3)
 
     def __call__(self, M: NDArray[np.float64]) -> NDArray[np.float64]:
-        from solvers.certify._kernels import identity_frame_projection
+        identity_frame_projection = compiled("solvers.certify._kernels").identity_frame_projection
 
         # Compiled: the numpy version below costs 0.2-0.4 ms of Python overhead per call at
         # K = 20, as much as the eigendecomposition.

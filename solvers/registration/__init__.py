@@ -15,6 +15,7 @@ from solvers.registration.pruning import (
     vote_translation,
 )
 from solvers.registration.solve import (
+    PRUNED_SOLVE_KERNELS,
     GNCParams,
     PruningParams,
     check_graph_memory,
@@ -27,6 +28,7 @@ from solvers.registration.solve import (
 )
 
 __all__ = [
+    "PRUNED_SOLVE_KERNELS",
     "GNCParams",
     "PruningParams",
     "check_graph_memory",

@@ -13,10 +13,16 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from numba import types as nt
 
-from solvers.procrustes import procrustes_kernel
+from solvers._linalg_kernels import procrustes, sym_eig
+from solvers.jit import kernel
 
-procrustes = procrustes_kernel()  # the one weighted Procrustes, compiled
+# Argument types of the declared signatures: C-contiguous, writable arrays.
+F1, F2 = nt.float64[::1], nt.float64[:, ::1]
+I1, I2 = nt.int64[::1], nt.int64[:, ::1]
+U2 = nt.uint8[:, ::1]
+f8, i8 = nt.float64, nt.int64
 
 
 def as_kernel_array(value, dtype=np.float64):
@@ -42,7 +48,7 @@ def residuals_sq(a, b, R, t, inv_beta2):  # pragma: no cover - compiled
     return r2
 
 
-@njit(cache=True)
+@kernel(F2, F2, F1, F1, f8, i8, f8, f8, cost=2.9)
 def gnc_tls(a, b, prior_w, inv_beta2, cbar2, max_iter, mu_factor, cost_tol):  # pragma: no cover
     """GNC-TLS (Yang et al. 2020) with per-correspondence prior weights.
 
@@ -122,7 +128,7 @@ def _consistent(at, bt, beta, i, j, cbar, rel_slack, abs_slack):  # pragma: no c
     return abs(la - lb) <= cbar * (beta[i] + beta[j]) * (1.0 + rel_slack) + abs_slack * (la + lb)
 
 
-@njit(cache=True)
+@kernel(F2, F2, F1, f8, f8, f8, cost=0.6)
 def consistency_matrix(at, bt, beta, cbar, rel_slack, abs_slack):  # pragma: no cover - compiled
     """Dense symmetric adjacency (uint8) of the pairwise-consistency graph (:func:`_consistent`);
     ``at``/``bt`` are the points transposed, (3, N) contiguous. The diagonal is 0."""
@@ -137,7 +143,7 @@ def consistency_matrix(at, bt, beta, cbar, rel_slack, abs_slack):  # pragma: no 
     return adj
 
 
-@njit(cache=True)
+@kernel(F2, F2, F1, f8, f8, f8, cost=0.4)
 def consistency_edge_list(at, bt, beta, cbar, rel_slack, abs_slack):  # pragma: no cover
     """Edges ``(i, j)``, ``i < j``, (E, 2) int64, of the graph of :func:`consistency_matrix`,
     without its N^2 bytes (two passes: count, then fill)."""
@@ -158,7 +164,7 @@ def consistency_edge_list(at, bt, beta, cbar, rel_slack, abs_slack):  # pragma: 
     return out
 
 
-@njit(cache=True)
+@kernel(U2, I1, I1, i8, cost=0.7)
 def multistart_greedy_clique(adj, deg, order, max_starts):  # pragma: no cover - compiled
     """Best of the greedy cliques grown inside each vertex's neighbourhood (by degree order).
 
@@ -167,12 +173,13 @@ def multistart_greedy_clique(adj, deg, order, max_starts):  # pragma: no cover -
     and clique size c.
     """
     n = adj.shape[0]
-    best = np.empty(0, dtype=np.int64)
+    best = np.empty(n, dtype=np.int64)
+    best_size = 0
     in_best = np.zeros(n, dtype=np.bool_)
     members = np.empty(n, dtype=np.int64)
     starts = 0
     for v in order:
-        if deg[v] + 1 <= best.shape[0] or starts >= max_starts:
+        if deg[v] + 1 <= best_size or starts >= max_starts:
             break  # later starts have lower degree: none can beat the best clique
         if in_best[v]:
             continue  # its neighbourhood was just explored from inside the best clique
@@ -190,14 +197,17 @@ def multistart_greedy_clique(adj, deg, order, max_starts):  # pragma: no cover -
             if ok:
                 members[m] = u
                 m += 1
-        if m > best.shape[0]:
-            best = members[:m].copy()
-            in_best[:] = False
-            in_best[best] = True
-    return best
+        if m > best_size:
+            best_size = m
+            for k in range(n):
+                in_best[k] = False
+            for k in range(m):
+                best[k] = members[k]
+                in_best[members[k]] = True
+    return best[:best_size].copy()
 
 
-@njit(cache=True)
+@kernel(F2, F1, F1, f8, F2, I2, cost=0.8)
 def scalar_tls_rows(vals, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
     """:func:`scalar_tls` of each row of ``vals`` (d, N), ``ends``/``order`` (d, 2N); returns
     ``(x (d,), found (d,))``: one call for the three axes of a translation vote."""
@@ -209,7 +219,7 @@ def scalar_tls_rows(vals, beta, w, cbar2, ends, order):  # pragma: no cover - co
     return x, found
 
 
-@njit(cache=True)
+@kernel(F1, F1, F1, f8, F1, I1, cost=0.3)
 def scalar_tls(v, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
     """Exact scalar TLS by sweeping sorted interval endpoints; returns (x, cost, found).
 
@@ -287,7 +297,7 @@ def _colour_sort(adj, cand, m, out_v, out_c, rest, klass):  # pragma: no cover -
     return colour
 
 
-@njit(cache=True)
+@kernel(U2, I1, i8, i8, i8, i8, cost=1.7)
 def max_clique_bnb(adj, order, lower, target, limit, max_work):  # pragma: no cover - compiled
     """Branch and bound for maximum cliques with greedy-colouring bounds (Tomita's MCQ).
 
@@ -385,7 +395,7 @@ def max_clique_bnb(adj, order, lower, target, limit, max_work):  # pragma: no co
     return out[:, :size], count, size, complete, nodes
 
 
-@njit(cache=True)
+@kernel(F2, F1, cost=1.4)
 def weighted_spread(points, weights):  # pragma: no cover - compiled
     """``(count, scale, ev)`` of the points of positive weight: their number, the largest
     absolute coordinate, and the square roots of the eigenvalues (descending, (3,)) of their
@@ -421,13 +431,23 @@ def weighted_spread(points, weights):  # pragma: no cover - compiled
                 for j in range(3):
                     cov[i, j] += wk * di * (points[k, j] / scale - mean[j])
     cov /= wsum
-    lam = np.linalg.eigvalsh(cov)
-    for i in range(3):
-        ev[i] = scale * np.sqrt(max(lam[2 - i], 0.0))
+    V = np.empty((3, 3))
+    sym_eig(cov, V)  # the Jacobi of the Procrustes kernel: compiled once, no LAPACK
+    # Sorted descending by swaps (no sum-based middle: it would cancel).
+    l0, l1, l2 = cov[0, 0], cov[1, 1], cov[2, 2]
+    if l0 < l1:
+        l0, l1 = l1, l0
+    if l1 < l2:
+        l1, l2 = l2, l1
+    if l0 < l1:
+        l0, l1 = l1, l0
+    ev[0] = scale * np.sqrt(max(l0, 0.0))
+    ev[1] = scale * np.sqrt(max(l1, 0.0))
+    ev[2] = scale * np.sqrt(max(l2, 0.0))
     return count, scale, ev
 
 
-@njit(cache=True)
+@kernel(U2, cost=0.3)
 def row_degrees(adj):  # pragma: no cover - compiled
     """Row sums of a 0/1 uint8 matrix as int64 (numpy's widening sum costs more at small N)."""
     n = adj.shape[0]
@@ -440,7 +460,7 @@ def row_degrees(adj):  # pragma: no cover - compiled
     return deg
 
 
-@njit(cache=True)
+@kernel(U2, I1, i8, cost=0.8)
 def k_core(adj, deg, k):  # pragma: no cover - compiled
     """Vertices of the ``k``-core: drop every vertex of degree < ``k`` until none is left."""
     n = adj.shape[0]
@@ -465,4 +485,9 @@ def k_core(adj, deg, k):  # pragma: no cover - compiled
                     queued[u] = True
                     stack[top] = u
                     top += 1
-    return np.flatnonzero(alive)
+    m = 0
+    for v in range(n):
+        if alive[v]:
+            stack[m] = v  # the stack is empty now: reused for the survivors
+            m += 1
+    return stack[:m].copy()

@@ -11,6 +11,7 @@ import logging
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from solvers.jit import compiled
 from solvers.problem import WeightedTLSProblem
 
 __all__ = [
@@ -34,7 +35,7 @@ ROUNDING_ABS_SLACK = 8 * float(np.finfo(np.float64).eps)
 
 
 def _kernel_inputs(source: ArrayLike, target: ArrayLike, noise_bound: ArrayLike):
-    from solvers.registration import _kernels  # numba: imported on first solve
+    _kernels = compiled("solvers.registration._kernels")  # numba: imported on first solve
 
     at = np.ascontiguousarray(np.asarray(source, dtype=np.float64).T)
     bt = np.ascontiguousarray(np.asarray(target, dtype=np.float64).T)
@@ -76,7 +77,7 @@ def consistency_edge_list(
 def _peel_to_core(adj: NDArray[np.uint8], deg: NDArray[np.int64], k: int) -> NDArray[np.int64]:
     """Vertices of the ``k``-core: drop every vertex of degree < ``k`` until none is left
     (compiled: numpy's rounds cost 30-60 us at N = 100, a tenth of a whole solve)."""
-    from solvers.registration import _kernels
+    _kernels = compiled("solvers.registration._kernels")
 
     return _kernels.k_core(adj, np.ascontiguousarray(deg, dtype=np.int64), int(k))
 
@@ -127,7 +128,7 @@ def maximum_cliques(
     exact : bool
         True when the cliques are proven maximum.
     """
-    from solvers.registration import _kernels
+    _kernels = compiled("solvers.registration._kernels")
 
     adj = np.require(adjacency, dtype=np.uint8, requirements=["C", "W"])
     n = adj.shape[0]
@@ -197,7 +198,7 @@ def scalar_tls(
     cost : float
         Its cost.
     """
-    from solvers.registration import _kernels
+    _kernels = compiled("solvers.registration._kernels")
 
     v = np.ascontiguousarray(values, dtype=np.float64).ravel()
     n = v.size
@@ -229,7 +230,7 @@ def vote_translation(
     and weights. The result is exact per axis, not jointly; callers compare it with their own
     translation on the full cost.
     """
-    from solvers.registration import _kernels
+    _kernels = compiled("solvers.registration._kernels")
 
     idx = np.arange(problem.n) if indices is None else np.asarray(indices)
     R = np.asarray(rotation, dtype=np.float64)

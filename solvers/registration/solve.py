@@ -10,6 +10,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from solvers.jit import compiled
 from solvers.lie import make_transform
 from solvers.problem import WeightedTLSProblem
 from solvers.registration.pruning import prune_maximum_cliques, vote_translation
@@ -17,6 +18,7 @@ from solvers.result import RegistrationResult, SolverStatus
 from solvers.validation import check_count
 
 __all__ = [
+    "PRUNED_SOLVE_KERNELS",
     "GNCParams",
     "PruningParams",
     "solve_gnc",
@@ -96,6 +98,13 @@ class PruningParams:
             check_count(self.clique_max_work, "clique_max_work", minimum=1)
 
 
+PRUNED_SOLVE_KERNELS = tuple(f"solvers.registration._kernels:{name}" for name in (
+    "consistency_matrix", "row_degrees", "multistart_greedy_clique", "k_core", "gnc_tls",
+    "scalar_tls_rows", "weighted_spread"))
+"""The compiled kernels every pruned solve calls (for :func:`solvers.jit.warm_up`); the exact
+clique search (``max_clique_bnb``) runs only when the peeled graph is not a clique."""
+
+
 def degeneracy(
     points: NDArray[np.float64], weights: NDArray[np.float64], noise_bound: float
 ) -> str | None:
@@ -105,7 +114,7 @@ def degeneracy(
     line free. Spread is judged against the noise bound, below which it is indistinguishable
     from noise.
     """
-    from solvers.registration import _kernels  # numba: a 3x3 eigenproblem, no numpy overhead
+    _kernels = compiled("solvers.registration._kernels")  # a 3x3 eigenproblem
 
     arr = _kernels.as_kernel_array
     # Spread judged in units of the points' extent, so any scale works (1e-200 .. 1e200).
@@ -172,7 +181,7 @@ def _gnc_core(
     w, beta = problem.weights, problem.noise_bound
     if idx is not None:
         a, b, w, beta = a[idx], b[idx], w[idx], beta[idx]
-    from solvers.registration import _kernels  # numba: imported on first solve
+    _kernels = compiled("solvers.registration._kernels")  # numba: imported on first solve
 
     arr = _kernels.as_kernel_array
     R, t, _gw, it, converged, ok = _kernels.gnc_tls(

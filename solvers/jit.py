@@ -1,0 +1,258 @@
+"""Compiled kernels: one declared signature each, compiled once, cached, warmed in parallel.
+
+Every numba kernel of :mod:`solvers` (and of :mod:`certpose.model`) is declared with
+:func:`kernel`, which is ``numba.njit(cache=True)`` plus the one signature its callers use.
+numba compiles a kernel on its first call and keeps the machine code on disk
+(``NUMBA_CACHE_DIR``, or ``__pycache__`` beside the source), so only the first run of a fresh
+install pays the compilation: several seconds, nearly all of it Python work inside numba
+(typing and lowering), on one core.
+
+:func:`warm_up` shortens that first run. It looks up which of the kernels a command will call
+are not yet in the cache, and a helper process compiles them (heaviest first) while the command
+goes on with its other work. Code that calls kernels loads their module through
+:func:`compiled`: if a warm-up is still compiling that module, this process compiles the kernels
+the helper has not reached (lightest first), then waits for it. Two cores compile at once and
+nothing is compiled twice. A warm cache costs nothing: no helper is started.
+
+Declaring the signature also documents what each kernel takes, and lets the tests check that
+the callers use only that one (a second signature would be a second compilation).
+"""
+
+from __future__ import annotations
+
+import atexit
+import importlib
+import logging
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+__all__ = ["KernelSpec", "compiled", "declared", "is_cached", "kernel", "pending", "wait",
+           "warm_up"]
+
+
+@dataclass(frozen=True)
+class KernelSpec:
+    """A declared kernel: its module, name, numba argument types and a relative compile cost."""
+
+    module: str
+    name: str
+    signature: tuple[Any, ...]
+    cost: float = 1.0
+
+    def dispatcher(self) -> Any:
+        return getattr(importlib.import_module(self.module), self.name)
+
+
+_REGISTRY: dict[str, list[KernelSpec]] = {}
+
+
+def kernel(*signature: Any, cost: float = 1.0, **options: Any) -> Callable[[Callable[..., Any]], Any]:
+    """``numba.njit(cache=True, **options)`` with its one signature declared.
+
+    Parameters
+    ----------
+    *signature : numba types
+        The argument types the callers pass (e.g. ``numba.types.float64[:, ::1]`` for a
+        C-contiguous, writable (N, 3) array).
+    cost : float
+        Relative compile time, used to share the work of :func:`warm_up` evenly.
+    **options
+        Further ``njit`` options (``fastmath``, ``nogil``, ...).
+    """
+    from numba import njit
+
+    def wrap(fn: Callable[..., Any]) -> Any:
+        dispatcher = njit(cache=True, **options)(fn)
+        _REGISTRY.setdefault(fn.__module__, []).append(
+            KernelSpec(fn.__module__, fn.__name__, tuple(signature), float(cost)))
+        return dispatcher
+
+    return wrap
+
+
+def declared(modules: Iterable[str] | None = None) -> list[KernelSpec]:
+    """The declared kernels of ``modules`` (imported here), or of every module imported so far."""
+    names = list(_REGISTRY) if modules is None else list(modules)
+    for name in names:
+        importlib.import_module(name)
+    return [spec for name in names for spec in _REGISTRY.get(name, [])]
+
+
+def is_cached(spec: KernelSpec) -> bool:
+    """Whether ``spec``'s machine code is loaded or in numba's disk cache for this source.
+
+    Reads only the cache's index (numba's own key: signature, CPU and bytecode hash). When the
+    index cannot be read the kernel counts as cached: nothing is warmed, and numba compiles it
+    on first use as usual.
+    """
+    disp = spec.dispatcher()
+    if tuple(spec.signature) in disp.overloads:
+        return True
+    try:
+        cache = disp._cache  # numba's Cache: no public query for "is this signature on disk"
+        key = cache._index_key(tuple(spec.signature), disp.targetctx.codegen())
+        return key in cache._cache_file._load_index()
+    except Exception:  # an unknown numba layout: do not guess
+        log.debug("cannot read numba's cache index for %s.%s", spec.module, spec.name,
+                  exc_info=True)
+        return True
+
+
+def _claim(lock_dir: str, spec: KernelSpec) -> bool:
+    """Whether this process takes ``spec`` (the first to create its lock file does)."""
+    try:
+        os.close(os.open(os.path.join(lock_dir, f"{spec.module}.{spec.name}"),
+                         os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        return False
+    return True
+
+
+def _compile(specs: Sequence[KernelSpec], lock_dir: str | None = None) -> int:
+    """Compile ``specs`` in order, skipping those another process has claimed in ``lock_dir``."""
+    done = 0
+    for spec in specs:
+        if lock_dir is None or _claim(lock_dir, spec):
+            spec.dispatcher().compile(tuple(spec.signature))
+            done += 1
+    return done
+
+
+@dataclass
+class _Warming:
+    """A helper process compiling ``specs`` front to back; this process takes them from the back
+    when it needs them (lock files in ``lock_dir`` say who compiles what)."""
+
+    proc: subprocess.Popen[bytes] | None
+    specs: list[KernelSpec]
+    lock_dir: str
+
+    @property
+    def modules(self) -> frozenset[str]:
+        return frozenset(s.module for s in self.specs)
+
+
+_PENDING: list[_Warming] = []
+
+
+def warm_up(kernels: Sequence[str]) -> int:
+    """Start compiling the kernels a command will call that are not cached yet.
+
+    A helper process (this Python, ``python -m solvers.jit``, same environment and so the same
+    numba cache) compiles them, heaviest first, while the caller goes on with other work. When
+    the caller needs them (:func:`compiled`), it compiles the rest itself, lightest first, then
+    waits for the helper: two cores share the work and nothing is compiled twice. Returns at
+    once when every kernel is cached.
+
+    Parameters
+    ----------
+    kernels : sequence of str
+        ``"module"`` (all its declared kernels) or ``"module:name"`` (one of them).
+
+    Returns
+    -------
+    int
+        Number of kernels that were not cached (0: nothing was started).
+    """
+    specs = []
+    for item in kernels:
+        module, _, name = item.partition(":")
+        found = [s for s in declared([module]) if not name or s.name == name]
+        if not found:
+            raise ValueError(f"no declared kernel {item!r}")
+        specs.extend(found)
+    cold = sorted((s for s in specs if not is_cached(s)), key=lambda s: -s.cost)
+    if not cold:
+        return 0
+    lock_dir = tempfile.mkdtemp(prefix="solvers-jit-")
+    args = [f"{s.module}:{s.name}" for s in cold]
+    try:
+        with open(os.path.join(lock_dir, "stderr"), "wb") as err:  # a file: no pipe to fill
+            proc: subprocess.Popen[bytes] | None = subprocess.Popen(
+                [sys.executable, "-m", "solvers.jit", "--locks", lock_dir, *args],
+                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
+    except OSError as exc:  # no helper: this process compiles them when it needs them
+        log.info("kernel warm-up helper not started (%s)", exc)
+        proc = None
+    if not _PENDING:
+        atexit.register(_abandon)
+    _PENDING.append(_Warming(proc, cold, lock_dir))
+    log.info("first run: compiling %d kernels in the background", len(cold))
+    return len(cold)
+
+
+def pending() -> list[str]:
+    """Modules whose kernels a warm-up is still compiling."""
+    return sorted({m for w in _PENDING for m in w.modules})
+
+
+def wait(modules: Iterable[str] | None = None) -> None:
+    """Finish the warm-ups of any of ``modules`` (default: all): compile what the helper has not
+    started, here, then wait for it."""
+    wanted = None if modules is None else set(modules)
+    for item in list(_PENDING):
+        if wanted is not None and not (item.modules & wanted):
+            continue
+        _PENDING.remove(item)
+        t0 = time.perf_counter()
+        mine = _compile(item.specs[::-1], item.lock_dir)
+        if item.proc is not None and item.proc.wait() != 0:
+            # What it did not compile compiles here, on first use.
+            with open(os.path.join(item.lock_dir, "stderr"), "rb") as f:
+                last = f.read().decode(errors="replace").strip().splitlines()[-1:]
+            log.warning("kernel warm-up helper failed (exit %s): %s", item.proc.returncode,
+                        last[0] if last else "")
+        shutil.rmtree(item.lock_dir, ignore_errors=True)
+        log.debug("warm-up done: %d of %d kernels compiled here, %.2f s waited", mine,
+                  len(item.specs), time.perf_counter() - t0)
+
+
+def _abandon() -> None:
+    """At exit: stop helpers whose kernels were never needed (numba writes its cache files
+    atomically, so a stopped helper leaves no partial entry) and remove their lock folders."""
+    while _PENDING:
+        item = _PENDING.pop()
+        if item.proc is not None and item.proc.poll() is None:
+            item.proc.terminate()
+            item.proc.wait()
+        shutil.rmtree(item.lock_dir, ignore_errors=True)
+
+
+def compiled(module: str) -> Any:
+    """The kernel module ``module``, once no warm-up is compiling it."""
+    if _PENDING:
+        wait([module])
+    loaded = sys.modules.get(module)  # per solve: importlib's own lookup costs microseconds
+    return loaded if loaded is not None else importlib.import_module(module)
+
+
+def _main(argv: Sequence[str]) -> int:
+    lock_dir = None
+    if argv[:1] == ["--locks"]:
+        lock_dir, argv = argv[1], argv[2:]
+    specs = []
+    for item in argv:
+        module, _, name = item.partition(":")
+        found = [s for s in declared([module]) if s.name == name]
+        if not found:
+            print(f"solvers.jit: no declared kernel {item!r}", file=sys.stderr)
+            return 2
+        specs.extend(found)
+    _compile(specs, lock_dir)
+    return 0
+
+
+if __name__ == "__main__":
+    # Run as a script this file is ``__main__``; the kernels register with ``solvers.jit``.
+    from solvers.jit import _main as _registered_main
+
+    sys.exit(_registered_main(sys.argv[1:]))

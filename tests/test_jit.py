@@ -1,0 +1,143 @@
+"""Compiled kernels: declared signatures, the cache check and the parallel first-run warm-up."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from solvers import jit
+
+ROOT = Path(__file__).resolve().parents[1]
+MODULES = ["solvers._linalg_kernels", "solvers.registration._kernels", "solvers.certify._kernels",
+           "certpose.model._kernels"]
+
+
+def _run(code: str, cache_dir: Path) -> dict:
+    """Run ``code`` in a fresh interpreter on the numba cache ``cache_dir``; its last stdout line
+    is JSON."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_dir))
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_every_kernel_module_declares_its_entry_points():
+    specs = jit.declared(MODULES)
+    names = {(s.module, s.name) for s in specs}
+    for required in [("solvers.registration._kernels", "gnc_tls"),
+                     ("solvers._linalg_kernels", "procrustes"),
+                     ("solvers.certify._kernels", "heavy_maximal_cliques"),
+                     ("certpose.model._kernels", "eq1_batch")]:
+        assert required in names
+    for spec in specs:
+        assert spec.cost > 0 and len(spec.signature) == spec.dispatcher().py_func.__code__.co_argcount
+
+
+def test_callers_use_only_the_declared_signature():
+    """A second signature would be a second compilation on a first run."""
+    from certpose.api import register
+    from certpose.data.instances import make_instance
+    from certpose.io.points import synthetic_shape
+
+    for outliers, certify in ((0.5, False), (0.95, True)):
+        inst = make_instance(synthetic_shape(), 60, outliers, noise=0.01, rng=3)
+        src = inst.source.copy()
+        src.setflags(write=False)  # read-only input must not make a read-only specialisation
+        register(src, inst.target.astype(np.float32), noise_bound=inst.noise_bound,
+                 certify=certify)
+    used = 0
+    for spec in jit.declared(MODULES):
+        sigs = spec.dispatcher().signatures
+        used += bool(sigs)
+        assert all(tuple(s) == spec.signature for s in sigs), (spec.name, sigs)
+    assert used >= 8
+
+
+def test_unknown_kernel_is_a_clear_error():
+    with pytest.raises(ValueError, match="no declared kernel"):
+        jit.warm_up(["solvers.registration._kernels:no_such_kernel"])
+    proc = subprocess.run([sys.executable, "-m", "solvers.jit", "solvers.jit:nothing"],
+                          capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 2 and "no declared kernel" in proc.stderr
+
+
+@pytest.mark.slow
+def test_warm_up_compiles_each_kernel_once_across_two_processes(tmp_path):
+    """On an empty cache the helper and this process share the kernels; afterwards the calls
+    compile nothing, and a second run starts no helper."""
+    code = """
+        import json, time
+        from numba.core import event
+        compiles = []
+        class Count(event.Listener):
+            def on_start(self, e): compiles.append(e.data["dispatcher"].py_func.__name__)
+            def on_end(self, e): pass
+        event.register("numba:compile", Count())
+        import numpy as np
+        from solvers import jit
+        names = ["row_degrees", "k_core", "scalar_tls_rows"]
+        kernels = [f"solvers.registration._kernels:{n}" for n in names]
+        specs = [s for s in jit.declared(["solvers.registration._kernels"]) if s.name in names]
+        cold_before = [not jit.is_cached(s) for s in specs]
+        started = jit.warm_up(kernels)
+        pending = jit.pending()
+        k = jit.compiled("solvers.registration._kernels")  # compiles the rest, waits
+        here = list(compiles)
+        adj = np.ones((5, 5), dtype=np.uint8); np.fill_diagonal(adj, 0)
+        deg = k.row_degrees(adj)
+        core = k.k_core(adj, deg, 4)
+        x, found = k.scalar_tls_rows(np.zeros((3, 4)), np.ones(4), np.ones(4), 1.0,
+                                     np.zeros((3, 8)), np.zeros((3, 8), dtype=np.int64))
+        print(json.dumps({"cold_before": cold_before, "started": started, "pending": pending,
+                          "here": here, "after": compiles[len(here):],
+                          "cached": [jit.is_cached(s) for s in specs],
+                          "core": core.tolist(), "left": jit.pending()}))
+    """
+    first = _run(code, tmp_path)
+    assert first["cold_before"] == [True, True, True]
+    assert first["started"] == 3 and first["pending"] == ["solvers.registration._kernels"]
+    assert first["after"] == []  # nothing compiled at the calls: all done before
+    assert first["cached"] == [True, True, True] and first["left"] == []
+    assert first["core"] == [0, 1, 2, 3, 4]
+    # Kernels compiled here are the ones the helper had not claimed: never all three twice.
+    assert len([n for n in first["here"] if n in ("row_degrees", "k_core", "scalar_tls_rows")]) < 3
+    second = _run(code, tmp_path)
+    assert second["cold_before"] == [False, False, False]
+    assert second["started"] == 0 and second["pending"] == [] and second["here"] == []
+    assert second["after"] == []  # loaded from the cache the first run filled
+
+
+@pytest.mark.slow
+def test_cli_warms_kernels_on_a_cold_cache(tmp_path):
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    args = [sys.executable, "-m", "certpose", "-v", "register", "--demo", "--demo-n", "40"]
+    first = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0, first.stderr
+    assert "compiling 7 kernels in the background" in first.stderr
+    second = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
+    assert second.returncode == 0 and "in the background" not in second.stderr
+    assert first.stdout.splitlines()[2:6] == second.stdout.splitlines()[2:6]  # same pose
+
+
+def test_unneeded_warm_up_is_stopped_at_exit(tmp_path):
+    """A command that ends before calling its kernels leaves no helper and no lock folder."""
+    out = _run("""
+        import json
+        from solvers import jit
+        jit.warm_up(["solvers.registration._kernels:gnc_tls"])
+        item = jit._PENDING[0]
+        print(json.dumps({"pid": item.proc.pid, "dir": item.lock_dir}))
+    """, tmp_path)
+    assert not Path(out["dir"]).exists()
+    with pytest.raises(ProcessLookupError):
+        os.kill(out["pid"], 0)
