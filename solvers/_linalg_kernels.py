@@ -65,7 +65,7 @@ def sym_eig(A, V):  # pragma: no cover - compiled
                     V[k, q] = sn * vp + c * vq
 
 
-@kernel(F2, F2, F1, cost=1.0)
+@kernel(F2, F2, F1)
 def procrustes(a, b, w):  # pragma: no cover - compiled
     """Weighted Horn/Umeyama on (N, 3) arrays; returns (R, t, ok), ``ok`` False for sum(w) <= 0.
 

@@ -8,11 +8,12 @@ install pays the compilation: several seconds, nearly all of it Python work insi
 (typing and lowering), on one core.
 
 :func:`warm_up` shortens that first run. It looks up which of the kernels a command will call
-are not yet in the cache, and a helper process compiles them (heaviest first) while the command
-goes on with its other work. Code that calls kernels loads their module through
-:func:`compiled`: if a warm-up is still compiling that module, this process compiles the kernels
-the helper has not reached (lightest first), then waits for it. Two cores compile at once and
-nothing is compiled twice. A warm cache costs nothing: no helper is started.
+are not yet in the cache, and a helper process compiles them, in the order the command will need
+them, while the command goes on with its other work. Code that calls kernels loads their module
+through :func:`compiled`: if a warm-up holds kernels of that module, this process compiles those
+the helper has not reached (from the back of its list) and waits only for the ones it took. Two
+cores compile at once and nothing is compiled twice. A warm cache costs nothing: no helper is
+started.
 
 Declaring the signature also documents what each kernel takes, and lets the tests check that
 the callers use only that one (a second signature would be a second compilation).
@@ -41,12 +42,11 @@ __all__ = ["KernelSpec", "compiled", "declared", "is_cached", "kernel", "pending
 
 @dataclass(frozen=True)
 class KernelSpec:
-    """A declared kernel: its module, name, numba argument types and a relative compile cost."""
+    """A declared kernel: its module, name and numba argument types."""
 
     module: str
     name: str
     signature: tuple[Any, ...]
-    cost: float = 1.0
 
     def dispatcher(self) -> Any:
         return getattr(importlib.import_module(self.module), self.name)
@@ -55,7 +55,7 @@ class KernelSpec:
 _REGISTRY: dict[str, list[KernelSpec]] = {}
 
 
-def kernel(*signature: Any, cost: float = 1.0, **options: Any) -> Callable[[Callable[..., Any]], Any]:
+def kernel(*signature: Any, **options: Any) -> Callable[[Callable[..., Any]], Any]:
     """``numba.njit(cache=True, **options)`` with its one signature declared.
 
     Parameters
@@ -63,8 +63,6 @@ def kernel(*signature: Any, cost: float = 1.0, **options: Any) -> Callable[[Call
     *signature : numba types
         The argument types the callers pass (e.g. ``numba.types.float64[:, ::1]`` for a
         C-contiguous, writable (N, 3) array).
-    cost : float
-        Relative compile time, used to share the work of :func:`warm_up` evenly.
     **options
         Further ``njit`` options (``fastmath``, ``nogil``, ...).
     """
@@ -73,7 +71,7 @@ def kernel(*signature: Any, cost: float = 1.0, **options: Any) -> Callable[[Call
     def wrap(fn: Callable[..., Any]) -> Any:
         dispatcher = njit(cache=True, **options)(fn)
         _REGISTRY.setdefault(fn.__module__, []).append(
-            KernelSpec(fn.__module__, fn.__name__, tuple(signature), float(cost)))
+            KernelSpec(fn.__module__, fn.__name__, tuple(signature)))
         return dispatcher
 
     return wrap
@@ -148,15 +146,17 @@ def warm_up(kernels: Sequence[str]) -> int:
     """Start compiling the kernels a command will call that are not cached yet.
 
     A helper process (this Python, ``python -m solvers.jit``, same environment and so the same
-    numba cache) compiles them, heaviest first, while the caller goes on with other work. When
-    the caller needs them (:func:`compiled`), it compiles the rest itself, lightest first, then
-    waits for the helper: two cores share the work and nothing is compiled twice. Returns at
-    once when every kernel is cached.
+    numba cache) compiles them in the order given, while the caller goes on with other work.
+    When the caller needs a module's kernels (:func:`compiled`), it compiles those the helper
+    has not started itself, from the back, and waits only for the ones the helper took: two
+    cores share the work and nothing is compiled twice. Returns at once when every kernel is
+    cached.
 
     Parameters
     ----------
     kernels : sequence of str
-        ``"module"`` (all its declared kernels) or ``"module:name"`` (one of them).
+        ``"module"`` (all its declared kernels) or ``"module:name"`` (one of them), in the order
+        the command will need them.
 
     Returns
     -------
@@ -170,7 +170,7 @@ def warm_up(kernels: Sequence[str]) -> int:
         if not found:
             raise ValueError(f"no declared kernel {item!r}")
         specs.extend(found)
-    cold = sorted((s for s in specs if not is_cached(s)), key=lambda s: -s.cost)
+    cold = [s for s in specs if not is_cached(s)]
     if not cold:
         return 0
     lock_dir = tempfile.mkdtemp(prefix="solvers-jit-")
@@ -195,25 +195,42 @@ def pending() -> list[str]:
     return sorted({m for w in _PENDING for m in w.modules})
 
 
+_POLL_SECONDS = 0.01
+
+
 def wait(modules: Iterable[str] | None = None) -> None:
-    """Finish the warm-ups of any of ``modules`` (default: all): compile what the helper has not
-    started, here, then wait for it."""
+    """Make the warmed kernels of ``modules`` (default: all) ready: compile here those the helper
+    has not started (from the back of its list), then wait until the helper has cached the ones
+    it took. The helper goes on with the other modules' kernels meanwhile."""
     wanted = None if modules is None else set(modules)
     for item in list(_PENDING):
-        if wanted is not None and not (item.modules & wanted):
+        specs = [s for s in item.specs if wanted is None or s.module in wanted]
+        if not specs:
+            continue
+        t0 = time.perf_counter()
+        mine = _compile(specs[::-1], item.lock_dir)
+        # The helper's: numba writes the data file, then the index (each atomically).
+        while not all(is_cached(s) for s in specs):
+            if item.proc is None or item.proc.poll() is not None:
+                break  # it ended without them: they compile here, on first use
+            time.sleep(_POLL_SECONDS)
+        log.debug("warm-up of %s: %d of %d kernels compiled here, %.2f s", sorted(
+            {s.module for s in specs}), mine, len(specs), time.perf_counter() - t0)
+        remaining = [s for s in item.specs if s not in specs]
+        if remaining and (item.proc is not None and item.proc.poll() is None):
+            item.specs = remaining
             continue
         _PENDING.remove(item)
-        t0 = time.perf_counter()
-        mine = _compile(item.specs[::-1], item.lock_dir)
-        if item.proc is not None and item.proc.wait() != 0:
-            # What it did not compile compiles here, on first use.
-            with open(os.path.join(item.lock_dir, "stderr"), "rb") as f:
-                last = f.read().decode(errors="replace").strip().splitlines()[-1:]
-            log.warning("kernel warm-up helper failed (exit %s): %s", item.proc.returncode,
-                        last[0] if last else "")
-        shutil.rmtree(item.lock_dir, ignore_errors=True)
-        log.debug("warm-up done: %d of %d kernels compiled here, %.2f s waited", mine,
-                  len(item.specs), time.perf_counter() - t0)
+        _finish(item)
+
+
+def _finish(item: _Warming) -> None:
+    if item.proc is not None and item.proc.wait() != 0:
+        with open(os.path.join(item.lock_dir, "stderr"), "rb") as f:
+            last = f.read().decode(errors="replace").strip().splitlines()[-1:]
+        log.warning("kernel warm-up helper failed (exit %s): %s", item.proc.returncode,
+                    last[0] if last else "")
+    shutil.rmtree(item.lock_dir, ignore_errors=True)
 
 
 def _abandon() -> None:

@@ -39,7 +39,7 @@ def test_every_kernel_module_declares_its_entry_points():
                      ("certpose.model._kernels", "eq1_batch")]:
         assert required in names
     for spec in specs:
-        assert spec.cost > 0 and len(spec.signature) == spec.dispatcher().py_func.__code__.co_argcount
+        assert len(spec.signature) == spec.dispatcher().py_func.__code__.co_argcount
 
 
 def test_callers_use_only_the_declared_signature():
@@ -141,3 +141,21 @@ def test_unneeded_warm_up_is_stopped_at_exit(tmp_path):
     assert not Path(out["dir"]).exists()
     with pytest.raises(ProcessLookupError):
         os.kill(out["pid"], 0)
+
+
+def test_commands_warm_what_they_will_call():
+    from certpose.cli import pose, register
+    from solvers.certify import CERTIFY_KERNELS
+    from solvers.registration import PRUNED_SOLVE_KERNELS
+
+    assert register.kernels(["register", "--demo"]) == PRUNED_SOLVE_KERNELS
+    for extra in (["--certify"], ["--require-certificate"], ["--solver", "sdp"], ["--solver=sdp"]):
+        assert register.kernels(["register", "a.xyz", "b.xyz", *extra])[-len(CERTIFY_KERNELS):] \
+            == CERTIFY_KERNELS
+    full = pose.kernels(["pose", "--demo"])
+    assert set(PRUNED_SOLVE_KERNELS) < set(full) and full[-len(CERTIFY_KERNELS):] == CERTIFY_KERNELS
+    assert not set(CERTIFY_KERNELS) & set(pose.kernels(["pose", "--demo", "--no-certify"]))
+    # every name is a declared kernel
+    assert jit.warm_up([]) == 0
+    names = {f"{s.module}:{s.name}" for s in jit.declared(MODULES)}
+    assert set(full) <= names

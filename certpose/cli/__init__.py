@@ -113,15 +113,24 @@ def busy(args: argparse.Namespace, desc: str, *, delay: float = 1.0) -> Iterator
         thread.join()
 
 
-def warm_kernels(kernels: Sequence[str]) -> None:
-    """Start compiling ``kernels`` in a helper process when numba's cache lacks them (a first run
-    after installing); see :func:`solvers.jit.warm_up`. Only a speed-up: never fails a command."""
-    from solvers.jit import warm_up
+_WARM_COMMANDS = {"register": "certpose.cli.register", "pose": "certpose.cli.pose"}
 
+
+def warm_kernels(argv: Sequence[str]) -> int:
+    """On a first run after installing, start compiling the kernels the command in ``argv`` will
+    call, in a helper process (:func:`solvers.jit.warm_up`), before anything else: building the
+    parser imports every command. Only a speed-up: never fails a command."""
+    words = [a for a in argv if not a.startswith("-")]
+    if not words or words[0] not in _WARM_COMMANDS or "-h" in argv or "--help" in argv:
+        return 0
     try:
-        warm_up(kernels)
+        from solvers.jit import warm_up
+
+        module = importlib.import_module(_WARM_COMMANDS[words[0]])
+        return warm_up(module.kernels(list(argv)))
     except Exception as exc:  # the kernels then compile on first use, as without it
         logging.getLogger(__name__).debug("kernel warm-up not started: %s", exc)
+        return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -153,6 +162,7 @@ def _message(exc: BaseException) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    warming = warm_kernels(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     args = parser.parse_args(argv)  # exits 2 on unknown options
     verbose = args.verbose + getattr(args, "sub_verbose", 0)
@@ -161,6 +171,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.ERROR if quiet and not verbose else logging.WARNING - 10 * min(verbose, 2),
         format="%(levelname)s %(name)s: %(message)s",
     )
+    if warming:
+        logging.getLogger("solvers.jit").info(
+            "first run: compiling %d kernels in the background", warming)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE

@@ -80,15 +80,15 @@ def _fmt(x: float | None, scale: float = 1.0, unit: str = "", digits: int = 2) -
     return f"{x * scale:.{digits}f}{unit}"
 
 
-def _warm_up(args: argparse.Namespace) -> None:
-    """The eq. (2) solve and its certificate come after the scene and the coarse search: their
-    kernels compile meanwhile (first run only)."""
-    from certpose.cli import warm_kernels
+def kernels(argv: list[str]) -> tuple[str, ...]:
+    """The compiled kernels of eq. (1), the eq. (2) solve and its certificate, which come after
+    the scene: on a first run they compile meanwhile (read from the raw arguments)."""
     from solvers.certify import CERTIFY_KERNELS
     from solvers.registration import PRUNED_SOLVE_KERNELS
 
-    kernels = PRUNED_SOLVE_KERNELS + ("solvers.registration._kernels:max_clique_bnb",)
-    warm_kernels(kernels + (() if args.no_certify else CERTIFY_KERNELS))
+    solve = PRUNED_SOLVE_KERNELS + ("solvers.registration._kernels:max_clique_bnb",
+                                    "certpose.model._kernels:eq1_batch")
+    return solve + (() if "--no-certify" in argv else CERTIFY_KERNELS)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -129,7 +129,6 @@ def run(args: argparse.Namespace) -> int:
         params = replace(params, sampler=ISParams(draws=max(10_000, args.samples),
                                                   resample=args.samples),
                          sampling_method=args.method)
-    _warm_up(args)
     if args.demo:
         title = "synthetic mug scene (handle hidden behind an occluder)"
         with busy(args, "certpose pose"):

@@ -70,7 +70,6 @@ def run(args: argparse.Namespace) -> int:
         args.certify = True
     if sum([bool(args.demo), args.problem is not None, bool(args.source or args.target)]) > 1:
         raise CLIError("give one of SRC DST, --problem FILE or --demo")
-    _warm_up(args)
     if args.demo:
         return _run_demo(args)
     if args.problem is not None:
@@ -104,13 +103,16 @@ def run(args: argparse.Namespace) -> int:
     return _exit_code(args, result)
 
 
-def _warm_up(args: argparse.Namespace) -> None:
-    from certpose.cli import warm_kernels
+def kernels(argv: list[str]) -> tuple[str, ...]:
+    """The compiled kernels ``certpose register ARGV`` will call (read from the raw arguments:
+    the warm-up starts before the parser is built)."""
     from solvers.certify import CERTIFY_KERNELS
     from solvers.registration import PRUNED_SOLVE_KERNELS
 
-    certify = args.certify or args.solver == "sdp"
-    warm_kernels(PRUNED_SOLVE_KERNELS + (CERTIFY_KERNELS if certify else ()))
+    sdp = any(a == "--solver=sdp" or (a == "--solver" and b == "sdp")
+              for a, b in zip(argv, argv[1:] + [""], strict=True))
+    certify = sdp or "--certify" in argv or "--require-certificate" in argv
+    return PRUNED_SOLVE_KERNELS + (CERTIFY_KERNELS if certify else ())
 
 
 def _run_problem(args: argparse.Namespace) -> int:

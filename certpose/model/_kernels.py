@@ -89,7 +89,7 @@ def _pose_total(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offs
     return total
 
 
-@kernel(F3, *_MODEL, cost=1.0, fastmath=True, nogil=True)
+@kernel(F3, *_MODEL, fastmath=True, nogil=True)
 def eq1_batch(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
               c_unobs):  # pragma: no cover - compiled
     """Sum of per-point log-localisation terms for each of the ``B`` poses ``T`` (B, 4, 4).
@@ -104,7 +104,7 @@ def eq1_batch(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset
     return out
 
 
-@kernel(F2, *_MODEL, cost=1.0, fastmath=True, nogil=True)
+@kernel(F2, *_MODEL, fastmath=True, nogil=True)
 def eq1_points(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
                c_unobs):  # pragma: no cover - compiled
     """Per-point terms ``(N,)`` for one pose ``T`` (4, 4)."""

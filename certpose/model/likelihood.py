@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from certpose.model.grid import EMPTY, OCCUPIED, scene_grid_spec
+from solvers.jit import compiled
 from solvers.validation import as_float_array
 
 if TYPE_CHECKING:
@@ -253,7 +254,7 @@ class PoseLikelihood:
         float or (B,) ndarray
             Log-likelihood up to the constant ``-N log Z`` (nats).
         """
-        from certpose.model._kernels import eq1_batch
+        eq1_batch = compiled("certpose.model._kernels").eq1_batch
 
         poses, single = _as_poses(T)
         args = self._args()
@@ -267,7 +268,7 @@ class PoseLikelihood:
 
     def point_terms(self, T: ArrayLike) -> NDArray[np.float64]:
         """Per-point terms ``log p_loc(q_i)`` (N,) at one pose ``T`` (4, 4); they sum to eq. (1)."""
-        from certpose.model._kernels import eq1_points
+        eq1_points = compiled("certpose.model._kernels").eq1_points
 
         poses, single = _as_poses(T)
         if not single:

@@ -19,7 +19,7 @@ F1, F2, U2 = nt.float64[::1], nt.float64[:, ::1], nt.uint8[:, ::1]
 f8, i8 = nt.float64, nt.int64
 
 
-@kernel(F2, F2, F1, f8, cost=1.0)
+@kernel(F2, F2, F1, f8)
 def identity_frame_projection(M, S0, th, c):  # pragma: no cover - compiled
     """Projection of ``M`` onto the rotation dual's affine set (identity frame), see
     :class:`solvers.certify.sdp_dual._IdentityFrameProjector`; ``c = 4 / (K + 3)``."""
@@ -216,7 +216,7 @@ def _ls_value(s):  # pragma: no cover - compiled
     return max(ga + gb - 2.0 * (sv[0] + sv[1] + d * sv[2]), 0.0), R, cb - R @ ca
 
 
-@kernel(F2, F2, F1, F1, f8, f8, i8, cost=2.0)
+@kernel(F2, F2, F1, F1, f8, f8, i8)
 def clique_bnb(a, b, v, wout, upper, allowance, max_nodes):  # pragma: no cover - compiled
     """Depth-first branch and bound of ``min_S [LS_S^* + sum_{k not in S} wout_k]``.
 
@@ -304,7 +304,7 @@ def _grow(buf, need):  # pragma: no cover - compiled
     return out
 
 
-@kernel(U2, F1, i8, f8, i8, i8, cost=2.6)
+@kernel(U2, F1, i8, f8, i8, i8)
 def heavy_maximal_cliques(adj, w, s_min, thr, limit, max_nodes):  # pragma: no cover - compiled
     """The maximal cliques of ``adj`` with at least ``s_min`` vertices and weight ``> thr``.
 

@@ -48,7 +48,7 @@ def residuals_sq(a, b, R, t, inv_beta2):  # pragma: no cover - compiled
     return r2
 
 
-@kernel(F2, F2, F1, F1, f8, i8, f8, f8, cost=2.9)
+@kernel(F2, F2, F1, F1, f8, i8, f8, f8)
 def gnc_tls(a, b, prior_w, inv_beta2, cbar2, max_iter, mu_factor, cost_tol):  # pragma: no cover
     """GNC-TLS (Yang et al. 2020) with per-correspondence prior weights.
 
@@ -128,7 +128,7 @@ def _consistent(at, bt, beta, i, j, cbar, rel_slack, abs_slack):  # pragma: no c
     return abs(la - lb) <= cbar * (beta[i] + beta[j]) * (1.0 + rel_slack) + abs_slack * (la + lb)
 
 
-@kernel(F2, F2, F1, f8, f8, f8, cost=0.6)
+@kernel(F2, F2, F1, f8, f8, f8)
 def consistency_matrix(at, bt, beta, cbar, rel_slack, abs_slack):  # pragma: no cover - compiled
     """Dense symmetric adjacency (uint8) of the pairwise-consistency graph (:func:`_consistent`);
     ``at``/``bt`` are the points transposed, (3, N) contiguous. The diagonal is 0."""
@@ -143,7 +143,7 @@ def consistency_matrix(at, bt, beta, cbar, rel_slack, abs_slack):  # pragma: no 
     return adj
 
 
-@kernel(F2, F2, F1, f8, f8, f8, cost=0.4)
+@kernel(F2, F2, F1, f8, f8, f8)
 def consistency_edge_list(at, bt, beta, cbar, rel_slack, abs_slack):  # pragma: no cover
     """Edges ``(i, j)``, ``i < j``, (E, 2) int64, of the graph of :func:`consistency_matrix`,
     without its N^2 bytes (two passes: count, then fill)."""
@@ -164,7 +164,7 @@ def consistency_edge_list(at, bt, beta, cbar, rel_slack, abs_slack):  # pragma: 
     return out
 
 
-@kernel(U2, I1, I1, i8, cost=0.7)
+@kernel(U2, I1, I1, i8)
 def multistart_greedy_clique(adj, deg, order, max_starts):  # pragma: no cover - compiled
     """Best of the greedy cliques grown inside each vertex's neighbourhood (by degree order).
 
@@ -207,7 +207,7 @@ def multistart_greedy_clique(adj, deg, order, max_starts):  # pragma: no cover -
     return best[:best_size].copy()
 
 
-@kernel(F2, F1, F1, f8, F2, I2, cost=0.8)
+@kernel(F2, F1, F1, f8, F2, I2)
 def scalar_tls_rows(vals, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
     """:func:`scalar_tls` of each row of ``vals`` (d, N), ``ends``/``order`` (d, 2N); returns
     ``(x (d,), found (d,))``: one call for the three axes of a translation vote."""
@@ -219,7 +219,7 @@ def scalar_tls_rows(vals, beta, w, cbar2, ends, order):  # pragma: no cover - co
     return x, found
 
 
-@kernel(F1, F1, F1, f8, F1, I1, cost=0.3)
+@kernel(F1, F1, F1, f8, F1, I1)
 def scalar_tls(v, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
     """Exact scalar TLS by sweeping sorted interval endpoints; returns (x, cost, found).
 
@@ -297,7 +297,7 @@ def _colour_sort(adj, cand, m, out_v, out_c, rest, klass):  # pragma: no cover -
     return colour
 
 
-@kernel(U2, I1, i8, i8, i8, i8, cost=1.7)
+@kernel(U2, I1, i8, i8, i8, i8)
 def max_clique_bnb(adj, order, lower, target, limit, max_work):  # pragma: no cover - compiled
     """Branch and bound for maximum cliques with greedy-colouring bounds (Tomita's MCQ).
 
@@ -395,7 +395,7 @@ def max_clique_bnb(adj, order, lower, target, limit, max_work):  # pragma: no co
     return out[:, :size], count, size, complete, nodes
 
 
-@kernel(F2, F1, cost=1.4)
+@kernel(F2, F1)
 def weighted_spread(points, weights):  # pragma: no cover - compiled
     """``(count, scale, ev)`` of the points of positive weight: their number, the largest
     absolute coordinate, and the square roots of the eigenvalues (descending, (3,)) of their
@@ -447,7 +447,7 @@ def weighted_spread(points, weights):  # pragma: no cover - compiled
     return count, scale, ev
 
 
-@kernel(U2, cost=0.3)
+@kernel(U2)
 def row_degrees(adj):  # pragma: no cover - compiled
     """Row sums of a 0/1 uint8 matrix as int64 (numpy's widening sum costs more at small N)."""
     n = adj.shape[0]
@@ -460,7 +460,7 @@ def row_degrees(adj):  # pragma: no cover - compiled
     return deg
 
 
-@kernel(U2, I1, i8, cost=0.8)
+@kernel(U2, I1, i8)
 def k_core(adj, deg, k):  # pragma: no cover - compiled
     """Vertices of the ``k``-core: drop every vertex of degree < ``k`` until none is left."""
     n = adj.shape[0]
