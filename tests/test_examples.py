@@ -132,3 +132,19 @@ def test_bench_dask_scaling_example() -> None:
                                                  ("20", "0", "20"), ("20", "1", "20")]
     assert all(float(r[5]) > 10 for r in rows)  # a driver's peak RSS in MiB
     assert "load average" in proc.stdout
+
+
+@pytest.mark.slow
+def test_bench_basins_on_a_real_frame(tmp_path: Path) -> None:
+    require_data("ycbv", "0000")
+    out = tmp_path / "basins.jsonl"
+    proc = _run("bench_basins.py", "--ycbv", str(YCBV), "--scenes", "0000", "--frames",
+                "000003", "--objects", "025_mug", "--json", str(out))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    row = json.loads(out.read_text().splitlines()[0])
+    assert row["case"] == "0000/000003 025_mug"
+    # The truth refined on eq. (1) scores at least as well as the truth itself, and stays close.
+    assert row["eq1_truth_refined"] >= row["eq1_truth"] - 1e-6
+    assert row["refined_truth_adds_cm"] < 1.0
+    assert row["gap"] == pytest.approx(row["eq1_returned"] - row["eq1_truth_refined"])
+    assert "pairs 1 |" in proc.stdout
