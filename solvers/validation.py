@@ -26,12 +26,11 @@ def as_float_array(value: Any, name: str) -> NDArray[np.float64]:
         arr = np.asarray(value)
     except Exception as exc:  # ragged lists and the like
         raise TypeError(f"`{name}` must be a numeric array, got {type(value).__name__}.") from exc
-    if arr.dtype == object or not (
-        np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.bool_)
-    ):
-        raise TypeError(f"`{name}` must be a numeric array, got dtype {arr.dtype}.")
-    if np.iscomplexobj(arr):
+    kind = arr.dtype.kind  # (dtype kinds, not np.issubdtype: this runs on every small solve)
+    if kind == "c":
         raise TypeError(f"`{name}` must be real-valued, got dtype {arr.dtype}.")
+    if kind not in "biuf":
+        raise TypeError(f"`{name}` must be a numeric array, got dtype {arr.dtype}.")
     return np.array(arr, dtype=np.float64)
 
 
@@ -44,7 +43,7 @@ def check_points(value: Any, name: str, *, min_points: int = 1) -> NDArray[np.fl
         raise ValueError(
             f"Expected `{name}` to have at least {min_points} points, got {arr.shape[0]}."
         )
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         bad = int(np.count_nonzero(~np.isfinite(arr).all(axis=1)))
         raise ValueError(f"`{name}` contains NaN or inf values in {bad} row(s).")
     return arr
@@ -62,11 +61,11 @@ def check_per_item(
     elif arr.shape != (n,):
         shape = "a scalar or shape" if allow_scalar else "shape"
         raise ValueError(f"Expected `{name}` to have {shape} ({n},), got {arr.shape}.")
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         raise ValueError(f"`{name}` contains NaN or inf values.")
-    if positive and np.any(arr <= 0):
+    if positive and (arr <= 0).any():
         raise ValueError(f"`{name}` must be strictly positive, got minimum {arr.min():g}.")
-    if not positive and np.any(arr < 0):
+    if not positive and (arr < 0).any():
         raise ValueError(f"`{name}` must be non-negative, got minimum {arr.min():g}.")
     return arr
 

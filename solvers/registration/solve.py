@@ -149,7 +149,7 @@ def _finish(
     r2: NDArray[np.float64] | None = None,
 ) -> RegistrationResult:
     """The result of the pose ``(R, t)``; ``r2``: its residuals when already computed."""
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+    if not (np.isfinite(R).all() and np.isfinite(t).all()):
         R, t, r2 = np.eye(3), np.zeros(3), None
         status, message = SolverStatus.NUMERICAL_ERROR, "non-finite pose estimate"
     if r2 is None:
@@ -232,8 +232,11 @@ def _solve_pruned(
                        message=f"only {active.size} correspondence(s) have positive weight",
                        solver="pruned")
     check_graph_memory(int(active.size))
+    every = active.size == problem.n  # the usual case: no copies of the data
     cliques, n_edges, exact = prune_maximum_cliques(
-        problem.source[active], problem.target[active], problem.noise_bound[active],
+        problem.source if every else problem.source[active],
+        problem.target if every else problem.target[active],
+        problem.noise_bound if every else problem.noise_bound[active],
         problem.cbar2, limit=pruning.max_tied_cliques,
         exact_max_vertices=pruning.exact_clique_max_vertices, max_work=pruning.clique_max_work,
     )
@@ -289,7 +292,11 @@ def _solve_registration(
     if method != "auto":
         return result
     w = problem.weights
-    uneven = bool(np.ptp(w[w > 0]) > 1e-12 * w.max()) if np.any(w > 0) else False
+    wmin, wmax = float(w.min()), float(w.max())
+    if wmin > 0.0:  # the usual case, two reductions
+        uneven = wmax - wmin > 1e-12 * wmax
+    else:
+        uneven = bool(np.ptp(w[w > 0]) > 1e-12 * wmax) if wmax > 0.0 else False
     if result.success and not uneven:
         return result
     if not result.success and result.status is SolverStatus.DEGENERATE:
