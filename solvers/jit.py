@@ -93,9 +93,9 @@ def is_cached(spec: KernelSpec) -> bool:
     on first use as usual.
     """
     disp = spec.dispatcher()
-    if tuple(spec.signature) in disp.overloads:
-        return True
     try:
+        if tuple(spec.signature) in disp.overloads:
+            return True
         cache = disp._cache  # numba's Cache: no public query for "is this signature on disk"
         key = cache._index_key(tuple(spec.signature), disp.targetctx.codegen())
         return key in cache._cache_file._load_index()
