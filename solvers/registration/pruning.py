@@ -86,6 +86,13 @@ GREEDY_STARTS = 16
 """Greedy cliques grown for the lower bound that peels the graph before the exact search."""
 WORK_BUDGET = 10_000_000
 """Default budget of the exact maximum-clique search, in adjacency look-ups (tens of ms)."""
+BITSET_MIN_VERTICES = 128
+"""Cores larger than this go to the bitset search (:mod:`._clique_kernels`); smaller ones to
+the MCQ kernel, already compiled for the small problems, so a first small solve never compiles
+the bitset search."""
+BITSET_WORDS_PER_LOOKUP = 8
+"""The bitset search's budget in 64-bit word operations per adjacency look-up of
+``max_work`` (a word operation costs about an eighth of a look-up in the MCQ kernel)."""
 
 
 def maximum_cliques(
@@ -141,8 +148,11 @@ def maximum_cliques(
     core = _peel_to_core(adj, deg, best.size - 1)
     if core.size <= best.size:
         return [best], True
-    sub = np.ascontiguousarray(adj[np.ix_(core, core)])
-    sub_deg = _kernels.row_degrees(sub)
+    if core.size == n:
+        sub, sub_deg = adj, deg  # nothing peeled (dense graphs): no copy
+    else:
+        sub = np.ascontiguousarray(adj[np.ix_(core, core)])
+        sub_deg = _kernels.row_degrees(sub)
     if int(sub_deg.sum()) == core.size * (core.size - 1):
         return [core], True  # the core is itself a clique
     if exact_max_vertices is not None and core.size > exact_max_vertices:
@@ -150,6 +160,8 @@ def maximum_cliques(
                  "clique of %d (not proven maximum)", core.size, exact_max_vertices, best.size)
         return [best], False
     sub_order = np.argsort(-sub_deg, kind="stable")
+    if core.size > BITSET_MIN_VERTICES:
+        return _bitset_search(sub, sub_order, core, best, limit, budget)
     found, count, size, exact, _ = _kernels.max_clique_bnb(sub, sub_order, best.size, 0, 1, budget)
     if count:
         best = np.sort(core[found[0]])
@@ -169,6 +181,22 @@ def maximum_cliques(
             seen.add(c.tobytes())
             cliques.append(c)
     return cliques, True
+
+
+def _bitset_search(sub, sub_order, core, best, limit, budget):
+    """:func:`maximum_cliques` on a large core: the bitset search (compiled on first use)."""
+    from solvers.registration import _clique_kernels
+
+    seed = np.searchsorted(core, best).astype(np.int64)  # the greedy clique (within the core)
+    words = min(budget, np.iinfo(np.int64).max // BITSET_WORDS_PER_LOOKUP)
+    found, count, size, exact, _, work = _clique_kernels.max_clique_bitset(
+        sub, np.ascontiguousarray(sub_order, dtype=np.int64), seed, max(int(limit), 1),
+        words * BITSET_WORDS_PER_LOOKUP)
+    cliques = [np.sort(core[row]) for row in found[:count]]
+    if not exact:
+        log.info("max clique: search stopped after %d word operations; keeping a clique of %d "
+                 "(not proven maximum)", work, size)
+    return cliques, bool(exact)
 
 
 def max_clique(
