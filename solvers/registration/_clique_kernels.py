@@ -69,7 +69,8 @@ def _greedy_cliques(bits, n, out, starts):  # pragma: no cover - compiled
     """Largest of the cliques grown from every vertex, each step adding the candidate with the
     most neighbours among the candidates; writes it to ``out`` and returns ``(size, work)``.
 
-    A run stops once it cannot beat the best clique (size + largest candidate degree + 1).
+    A run stops once it cannot beat the best clique: that takes ``k`` more vertices, each with
+    ``k - 1`` neighbours among the candidates.
     """
     nw = bits.shape[1]
     cand = np.empty(nw, dtype=np.uint64)
@@ -91,6 +92,8 @@ def _greedy_cliques(bits, n, out, starts):  # pragma: no cover - compiled
         while True:
             pick = -1
             top = -1
+            need = best - size  # beating `best` takes need + 1 more vertices, each with
+            enough = 0  # at least `need` neighbours among the candidates
             for w in range(nw):
                 x = cand[w]
                 while x != 0:
@@ -102,8 +105,10 @@ def _greedy_cliques(bits, n, out, starts):  # pragma: no cover - compiled
                     if d > top:
                         top = d
                         pick = u
+                    if d >= need:
+                        enough += 1
                     work += nw
-            if pick < 0 or size + top + 1 <= best:
+            if pick < 0 or enough <= need:
                 break
             members[size] = pick
             size += 1
@@ -270,12 +275,41 @@ def max_clique_bitset(adj, order, seed, limit, max_work):  # pragma: no cover - 
         best = seed.shape[0]
         for q in range(best):
             greedy[q] = pos[seed[q]]
+    # Peel to the (best - 1)-core: every clique of `best` vertices (ties included) lies in it,
+    # and the greedy clique may be larger than the one the caller peeled with.
+    deg = np.empty(n, dtype=np.int64)
+    stack = np.empty(n, dtype=np.int64)
+    alive = np.empty(nw, dtype=np.uint64)
+    for w in range(nw):
+        alive[w] = zero
+    top = 0
     dmax = 0
     for p in range(n):
         d = 0
         for w in range(nw):
             d += _popcount(bits[p, w])
+        deg[p] = d
         dmax = max(dmax, d)
+        alive[p >> 6] |= one << np.uint64(p & 63)
+        if d < best - 1:
+            stack[top] = p
+            top += 1
+            alive[p >> 6] &= ~(one << np.uint64(p & 63))
+    work += n * nw
+    while top > 0:
+        top -= 1
+        p = stack[top]
+        for w in range(nw):
+            x = bits[p, w] & alive[w]
+            while x != zero:
+                q = (w << 6) + _ctz(x)
+                x &= x - one
+                deg[q] -= 1
+                if deg[q] < best - 1:
+                    alive[q >> 6] &= ~(one << np.uint64(q & 63))
+                    stack[top] = q
+                    top += 1
+        work += nw
     maxd = max(dmax, best) + 3  # deeper than any clique; more colour classes than kmin
     cand = np.empty((maxd, nw), dtype=np.uint64)
     u = np.empty(nw, dtype=np.uint64)
@@ -290,9 +324,7 @@ def max_clique_bitset(adj, order, seed, limit, max_work):  # pragma: no cover - 
     start[0] = 0
     clique = np.empty(maxd, dtype=np.int64)
     for w in range(nw):
-        cand[0, w] = zero
-    for p in range(n):
-        cand[0, p >> 6] |= one << np.uint64(p & 63)
+        cand[0, w] = alive[w]
     count = 0  # cliques of size `best` listed (the greedy one is found again by the search)
     nodes = 0
     exact = True
