@@ -113,6 +113,12 @@ def maximum_cliques(
     listing all maximal cliques, as igraph does, took 0.6 s there; this takes milliseconds.
     Ties matter with few inliers: another clique of the same size can hold outliers.
 
+    Cores of more than :data:`BITSET_MIN_VERTICES` vertices go instead to a bitset search
+    (San Segundo's BBMC with re-colouring and an infra-chromatic bound, started from greedy
+    cliques grown from 256 vertices, ties listed in the same search; compiled on first use):
+    on dense graphs whose core is the whole graph (N = 1000, 98% outliers placed among the
+    inliers) it proves the maximum clique 3-6 times faster than the MCQ search.
+
     Parameters
     ----------
     adjacency : (N, N) array_like
@@ -125,7 +131,8 @@ def maximum_cliques(
         Budget of the exact search in adjacency look-ups (about 5 ns each; ``None``: unbounded,
         exponential time in the worst case). When it runs out, the largest clique found is
         returned, flagged as inexact; the tie search gets a quarter of it and returns the ties
-        found so far.
+        found so far. The bitset search counts :data:`BITSET_WORDS_PER_LOOKUP` 64-bit word
+        operations per look-up, its tie listing included.
 
     Returns
     -------
