@@ -11,6 +11,7 @@ import networkx as nx
 import numpy as np
 import pytest
 
+from solvers import jit
 from solvers.registration import pruning
 from solvers.registration._clique_kernels import max_clique_bitset
 
@@ -118,3 +119,6 @@ def test_maximum_cliques_routes_large_cores_to_the_bitset_search(monkeypatch):
         assert exact_mcq
         assert {c.tobytes() for c in cliques} == {c.tobytes() for c in mcq} or (
             len(cliques) == len(mcq) == 16)
+    # One compilation: the callers pass exactly the declared signature.
+    spec, = jit.declared(["solvers.registration._clique_kernels"])
+    assert [tuple(s) for s in spec.dispatcher().signatures] == [spec.signature]

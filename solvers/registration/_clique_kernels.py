@@ -2,11 +2,13 @@
 
 San Segundo's BBMC (candidate sets and adjacency rows as 64-bit words; greedy colouring one
 colour class at a time) with Tomita's re-colouring and San Segundo's infra-chromatic bound,
-started from a clique grown greedily from every vertex. Kept apart from
+started from the largest of the cliques grown greedily from the highest-degree vertices, after
+a peel to the core that clique allows. Kept apart from
 :mod:`solvers.registration._kernels`: it compiles only when a consistency graph's core is large
 and not already a clique (dense graphs of real features), never on the small problems of a
-first ``certpose`` run. One signature (uint8 matrix, int64 order, two ints); array copies are
-loops (numba compiles a string-formatting error path for slice assignments).
+first ``certpose`` run. One declared signature (:func:`solvers.jit.kernel`); its helpers are
+inlined into it (``inline="always"``: no compilation of their own); array copies are loops
+(numba compiles a string-formatting error path for slice assignments).
 """
 
 from __future__ import annotations
@@ -15,6 +17,10 @@ import numpy as np
 from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
+
+from solvers.jit import kernel
+
+U2, I1, i8 = types.uint8[:, ::1], types.int64[::1], types.int64
 
 
 @intrinsic
@@ -244,7 +250,7 @@ def _colour(bits, cand, kmin, lv, lc, s, u, qq, cls, used):  # pragma: no cover 
     return m, work
 
 
-@njit(cache=True)
+@kernel(U2, I1, I1, i8, i8)
 def max_clique_bitset(adj, order, seed, limit, max_work):  # pragma: no cover - compiled
     """Maximum clique of ``adj`` and up to ``limit`` cliques tied with it, in one search.
 

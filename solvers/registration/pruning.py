@@ -192,8 +192,7 @@ def maximum_cliques(
 
 def _bitset_search(sub, sub_order, core, best, limit, budget):
     """:func:`maximum_cliques` on a large core: the bitset search (compiled on first use)."""
-    from solvers.registration import _clique_kernels
-
+    _clique_kernels = compiled("solvers.registration._clique_kernels")
     seed = np.searchsorted(core, best).astype(np.int64)  # the greedy clique (within the core)
     words = min(budget, np.iinfo(np.int64).max // BITSET_WORDS_PER_LOOKUP)
     found, count, size, exact, _, work = _clique_kernels.max_clique_bitset(
