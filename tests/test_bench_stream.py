@@ -178,10 +178,77 @@ def test_ctrl_c_keeps_the_finished_rows_and_says_so_in_one_line(tmp_path):
 
 @pytest.fixture(scope="module")
 def cluster():
-    distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(n_workers=2, processes=True, threads_per_worker=1,
-                                  dashboard_address=None) as cl:
+    """The cluster `certpose bench --workers 2` starts (the same configuration)."""
+    pytest.importorskip("distributed")
+    from certpose.bench.runner import _local_cluster
+
+    with _local_cluster(2) as cl:
         yield cl
+
+
+@pytest.mark.slow  # starts a 2-process LocalCluster
+def test_embedded_workers_run_one_thread_each(cluster):
+    pytest.importorskip("threadpoolctl")
+    from distributed import Client
+
+    from certpose.bench.runner import WORKER_ENV
+
+    names = ["OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"]
+    assert set(names) <= set(WORKER_ENV)
+    with Client(cluster.scheduler_address) as client:
+        assert set(client.nthreads().values()) == {1}
+        envs = client.run(lambda: {k: os.environ.get(k) for k in names})
+        # The BLAS libraries as loaded in the workers, not only the variables.
+        pools = client.run(lambda: {p["num_threads"] for p in _threadpools()})
+    assert len(envs) == 2 and all(e == dict.fromkeys(names, "1") for e in envs.values())
+    assert all(p == {1} for p in pools.values()), pools
+
+
+def _threadpools() -> list[dict]:
+    import numpy  # noqa: F401  (loads OpenBLAS)
+    from threadpoolctl import threadpool_info
+
+    return threadpool_info()
+
+
+def test_open3d_rows_do_not_depend_on_its_thread_count(tmp_path):
+    # o3d-ransac's result depends on how many threads Open3D runs (on this grid: 1 vs 2); the
+    # bench runs it on one, so rows do not depend on the machine or on Dask vs in-process.
+    o3d = pytest.importorskip("open3d")
+    config = BenchConfig(n_values=(100,), outlier_ratios=(0.9,), trials=4, seed=0,
+                         solvers=("o3d-ransac",))
+    before = o3d.utility.get_max_threads()
+    if before < 2:
+        pytest.skip("Open3D runs one thread here (one core) whatever the limit")
+    frames = []
+    try:
+        for n in (1, 2):
+            o3d.utility.set_max_threads(n)
+            run_benchmark(config, progress=False, out_dir=tmp_path / str(n), workers=0)
+            assert o3d.utility.get_max_threads() == n  # the caller's setting is restored
+            frames.append(_rows(tmp_path / str(n) / "trials.csv"))
+    finally:
+        o3d.utility.set_max_threads(before)
+    assert len(frames[0]) == 4 and frames[0].equals(frames[1])
+
+
+def test_dask_chunks_shrink_towards_the_end():
+    from certpose.bench.runner import _batches, _Task
+    from certpose.bench.suites import InstanceSpec, protocol_specs
+
+    specs = list(protocol_specs("s", (100,), (0.0, 0.5, 0.9), 200, 0))
+    extra = InstanceSpec("3dmatch", "pair", 0, 0, "3dmatch", ("x",))
+    tasks = [_Task(s, ("gnc",)) for s in specs[:300]] + [_Task(extra, ("gnc",))] + [
+        _Task(s, ("gnc",)) for s in specs[300:]]
+    chunks = list(_batches(iter(tasks), 50, n_protocol=len(specs), slots=2))
+    assert [t for c in chunks for t in c] == tasks  # each task once, in order
+    assert [c for c in chunks if c[0].spec.kind != "protocol"] == [[tasks[300]]]
+    sizes = [len(c) for c in chunks if c[0].spec.kind == "protocol"]
+    assert max(sizes) == 50 and sizes == sorted(sizes, reverse=True)
+    assert sizes[-1] == 1 and sum(sizes[-5:]) < 10  # no full chunk left for one worker alone
+    # A size the user gives is kept (the last chunk holds the rest).
+    fixed = [len(c) for c in _batches(iter(tasks[:300]), 40)]
+    assert fixed == [40] * 7 + [20]
 
 
 @pytest.mark.slow  # starts a 2-process LocalCluster

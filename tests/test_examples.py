@@ -130,7 +130,8 @@ def test_bench_dask_scaling_example() -> None:
     rows = [line.split() for line in proc.stdout.splitlines() if line[:9].strip().isdigit()]
     assert [(r[0], r[1], r[2]) for r in rows] == [("10", "0", "10"), ("10", "1", "10"),
                                                  ("20", "0", "20"), ("20", "1", "20")]
-    assert all(float(r[5]) > 10 for r in rows)  # a driver's peak RSS in MiB
+    assert all(float(r[-1]) > 10 for r in rows)  # a driver's peak RSS in MiB
+    assert all(float(r[5]) > 0 for r in rows)  # the CPU time of the run's processes
     assert "load average" in proc.stdout
 
 

@@ -20,7 +20,9 @@ time the result reports itself (``solve_time``) is recorded too (``reported_time
 solver is run once on a throw-away instance first, so JIT compilation and lazy imports are
 not timed. Within a batch (a Dask task, or the whole run in process), the instances are made
 first and each solver then runs on all of them in turn (not interleaved with the others, which
-slowed every solver down). ``cost`` is the weighted TLS cost of the returned pose on the
+slowed every solver down). Every solver runs on one thread: Open3D's parallel loops are
+limited to one (its RANSAC result depends on the thread count; rows must not depend on where
+they ran). ``cost`` is the weighted TLS cost of the returned pose on the
 instance's problem, for every solver.
 
 Solvers (:data:`SOLVERS`):
@@ -59,6 +61,7 @@ largest, and weights are ignored (certpose's solvers use both).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -331,6 +334,32 @@ def _gtsam_gnc(inst: Instance) -> _Outcome:
     return _Outcome(np.asarray(estimate.atPose3(0).matrix()), "")
 
 
+@contextlib.contextmanager
+def _one_thread_peers(names: Sequence[str]) -> Iterator[None]:
+    """Open3D's parallel loops (TBB; every core by default) on one thread inside the block.
+
+    Its RANSAC result depends on the thread count, so this makes the rows a function of the
+    seeds whatever ran them (this process or a Dask worker, on any machine), and every solver is
+    timed on one thread, as certpose's are. On Dask it also stops each worker's TBB threads from
+    competing with the other workers (measured: o3d-ransac 1.3x the CPU time with 2 threads).
+    The previous limit is restored on exit (the process may be the user's, or a shared worker).
+    """
+    if not any(n.startswith("o3d-") for n in names):
+        yield
+        return
+    try:
+        import open3d as o3d
+    except ImportError:  # reported as a skipped solver by the warm-up
+        yield
+        return
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(before)
+
+
 def _o3d_inputs(inst: Instance) -> tuple[Any, Any, Any]:
     import open3d as o3d
 
@@ -463,8 +492,9 @@ def _iter_tasks(
     """Rows of ``tasks``, making each instance from its spec; solver by solver.
 
     One solver at a time over the instances: interleaving solvers measured slower certpose
-    times (cold caches, Open3D's OpenMP threads still spinning). An instance that cannot be
-    made gives one row per solver with the error.
+    times (cold caches, Open3D's threads still spinning). Open3D runs on one thread
+    (:func:`_one_thread_peers`). An instance that cannot be made gives one row per solver with
+    the error.
     """
     names = list(dict.fromkeys(s for t in tasks for s in t.solvers))
     skipped = _ensure_warm(names)
@@ -475,12 +505,13 @@ def _iter_tasks(
         except Exception as exc:  # one bad instance (file) must not stop the run
             log.warning("cannot make %s/%s: %s", t.spec.suite, t.spec.instance, exc)
             insts.append(exc)
-    for name in names:
-        if name in skipped:
-            continue
-        for task, inst in zip(tasks, insts, strict=True):
-            if name in task.solvers:
-                yield _run_one(name, inst, task.spec)
+    with _one_thread_peers(names):
+        for name in names:
+            if name in skipped:
+                continue
+            for task, inst in zip(tasks, insts, strict=True):
+                if name in task.solvers:
+                    yield _run_one(name, inst, task.spec)
 
 
 def _run_batch(
@@ -621,8 +652,9 @@ def run_benchmark(
     scheduler : str, optional
         Address of a running Dask scheduler to send the work to.
     batch_size : int, optional
-        Protocol instances per Dask task (default: at most 50, at least 2 tasks per worker);
-        the others (files, 3DMatch, eq. (2)) go one per task.
+        Protocol instances per Dask task (default: at most 50, fewer towards the end of the
+        run so that the workers finish together); the others (files, 3DMatch, eq. (2)) go one
+        per task.
 
     Returns
     -------
@@ -732,16 +764,27 @@ class BenchInterrupted(Exception):
     """Ctrl-C during a run: the finished rows are on disk; the message says where."""
 
 
-def _batches(tasks: Iterable[_Task], size: int) -> Iterator[list[_Task]]:
-    """Protocol tasks in chunks of ``size`` (cheap: per-task overhead would dominate); the
-    others alone (seconds each: they spread over the workers)."""
+def _batches(tasks: Iterable[_Task], size: int, *, n_protocol: int | None = None,
+             slots: int = 1) -> Iterator[list[_Task]]:
+    """Protocol tasks in chunks of at most ``size`` (cheap: per-task overhead would dominate);
+    the others alone (seconds each: they spread over the workers).
+
+    With ``n_protocol`` (how many protocol tasks ``tasks`` holds), chunks shrink towards the end
+    (guided self-scheduling): a chunk is at most the protocol tasks left over ``2 * slots``, so
+    the last chunks are small and the ``slots`` workers finish together instead of one running a
+    full chunk while the others wait (chunks cost up to 1.5x each other: outlier ratios differ).
+    """
+    left = n_protocol
     chunk: list[_Task] = []
     for t in tasks:
         if t.spec.kind != "protocol":
             yield [t]
             continue
         chunk.append(t)
-        if len(chunk) == size:
+        cap = size if left is None else max(1, min(size, math.ceil(left / (2 * slots))))
+        if len(chunk) >= cap:
+            if left is not None:
+                left -= len(chunk)
             yield chunk
             chunk = []
     if chunk:
@@ -776,21 +819,17 @@ def _run_dask(
         cluster = None
         client = distributed.Client(scheduler)
     else:
-        n_workers = workers or os.cpu_count() or 1
-        # One single-thread process per core: solvers hold the GIL; no dashboard, since
-        # other users' clusters may hold its port.
-        cluster = distributed.LocalCluster(
-            n_workers=n_workers, threads_per_worker=1, processes=True,
-            dashboard_address=None, silence_logs=logging.ERROR,
-        )
+        cluster = _local_cluster(workers or os.cpu_count() or 1)
         client = distributed.Client(cluster)
         # Ctrl-C reaches the whole process group: the driver stops the cluster, the workers
         # must not die first with tracebacks of their own.
         client.run(_ignore_sigint)
     try:
         n_slots = max(sum(client.nthreads().values()), 1)
-        size = batch_size or max(1, min(50, math.ceil(n_protocol / (2 * n_slots))))
-        batches = _batches(tasks, size)
+        if batch_size is not None:
+            batches = _batches(tasks, batch_size)
+        else:
+            batches = _batches(tasks, 50, n_protocol=n_protocol, slots=n_slots)
         shapes_f = client.scatter(shapes, broadcast=True)
 
         def submit(batch: Sequence[_Task]) -> Any:
@@ -817,6 +856,30 @@ def _run_dask(
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+WORKER_ENV: dict[str, str] = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "NUMBA_NUM_THREADS": "1",
+}
+"""Environment of the embedded cluster's workers: one single-thread worker per core, so no
+library may start a thread pool of its own (oversubscribed threads spin against the other
+workers). Dask sets the first three by default (``distributed.nanny.pre-spawn-environ``); they
+are set here too so that a user's Dask configuration cannot undo them. Open3D ignores them: it is
+limited in the process (:func:`_one_thread_peers`)."""
+
+
+def _local_cluster(n_workers: int) -> Any:
+    """The embedded cluster: ``n_workers`` single-thread worker processes (solvers hold the
+    GIL) with :data:`WORKER_ENV`; no dashboard, since other users' clusters may hold its port."""
+    distributed = _bench_extra("distributed", "certpose bench on Dask")
+
+    return distributed.LocalCluster(
+        n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None,
+        silence_logs=logging.ERROR, env=dict(WORKER_ENV),
+    )
 
 
 def _ignore_sigint() -> None:
