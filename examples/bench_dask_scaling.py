@@ -6,7 +6,8 @@ Each configuration is a separate `certpose bench` process on the bunny protocol 
 its rows streamed to a temporary folder; the run reports its own wall time and the driver's
 peak RSS (``bench.json``'s ``run``). The ratio is each run's wall time over the ``--workers 0``
 run of the same size (cluster start-up included). The machine may be shared: each line also
-gives the CPU time of the run's processes (driver, scheduler and workers), the CPU time the rest
+gives the CPU time of the run's processes (driver, scheduler and workers), the driver's own
+(scheduler and row writing included), the CPU time the rest
 of the machine used meanwhile (``others_cpu_s``, from ``/proc/stat`` where there is one: a
 ratio is only meaningful when it is near zero) and the 1-minute load average at the start.
 
@@ -89,7 +90,8 @@ def main() -> int:
           f"{os.cpu_count()} CPU(s); load average before: "
           + ", ".join(f"{v:.2f}" for v in os.getloadavg()))
     print(f"{'instances':>9} {'workers':>7} {'solves':>7} {'wall_s':>8} {'vs_0':>6} "
-          f"{'cpu_s':>7} {'others_cpu_s':>12} {'load':>5} {'driver_peak_MiB':>15}")
+          f"{'cpu_s':>7} {'driver_cpu_s':>12} {'others_cpu_s':>12} {'load':>5} "
+          f"{'driver_peak_MiB':>15}")
     for n in args.instances:
         ref = None
         for w in args.workers:
@@ -99,7 +101,8 @@ def main() -> int:
                 ref = r["wall_seconds"]
             ratio = "-" if ref is None else f"{r['wall_seconds'] / ref:.2f}"
             print(f"{r['instances']:>9} {w:>7} {r['solves']:>7} {r['wall_seconds']:>8.2f} "
-                  f"{ratio:>6} {r['cpu_s']:>7.1f} {r['others_cpu_s']:>12.1f} {r['load']:>5.2f} "
+                  f"{ratio:>6} {r['cpu_s']:>7.1f} {r['driver_cpu_seconds']:>12.1f} "
+                  f"{r['others_cpu_s']:>12.1f} {r['load']:>5.2f} "
                   f"{r['driver_peak_rss_mb']:>15.0f}", flush=True)
     print("load average after: " + ", ".join(f"{v:.2f}" for v in os.getloadavg()))
     return 0

@@ -218,8 +218,10 @@ class BenchReport:
         Solvers that could not run, with the reason.
     run : dict
         How this run went: ``wall_seconds`` (the whole call, cluster start included),
-        ``rows_written``, ``workers`` and ``driver_peak_rss_mb`` (this process's peak resident
-        memory, which the streamed rows keep flat as the number of instances grows).
+        ``rows_written``, ``workers``, ``driver_cpu_seconds`` (this process's CPU time, all its
+        threads: with Dask, the scheduler's and the row writing) and ``driver_peak_rss_mb``
+        (this process's peak resident memory, which the streamed rows keep flat as the number
+        of instances grows).
     """
 
     config: BenchConfig
@@ -670,7 +672,7 @@ def run_benchmark(
     """
     from certpose.bench.rows import open_rows
 
-    t_start = time.perf_counter()
+    t_start, cpu_start = time.perf_counter(), time.process_time()
     tqdm = _bench_extra("tqdm", "certpose bench").tqdm
     if workers is not None and workers < 0:
         raise ValueError(f"`workers` must be >= 0 or None, got {workers}.")
@@ -700,6 +702,7 @@ def run_benchmark(
     run = {"wall_seconds": time.perf_counter() - t_start, "rows_written": writer.count,
            "workers": "scheduler" if scheduler is not None else (
                os.cpu_count() if workers is None else workers),
+           "driver_cpu_seconds": time.process_time() - cpu_start,
            "driver_peak_rss_mb": _peak_rss_mb()}
     report = BenchReport(config, shape_name, writer.path, summary, scopes, skipped, run)
     if tmp is not None:
