@@ -90,6 +90,19 @@ def test_resume_drops_a_truncated_last_line_and_refuses_other_noise(tmp_path):
         run_benchmark(other, progress=False, out_dir=out, resume=True)
 
 
+def test_each_row_is_in_the_file_as_soon_as_it_is_written(tmp_path):
+    from certpose.bench.rows import RowWriter, count_rows
+
+    path = tmp_path / "trials.csv"
+    row = dict.fromkeys(TRIAL_COLUMNS, 1)
+    with RowWriter(path, TRIAL_COLUMNS, append=False, sync_seconds=3600) as w:
+        for k in range(3):
+            w.write(row)
+            assert count_rows(path) == k + 1  # another process (a resume) sees it now
+        w.write_many([row, row])
+        assert count_rows(path) == 5
+
+
 def test_open_rows_rejects_a_foreign_file(tmp_path):
     (tmp_path / "trials.csv").write_text("a,b\n1,2\n")
     with pytest.raises(ValueError, match="not a certpose bench row file"):

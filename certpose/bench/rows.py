@@ -2,10 +2,10 @@
 
 Every row is flushed to the operating system before the next one is written, so a run killed
 at any moment (even with SIGKILL) leaves complete rows plus at most one truncated last line;
-:func:`open_rows` drops that line when a run is resumed. The file is also ``fsync``-ed to the
-disk at most once a second and on close (against a crash of the machine itself): an ``fsync`` per
-row cost 2-4 ms, 10-20 s over a 5,000-row run in one process, which no Dask batch paid. A row is keyed by ``(suite, instance, solver)``. Nothing here holds
-the rows in memory: they are read one at a time (:func:`iter_rows`).
+:func:`open_rows` drops that line when a run is resumed. The file is also ``fsync``-ed at most
+once a second and on close, against a crash of the machine itself (an ``fsync`` per row cost
+2-4 ms here: 10-20 s of a 5,000-row run in one process). A row is keyed by ``(suite, instance,
+solver)``. Nothing here holds the rows in memory: they are read one at a time (:func:`iter_rows`).
 
 The file opens with :func:`pandas.read_csv` (``certified`` is empty when the solver gives no
 certificate).
