@@ -29,6 +29,11 @@ Measured (2-core machine shared with other sessions, load average 2.8 -> 2.6 ove
   10.5 ms at 90% outliers, 17.9 ms at 95%, 55.9 ms (worst 64.0 ms) at 98%, where the exact
   search runs out of its budget (``PruningParams.clique_max_work``): worst dense / median
   sparse 16.7x.
+* With the bitset clique search (cores over 256 vertices; 23 November, load average 9-11, two
+  runs each, back to back with the tree before it): dense graphs at 98% outliers median 17.0
+  and 20.1 ms, worst 17.2 and 27.1 ms (before: median 85.4 and 110.9 ms, worst 120.6 and
+  128.8 ms), every maximum clique proven; sparse graphs 2.0-5.8 ms (load); worst dense /
+  median sparse 4.7x and 7.5x (before 31x and 44x).
 * Bunny N = 100, 0-95% outliers: median 0.27-0.32 ms per solve (0.36-0.43 ms before).
 """
 
