@@ -118,7 +118,8 @@ def maximum_cliques(
     (San Segundo's BBMC with re-colouring and an infra-chromatic bound, started from greedy
     cliques grown from 256 vertices, ties listed in the same search; compiled on first use):
     on dense graphs whose core is the whole graph (N = 1000, 98% outliers placed among the
-    inliers) it proves the maximum clique 3-6 times faster than the MCQ search.
+    inliers, clique number 23-30) it proves the maximum and lists the ties in 5-30 ms, where
+    the MCQ search took 100-650 ms for the proof alone.
 
     Parameters
     ----------
