@@ -149,3 +149,21 @@ def test_bench_basins_on_a_real_frame(tmp_path: Path) -> None:
     assert row["refined_truth_adds_cm"] < 1.0
     assert row["gap"] == pytest.approx(row["eq1_returned"] - row["eq1_truth_refined"])
     assert "pairs 1 |" in proc.stdout
+
+
+@pytest.mark.slow
+def test_bench_eq2_on_a_real_frame(tmp_path: Path) -> None:
+    require_data("ycbv", "0002")
+    out = tmp_path / "eq2.jsonl"
+    proc = _run("bench_eq2.py", "--ycbv", str(YCBV), "--scenes", "0002", "--frames", "000001",
+                "--objects", "006_mustard_bottle", "--json", str(out))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    row = json.loads(out.read_text().splitlines()[0])
+    assert row["case"] == "0002/000001 006_mustard_bottle"
+    # The default eq. (2): 100 object points x top-40, some of them right at the true pose.
+    assert row["N"] == 4000
+    assert 0 < row["points"] <= row["inliers"] <= row["N"]
+    assert row["adds_cm"] > 0 and 0 <= row["rot_deg"] <= 180
+    assert row["solve_ms"] > 0 and row["certify_ms"] > 0
+    assert isinstance(row["eq2_wins"], bool) and row["hypothesis"]
+    assert "pairs 1 |" in proc.stdout and "load average" in proc.stdout

@@ -287,3 +287,47 @@ def test_ties_of_a_symmetric_box_are_reported_as_modes():
                                                           explore_modes=False), rng=0)
     assert len(off.modes) == 1
 
+
+
+def test_eq2_defaults_keep_the_right_voxels_on_a_real_frame():
+    """Issue 10: at the true pose, eq. (2)'s candidates must hold the right voxel for enough
+    object points that the truth is a consistent set no random rotation matches."""
+    from certpose.estimation.pipeline import PoseParams
+    from certpose.geometry.features import FPFHBackbone
+    from certpose.geometry.objects import object_from_points
+    from certpose.io.ycbv import load_model_points, load_ycbv_frame
+    from certpose.model.classifier import classify_from_mask
+    from certpose.model.scene import build_scene_field
+    from tests.conftest import require_data
+
+    require_data("ycbv", "0002")
+    root = require_data("ycbv")
+    name = "006_mustard_bottle"
+    params = PoseParams()
+    yf = load_ycbv_frame(root, "0002/000001")
+    mask = yf.object_mask(name)
+    backbone = FPFHBackbone()
+    scene = build_scene_field(yf.frame, backbone, voxel_size=params.voxel_size, roi_mask=mask,
+                              margin=params.roi_margin)
+    obj = object_from_points(load_model_points(root / "models" / name / "points.xyz"), backbone,
+                             voxel_size=params.voxel_size, name=name)
+    cls = classify_from_mask(scene, yf.frame.with_mask(mask), params=params.classifier)
+    T = yf.poses[name]  # scene = camera frame
+
+    def points_with_an_inlier(eq2, R, t):
+        ok = eq2.problem.residuals_sq(R, t) <= eq2.problem.cbar2
+        return int(np.unique(eq2.object_index[ok]).size)
+
+    eq2 = build_eq2_problem(scene, cls, obj, rng=0)  # the defaults
+    assert eq2.problem.n == Eq2Params().num_object_points * Eq2Params().top_k
+    at_truth = points_with_an_inlier(eq2, T[:3, :3], T[:3, 3])
+    assert at_truth >= 8
+    # No random rotation about the object's true centre gathers as many.
+    centre = T[:3, :3] @ obj.centroid + T[:3, 3]
+    rand = [points_with_an_inlier(eq2, R, centre - R @ obj.centroid)
+            for R in Rotation.random(200, random_state=0).as_matrix()]
+    assert max(rand) < at_truth
+    # The former defaults (40 x top-4) kept the right voxel for almost no point.
+    old = build_eq2_problem(scene, cls, obj, params=Eq2Params(num_object_points=40, top_k=4),
+                            rng=0)
+    assert points_with_an_inlier(old, T[:3, :3], T[:3, 3]) < at_truth / 2
