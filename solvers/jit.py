@@ -201,7 +201,8 @@ _POLL_SECONDS = 0.01
 def wait(modules: Iterable[str] | None = None) -> None:
     """Make the warmed kernels of ``modules`` (default: all) ready: compile here those the helper
     has not started (from the back of its list), then wait until the helper has cached the ones
-    it took. The helper goes on with the other modules' kernels meanwhile."""
+    it took, meanwhile compiling here the warm-up's other kernels the helper has not reached.
+    The helper goes on with the rest."""
     wanted = None if modules is None else set(modules)
     for item in list(_PENDING):
         specs = [s for s in item.specs if wanted is None or s.module in wanted]
@@ -209,10 +210,14 @@ def wait(modules: Iterable[str] | None = None) -> None:
             continue
         t0 = time.perf_counter()
         mine = _compile(specs[::-1], item.lock_dir)
+        later = [s for s in item.specs[::-1] if s not in specs]
         # The helper's: numba writes the data file, then the index (each atomically).
         while not all(is_cached(s) for s in specs):
             if item.proc is None or item.proc.poll() is not None:
                 break  # it ended without them: they compile here, on first use
+            if later:  # rather than wait idle, compile one the command needs later
+                mine += _compile([later.pop(0)], item.lock_dir)
+                continue
             time.sleep(_POLL_SECONDS)
         log.debug("warm-up of %s: %d of %d kernels compiled here, %.2f s", sorted(
             {s.module for s in specs}), mine, len(specs), time.perf_counter() - t0)

@@ -15,7 +15,8 @@ import pytest
 from solvers import jit
 
 ROOT = Path(__file__).resolve().parents[1]
-MODULES = ["solvers._linalg_kernels", "solvers.registration._kernels", "solvers.certify._kernels",
+MODULES = ["solvers._linalg_kernels", "solvers.registration._kernels",
+           "solvers.registration._clique_kernels", "solvers.certify._kernels",
            "certpose.model._kernels"]
 
 
