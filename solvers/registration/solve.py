@@ -78,8 +78,10 @@ class PruningParams:
         When several maximum cliques tie, up to this many are each solved and the pose of
         lowest TLS cost is kept (with few inliers, a tied clique can be mostly outliers).
     clique_max_work : int or None
-        Budget of the exact clique search in adjacency look-ups (about 5 ns each; the search
-        for ties gets a quarter more): bounds its time on dense graphs. When it runs out, the
+        Budget of the exact clique search in adjacency look-ups (about 5 ns each; the MCQ
+        search for ties gets a quarter more, the bitset search for large cores counts
+        :data:`solvers.registration.pruning.BITSET_WORDS_PER_LOOKUP` word operations per
+        look-up, ties included): bounds its time on dense graphs. When it runs out, the
         largest clique found is kept and ``info["max_clique_exact"]`` is False. ``None``:
         unbounded.
     """
