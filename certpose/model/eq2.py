@@ -62,16 +62,19 @@ class Eq2Params:
 
     Notes
     -----
-    The defaults (100 x top-40, N = 4000) were chosen on the 60 YCB-Video pairs of the shared
-    scenes (geometry-only FPFH models, mask classifier; ``examples/bench_eq2.py``). FPFH barely
-    ranks the right voxel above the others: at the true pose its median rank among a point's
-    candidates is about a third of the classifier's positives (150-250 of 300-1500), so
-    top-4 kept it for 0-2 object points and the eq. (2) minimiser was a random pose. Top-40 keeps
-    it for 8-15 of 100 (more than any random rotation about the object's centre), and the raw
-    minimiser is as good as with N = 10,000 (raw ADD-S <= 1 cm in 10 of 18 first frames for
-    both). N is capped by the certifier, not by the solve (pruning + GNC: about 20 ms at
-    N = 10,000): the certifier's clique bound builds the O(N^2) consistency graph whatever its
-    time limit, 0.5 s at N = 4000 and 4-8 s at N = 10,000 (2 loaded cores).
+    The defaults (100 x top-40, N = 4000, one voxel) were chosen on the 60 YCB-Video pairs of
+    the shared scenes (geometry-only FPFH models, mask classifier; ``examples/bench_eq2.py``).
+    FPFH barely ranks the right voxel above the others: at the true pose its median rank among
+    a point's candidates is about a third of the classifier's positives (150-250 of 300-1500).
+    With 40 x top-4 the right voxel was a candidate for a median of 1 object point (none in 19
+    pairs) and the raw minimiser was within 1 cm ADD-S in 14 of 60 pairs; with 100 x top-40,
+    for a median of 9 (3-25; on the frames checked, more than any of 200 random rotations
+    about the object's centre gathers), within 1 cm in 31 of 60. A noise bound of 1.5 voxels gave 32 of 60 and slower certificates;
+    N = 10,000 (200 x 50, 100 x 100) did no better on the 18 first frames (9-10 of 18, as
+    100 x 40). N is capped by the certifier, not by the solve (pruning + GNC: 0.2-0.7 s at
+    N = 4000): its clique bound builds the O(N^2) consistency graph whatever its time limit,
+    1-3 s at N = 4000 and 4-8 s at N = 10,000 (2 cores at load 10-13), and it certifies none
+    of these problems (40 x top-4: all 60, of a minimiser 1-4 cm off in most).
     """
 
     num_object_points: int = 100
