@@ -109,6 +109,12 @@ def main() -> None:
                     help="degrees beyond the arc's ends before 'outside' begins")
     ap.add_argument("--c-empty", type=float, default=None, help="LikelihoodParams.c_empty")
     ap.add_argument("--erosion", type=int, default=None, help="LikelihoodParams.free_space_erosion")
+    ap.add_argument("--tolerance", type=float, default=None, metavar="M",
+                    help="LikelihoodParams.free_space_tolerance (metres)")
+    ap.add_argument("--ramp", type=float, default=None, metavar="M",
+                    help="LikelihoodParams.free_space_ramp (metres)")
+    ap.add_argument("--log-p-unobserved", type=float, default=None, metavar="V",
+                    help="LikelihoodParams.log_p_unobserved")
     ap.add_argument("--no-refine", action="store_true", help="raw poses (no 5-DOF refinement)")
     args = ap.parse_args()
     if not (args.data / "0000").is_dir():
@@ -118,6 +124,12 @@ def main() -> None:
         overrides["c_empty"] = args.c_empty
     if args.erosion is not None:
         overrides["free_space_erosion"] = args.erosion
+    if args.log_p_unobserved is not None:
+        overrides["log_p_unobserved"] = args.log_p_unobserved
+    if args.tolerance is not None:
+        overrides["free_space_tolerance"] = args.tolerance
+    if args.ramp is not None:
+        overrides["free_space_ramp"] = args.ramp
     angles = np.arange(-60.0, 120.0 + 1e-9, args.step)
     print(f"load average {os.getloadavg()[0]:.2f}; arc {ARC} deg, guard {args.guard} deg, "
           f"likelihood overrides {overrides or 'none'}, {'raw' if args.no_refine else 'refined'}")

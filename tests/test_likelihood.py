@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,7 +12,12 @@ from scipy.spatial.transform import Rotation
 from certpose.geometry.objects import ObjectModel
 from certpose.model.classifier import ClassifierStatus, ObjectClassification
 from certpose.model.grid import EMPTY, OCCUPIED, UNOBSERVED
-from certpose.model.likelihood import LikelihoodParams, PoseLikelihood, log_likelihood
+from certpose.model.likelihood import (
+    LikelihoodParams,
+    PoseLikelihood,
+    free_space_values,
+    log_likelihood,
+)
 from certpose.model.scene import SceneField
 from solvers.lie import make_transform
 
@@ -36,7 +42,9 @@ def _world(seed: int = 0, shape: tuple[int, int, int] = (12, 10, 9), d: int = 7)
 
 
 def _reference(scene, cls, obj, T, params: LikelihoodParams) -> float:
-    """Eq. (1) point by point, corner by corner, in plain Python."""
+    """Eq. (1) point by point, corner by corner, in plain Python (free-space values per voxel
+    from :func:`free_space_values`, tested on its own below)."""
+    background = free_space_values(scene.state, scene.voxel_size, params)
     total = 0.0
     for p, z in zip(obj.points, obj.descriptors, strict=True):
         q = T[:3, :3] @ p + T[:3, 3]
@@ -55,7 +63,7 @@ def _reference(scene, cls, obj, T, params: LikelihoodParams) -> float:
                     if s == OCCUPIED:
                         v = cls.log_p[tuple(ijk)] + params.beta * float(scene.descriptors[tuple(ijk)] @ z)
                     elif s == EMPTY:
-                        v = params.c_empty
+                        v = background[tuple(ijk)]
                     else:
                         v = params.log_p_unobserved
                     term += w * v
@@ -172,7 +180,10 @@ def test_bad_input_errors():
 @pytest.mark.parametrize(
     "kwargs, match",
     [({"beta": -1.0}, "beta"), ({"c_empty": 0.0}, "c_empty"), ({"log_p_unobserved": 0.5}, "log_p"),
-     ({"beta": float("nan")}, "finite"), ({"free_space_erosion": -1}, "erosion")],
+     ({"beta": float("nan")}, "finite"), ({"free_space_erosion": -1}, "erosion"),
+     ({"free_space_tolerance": -0.001}, "free_space_tolerance"),
+     ({"free_space_ramp": -0.001}, "free_space_ramp"),
+     ({"free_space_ramp": float("inf")}, "finite")],
 )
 def test_params_validation(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -189,3 +200,79 @@ def test_object_model_rejects_nan_and_unnormalised_descriptors():
         ObjectModel(pts, 2 * np.eye(5))
     with pytest.raises(ValueError, match=r"shape \(5, d\)"):
         ObjectModel(pts, np.eye(4))
+
+
+def _plane_scene(depth: int = 12, vs: float = 0.005) -> SceneField:
+    """An observed surface (occupied plane k = 0) with observed free space above it (k >= 1),
+    except one unobserved column."""
+    shape = (3, 3, depth)
+    state = np.full(shape, EMPTY, dtype=np.int8)
+    state[:, :, 0] = OCCUPIED
+    state[2, 2, 1:] = UNOBSERVED
+    desc = np.zeros((*shape, 2))
+    desc[:, :, 0, 0] = 1.0
+    return SceneField(vs, np.zeros(3), shape, desc, state)
+
+
+def test_free_space_values_graded_by_distance_to_the_surface():
+    scene = _plane_scene()
+    lpu, c = math.log(0.1), -30.0
+    params = LikelihoodParams(c_empty=c, free_space_tolerance=0.0075, free_space_ramp=0.01)
+    v = free_space_values(scene.state, scene.voxel_size, params)
+    # Column (1, 1): k voxels above the plane is k * 5 mm from the surface. Tolerant up to
+    # 7.5 mm, then linear to c_empty at 17.5 mm, c_empty beyond.
+    expected = [0.0, lpu, lpu + 0.25 * (c - lpu), lpu + 0.75 * (c - lpu)] + [c] * 8
+    np.testing.assert_allclose(v[1, 1], expected, atol=1e-12)
+    np.testing.assert_allclose(v[2, 2, 1:], lpu)  # unobserved voxels keep the prior
+    # The default (no tolerance, no ramp) is the exact model: every free voxel pays c_empty.
+    v0 = free_space_values(scene.state, scene.voxel_size, LikelihoodParams(c_empty=c))
+    np.testing.assert_allclose(v0[1, 1, 1:], c)
+    # A ramp of 0 is a step at the tolerance.
+    step = free_space_values(scene.state, scene.voxel_size,
+                             LikelihoodParams(c_empty=c, free_space_tolerance=0.012))
+    np.testing.assert_allclose(step[1, 1, 1:4], [lpu, lpu, c])
+    # No observed surface at all: free space is deep everywhere.
+    none = np.where(scene.state == OCCUPIED, EMPTY, scene.state)
+    np.testing.assert_allclose(free_space_values(none, scene.voxel_size, params)[0, 0], c)
+    with pytest.raises(ValueError, match=r"\(X, Y, Z\)"):
+        free_space_values(np.zeros((3, 3)), 0.005, params)
+
+
+def test_free_space_tolerance_spares_points_near_a_surface_only():
+    scene = _plane_scene()
+    lpu, c = math.log(0.1), -30.0
+    cls = ObjectClassification(np.where(scene.state == OCCUPIED, math.log(0.9), -5.0),
+                               scene.state == OCCUPIED, -5.0, "t", ClassifierStatus.OK, "")
+    one = ObjectModel(np.zeros((3, 3)), np.tile([1.0, 0.0], (3, 1)))
+
+    def at(k: float, params: LikelihoodParams) -> float:
+        # The point at the centre of column (1, 1), k voxels above the plane.
+        T = make_transform(np.eye(3), (np.array([1.5, 1.5, k + 0.5])) * scene.voxel_size)
+        return PoseLikelihood(scene, cls, one, params=params)(T) / 3
+
+    graded = LikelihoodParams(c_empty=c, free_space_tolerance=0.0075, free_space_ramp=0.01)
+    exact = LikelihoodParams(c_empty=c)
+    # One voxel (5 mm, about the sensor noise) above the surface: the price of a hidden point
+    # instead of c_empty.
+    assert at(1, graded) == pytest.approx(lpu)
+    assert at(1, exact) == pytest.approx(c)
+    # Deep in free space: the full penalty either way.
+    assert at(6, graded) == pytest.approx(c)
+    # Half-way between voxel centres 1 and 2: the linear blend (continuous in the pose).
+    assert at(1.5, graded) == pytest.approx(0.5 * lpu + 0.5 * (lpu + 0.25 * (c - lpu)))
+    # On the surface itself: the classifier and the similarity, as before.
+    assert at(0, graded) == pytest.approx(math.log(0.9) + 1.0)
+
+
+def test_batch_equals_reference_with_graded_free_space():
+    rng, scene, cls, obj = _world(7)
+    params = LikelihoodParams(c_empty=-25.0, free_space_tolerance=0.012, free_space_ramp=0.015)
+    lik = PoseLikelihood(scene, cls, obj, params=params)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    poses = _random_poses(rng, 20, centre, 0.06)
+    slow = np.array([_reference(scene, cls, obj, T, params) for T in poses])
+    np.testing.assert_allclose(lik(poses), slow, rtol=1e-5, atol=1e-4)
+    # Tolerance only removes penalties.
+    assert np.all(slow >= np.array([_reference(scene, cls, obj, T, replace(params, free_space_tolerance=0.0,
+                                                                           free_space_ramp=0.0))
+                                    for T in poses]) - 1e-9)

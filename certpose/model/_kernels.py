@@ -1,8 +1,12 @@
 """Numba kernels of eq. (1); imported lazily by :mod:`certpose.model.likelihood`.
 
 Grid encoding shared with the Python side: ``index[x, y, z] >= 0`` is the row of an occupied
-voxel in the compact arrays, ``EMPTY_CODE`` marks observed free space, ``UNOBSERVED_CODE``
-unobserved space; corners outside the grid count as unobserved.
+voxel in the compact arrays; at every other voxel (observed free space, ``EMPTY_CODE``, or
+unobserved space, ``UNOBSERVED_CODE``) the per-voxel value is ``background[x, y, z]`` (the
+free-space penalty, possibly graded by the distance to the observed surface, or the unobserved
+prior). ``cells[x, y, z]`` is ``UNIFORM`` when the 8 voxel centres around the cell share one
+background value (no occupied corner), so the kernel returns it without interpolating. Points
+outside the (padded) grid count as unobserved.
 """
 
 from __future__ import annotations
@@ -17,17 +21,17 @@ from solvers.jit import kernel
 F1, F2, F3 = nt.float64[::1], nt.float64[:, ::1], nt.float64[:, :, ::1]
 S2, I3, B3 = nt.float32[:, ::1], nt.int32[:, :, ::1], nt.int8[:, :, ::1]
 f4, f8 = nt.float32, nt.float64
-# Everything after the pose: points, descriptors, grid index, cell states, voxel descriptors,
-# log p_O, origin, 1 / voxel size, offset, beta, c_empty, c_unobs.
-_MODEL = (F2, S2, I3, B3, S2, F1, F1, f8, f8, f4, f8, f8)
+# Everything after the pose: points, descriptors, grid index, cell states, background values,
+# voxel descriptors, log p_O, origin, 1 / voxel size, offset, beta, c_unobs.
+_MODEL = (F2, S2, I3, B3, F3, S2, F1, F1, f8, f8, f4, f8)
 
 EMPTY_CODE = -1
 UNOBSERVED_CODE = -2
-MIXED, UNIFORM_EMPTY, UNIFORM_UNOBSERVED = 0, 1, 2
+MIXED, UNIFORM = 0, 1
 
 
 @njit(inline="always")
-def _point_term(index, cells, desc, logp, zi, qx, qy, qz, origin, inv_vs, offset, beta, c_empty,
+def _point_term(index, cells, background, desc, logp, zi, qx, qy, qz, origin, inv_vs, offset, beta,
                 c_unobs):  # pragma: no cover
     # Continuous coordinates in the padded grid (one unobserved voxel on each side), integer
     # values at voxel centres.
@@ -43,12 +47,9 @@ def _point_term(index, cells, desc, logp, zi, qx, qy, qz, origin, inv_vs, offset
     x0 = int(fx0)
     y0 = int(fy0)
     z0 = int(fz0)
-    # Cells whose 8 corners share one non-occupied state need no interpolation.
-    cell = cells[x0, y0, z0]
-    if cell == UNIFORM_EMPTY:
-        return c_empty
-    if cell == UNIFORM_UNOBSERVED:
-        return c_unobs
+    # Cells whose 8 corners share one background value need no interpolation.
+    if cells[x0, y0, z0] == UNIFORM:
+        return background[x0, y0, z0]
     ax = ux - fx0
     ay = uy - fy0
     az = uz - fz0
@@ -65,15 +66,13 @@ def _point_term(index, cells, desc, logp, zi, qx, qy, qz, origin, inv_vs, offset
                     for k in range(zi.shape[0]):
                         s += desc[v, k] * zi[k]
                     acc += w * (logp[v] + beta * s)
-                elif v == EMPTY_CODE:
-                    acc += w * c_empty
                 else:
-                    acc += w * c_unobs
+                    acc += w * background[x0 + dx, y0 + dy, z0 + dz]
     return acc
 
 
 @njit(fastmath=True, inline="always")
-def _pose_total(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
+def _pose_total(T, points, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset, beta,
                 c_unobs):  # pragma: no cover - compiled
     R00, R01, R02, t0 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
     R10, R11, R12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
@@ -84,13 +83,13 @@ def _pose_total(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offs
         qx = R00 * px + R01 * py + R02 * pz + t0
         qy = R10 * px + R11 * py + R12 * pz + t1
         qz = R20 * px + R21 * py + R22 * pz + t2
-        total += _point_term(index, cells, desc, logp, zdesc[i], qx, qy, qz, origin, inv_vs,
-                             offset, beta, c_empty, c_unobs)
+        total += _point_term(index, cells, background, desc, logp, zdesc[i], qx, qy, qz, origin,
+                             inv_vs, offset, beta, c_unobs)
     return total
 
 
 @kernel(F3, *_MODEL, fastmath=True, nogil=True)
-def eq1_batch(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
+def eq1_batch(T, points, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset, beta,
               c_unobs):  # pragma: no cover - compiled
     """Sum of per-point log-localisation terms for each of the ``B`` poses ``T`` (B, 4, 4).
 
@@ -99,13 +98,13 @@ def eq1_batch(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset
     """
     out = np.empty(T.shape[0])
     for b in range(T.shape[0]):
-        out[b] = _pose_total(T[b], points, zdesc, index, cells, desc, logp, origin, inv_vs, offset,
-                             beta, c_empty, c_unobs)
+        out[b] = _pose_total(T[b], points, zdesc, index, cells, background, desc, logp, origin, inv_vs,
+                             offset, beta, c_unobs)
     return out
 
 
 @kernel(F2, *_MODEL, fastmath=True, nogil=True)
-def eq1_points(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offset, beta, c_empty,
+def eq1_points(T, points, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset, beta,
                c_unobs):  # pragma: no cover - compiled
     """Per-point terms ``(N,)`` for one pose ``T`` (4, 4)."""
     N = points.shape[0]
@@ -115,6 +114,6 @@ def eq1_points(T, points, zdesc, index, cells, desc, logp, origin, inv_vs, offse
         qx = T[0, 0] * px + T[0, 1] * py + T[0, 2] * pz + T[0, 3]
         qy = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
         qz = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
-        out[i] = _point_term(index, cells, desc, logp, zdesc[i], qx, qy, qz, origin, inv_vs, offset,
-                             beta, c_empty, c_unobs)
+        out[i] = _point_term(index, cells, background, desc, logp, zdesc[i], qx, qy, qz, origin, inv_vs,
+                             offset, beta, c_unobs)
     return out

@@ -46,7 +46,7 @@ if TYPE_CHECKING:
     from certpose.geometry.objects import ObjectModel
     from certpose.model.classifier import ObjectClassification
 
-__all__ = ["LikelihoodParams", "PoseLikelihood", "log_likelihood"]
+__all__ = ["LikelihoodParams", "PoseLikelihood", "free_space_values", "log_likelihood"]
 
 log = logging.getLogger(__name__)
 
@@ -79,15 +79,25 @@ class LikelihoodParams:
         Empty voxels within this many voxels (chessboard distance) of an occupied voxel are
         treated as unobserved: a coarser eq. (1) that tolerates pose errors of that size
         (used by the coarse search; 0 is the exact model).
+    free_space_tolerance : float
+        Metres (>= 0). Observed free space within this distance of an observed surface (the
+        nearest occupied voxel centre) costs ``log_p_unobserved`` instead of ``c_empty``: depth
+        noise and silhouette voxels do not punish a point that sits next to a surface.
+    free_space_ramp : float
+        Metres (>= 0). Beyond ``free_space_tolerance`` the free-space cost falls linearly to
+        ``c_empty`` over this distance (0: a step). See :func:`free_space_values`.
     """
 
     beta: float = 1.0
     c_empty: float = -10.0
     log_p_unobserved: float = math.log(0.1)
     free_space_erosion: int = 0
+    free_space_tolerance: float = 0.0
+    free_space_ramp: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("beta", "c_empty", "log_p_unobserved"):
+        for name in ("beta", "c_empty", "log_p_unobserved", "free_space_tolerance",
+                     "free_space_ramp"):
             v = float(getattr(self, name))
             if not math.isfinite(v):
                 raise ValueError(f"`{name}` must be finite, got {v}.")
@@ -98,6 +108,9 @@ class LikelihoodParams:
             raise ValueError(f"`c_empty` must be negative, got {self.c_empty}.")
         if self.log_p_unobserved > 0:
             raise ValueError(f"`log_p_unobserved` must be <= 0, got {self.log_p_unobserved}.")
+        for name in ("free_space_tolerance", "free_space_ramp"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"`{name}` must be >= 0 metres, got {getattr(self, name)}.")
         if int(self.free_space_erosion) != self.free_space_erosion or self.free_space_erosion < 0:
             raise ValueError(
                 f"`free_space_erosion` must be a non-negative integer, got {self.free_space_erosion}."
@@ -116,25 +129,72 @@ def _morton_order(points: NDArray[np.float64], cell: float) -> NDArray[np.int64]
     return np.argsort(code, kind="stable")
 
 
-def _cell_codes(index: NDArray[np.int32]) -> NDArray[np.int8]:
-    """Per cell (between 8 neighbouring voxel centres): uniformly empty, uniformly unobserved or mixed."""
-    from certpose.model._kernels import (
-        EMPTY_CODE,
-        MIXED,
-        UNIFORM_EMPTY,
-        UNIFORM_UNOBSERVED,
-        UNOBSERVED_CODE,
-    )
+def _cell_codes(index: NDArray[np.int32], background: NDArray[np.float64]) -> NDArray[np.int8]:
+    """Per cell (between 8 neighbouring voxel centres): ``UNIFORM`` when no corner is occupied and
+    all 8 share one background value, else ``MIXED``."""
+    from certpose.model._kernels import MIXED, UNIFORM
 
-    corners = [index[dx:index.shape[0] - 1 + dx, dy:index.shape[1] - 1 + dy,
-                     dz:index.shape[2] - 1 + dz]
-               for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
-    all_empty = np.logical_and.reduce([c == EMPTY_CODE for c in corners])
-    all_unobs = np.logical_and.reduce([c == UNOBSERVED_CODE for c in corners])
-    cells = np.full(all_empty.shape, MIXED, dtype=np.int8)
-    cells[all_empty] = UNIFORM_EMPTY
-    cells[all_unobs] = UNIFORM_UNOBSERVED
+    def corners(a: NDArray[Any]) -> list[NDArray[Any]]:
+        return [a[dx:a.shape[0] - 1 + dx, dy:a.shape[1] - 1 + dy, dz:a.shape[2] - 1 + dz]
+                for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
+
+    ci, cb = corners(index), corners(background)
+    uniform = np.logical_and.reduce([c < 0 for c in ci] + [b == cb[0] for b in cb[1:]])
+    cells = np.full(uniform.shape, MIXED, dtype=np.int8)
+    cells[uniform] = UNIFORM
     return cells
+
+
+def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodParams) -> NDArray[np.float64]:
+    """Per-voxel value of eq. (1) at voxels that are not occupied, shape ``state.shape``.
+
+    Unobserved voxels hold ``log_p_unobserved``. An observed-free (EMPTY) voxel whose centre lies
+    ``d`` metres from the nearest occupied voxel centre (Euclidean distance transform) holds
+    ``log_p_unobserved`` while ``d <= free_space_tolerance``, then falls linearly to ``c_empty``
+    over ``free_space_ramp`` metres (a step when the ramp is 0): a point a sensor-noise away from
+    an observed surface costs about as much as a hidden one, a point deep in free space the full
+    penalty. With both at 0 (the default) every EMPTY voxel holds ``c_empty``.
+    ``free_space_erosion`` is applied first (eroded voxels are unobserved). Occupied voxels hold 0
+    (unused: eq. (1) reads the classifier and the descriptors there).
+
+    Parameters
+    ----------
+    state : (X, Y, Z) array_like of int
+        ``UNOBSERVED`` (0), ``EMPTY`` (1) or ``OCCUPIED`` (2).
+    voxel_size : float
+        Voxel side, metres.
+    params : LikelihoodParams
+
+    Returns
+    -------
+    ndarray, shape (X, Y, Z)
+    """
+    state = np.asarray(state)
+    if state.ndim != 3:
+        raise ValueError(f"Expected `state` to have shape (X, Y, Z), got {state.shape}.")
+    occupied = state == OCCUPIED
+    empty = state == EMPTY
+    if params.free_space_erosion > 0:
+        from scipy.ndimage import binary_dilation
+
+        near = binary_dilation(occupied, np.ones((3, 3, 3), bool),
+                               iterations=int(params.free_space_erosion))
+        empty &= ~near
+    out = np.full(state.shape, params.log_p_unobserved, dtype=np.float64)
+    out[occupied] = 0.0
+    tol, ramp = params.free_space_tolerance, params.free_space_ramp
+    if tol == 0 and ramp == 0:
+        out[empty] = params.c_empty
+    elif empty.any():
+        from scipy.ndimage import distance_transform_edt
+
+        if occupied.any():
+            d = distance_transform_edt(~occupied, sampling=float(voxel_size))[empty]
+        else:  # no observed surface at all: every free voxel is deep in free space
+            d = np.full(int(empty.sum()), np.inf)
+        frac = (d > tol).astype(np.float64) if ramp == 0 else np.clip((d - tol) / ramp, 0.0, 1.0)
+        out[empty] = params.log_p_unobserved + frac * (params.c_empty - params.log_p_unobserved)
+    return out
 
 
 def _as_poses(T: ArrayLike) -> tuple[NDArray[np.float64], bool]:
@@ -205,19 +265,14 @@ class PoseLikelihood:
             raise ValueError("`scene.descriptors` contains NaN or inf values at occupied voxels.")
         if not np.all(np.isfinite(occ_logp)):
             raise ValueError("`classification.log_p` contains NaN or inf values at occupied voxels.")
-        empty = state == EMPTY
-        if self.params.free_space_erosion > 0:
-            from scipy.ndimage import binary_dilation
-
-            near = binary_dilation(state == OCCUPIED, np.ones((3, 3, 3), bool),
-                                   iterations=int(self.params.free_space_erosion))
-            empty &= ~near
+        background = free_space_values(state, self.grid.voxel_size, self.params)
         index = np.full(state.size, UNOBSERVED_CODE, dtype=np.int32)
-        index[empty.reshape(-1)] = EMPTY_CODE
+        index[(state == EMPTY).reshape(-1)] = EMPTY_CODE
         index[occ] = np.arange(occ.size, dtype=np.int32)
         # One unobserved voxel of padding on each side lets the kernel skip bounds checks.
         self._index = np.pad(index.reshape(state.shape), 1, constant_values=UNOBSERVED_CODE)
-        self._cells = _cell_codes(self._index)
+        self._background = np.pad(background, 1, constant_values=self.params.log_p_unobserved)
+        self._cells = _cell_codes(self._index, self._background)
         self._desc = np.ascontiguousarray(occ_desc, dtype=np.float32)
         self._logp = np.ascontiguousarray(occ_logp, dtype=np.float64)
         # Points in Morton (Z-curve) order: neighbours in memory stay neighbours in the grid
@@ -232,9 +287,9 @@ class PoseLikelihood:
     def _args(self) -> tuple[Any, ...]:
         p = self.params
         return (
-            self._points, self._z, self._index, self._cells, self._desc, self._logp,
-            self.grid.origin, 1.0 / self.grid.voxel_size, self.grid.offset,
-            np.float32(p.beta), p.c_empty, p.log_p_unobserved,
+            self._points, self._z, self._index, self._cells, self._background, self._desc,
+            self._logp, self.grid.origin, 1.0 / self.grid.voxel_size, self.grid.offset,
+            np.float32(p.beta), p.log_p_unobserved,
         )
 
     def __call__(self, T: ArrayLike) -> float | NDArray[np.float64]:
