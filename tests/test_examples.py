@@ -167,3 +167,21 @@ def test_bench_eq2_on_a_real_frame(tmp_path: Path) -> None:
     assert row["solve_ms"] > 0 and row["certify_ms"] > 0
     assert isinstance(row["eq2_wins"], bool) and row["hypothesis"]
     assert "pairs 1 |" in proc.stdout and "load average" in proc.stdout
+
+
+@pytest.mark.slow
+def test_bench_arc_reports_the_ratio_per_frame_and_part() -> None:
+    require_data("ycbv", "0000")
+    proc = _run("bench_arc.py", "--frames", "000001", "--step", "10", "--no-refine",
+                "--tolerance", "0.0075", "--ramp", "0.005")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    rows = [x.split() for x in proc.stdout.splitlines() if x.startswith("000001")]
+    parts = {r[1] if r[1] != "eq." else "eq1": r for r in rows}
+    assert {"eq1", "body", "handle"} <= set(parts), proc.stdout
+    assert "free_space_tolerance" in proc.stdout and "eq. (1) ratio over 1 frames" in proc.stdout
+    # The handle is hidden inside most of the arc and emerges outside it: its share drops
+    # outside by more than twice its range inside, and so does eq. (1).
+    rng_in, drop = (float(x) for x in parts["handle"][-4:-2])
+    assert drop > 2 * rng_in, proc.stdout
+    rng_in, drop = (float(x) for x in parts["eq1"][-4:-2])
+    assert drop > 2 * rng_in, proc.stdout
