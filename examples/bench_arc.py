@@ -42,7 +42,26 @@ def body_axis_offset(points: np.ndarray, handle_x: float = 0.045) -> np.ndarray:
     return np.array([c[0], c[1], 0.0])
 
 
-def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine: bool):  # noqa: ANN201
+def symmetrised_body(obj, C: np.ndarray, copies: int, handle_x: float = 0.045):  # noqa: ANN001, ANN201
+    """The model with its body replaced by ``copies`` turns of itself about the body axis (a
+    diagnostic: a rotation-invariant sampling of the body), and the per-point weights
+    (``1 / copies`` on the body) that keep eq. (1) on the same scale."""
+    from scipy.spatial.transform import Rotation
+
+    from certpose.geometry.objects import ObjectModel
+
+    body = obj.points[:, 0] < handle_x
+    pts, desc, w = [obj.points[~body]], [obj.descriptors[~body]], [np.ones(int((~body).sum()))]
+    for k in range(copies):
+        Rz = Rotation.from_rotvec([0.0, 0.0, 2 * np.pi * k / copies]).as_matrix()
+        pts.append((obj.points[body] - C) @ Rz.T + C)
+        desc.append(obj.descriptors[body])
+        w.append(np.full(int(body.sum()), 1.0 / copies))
+    return ObjectModel(np.concatenate(pts), np.concatenate(desc), name=obj.name), np.concatenate(w)
+
+
+def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine: bool,  # noqa: ANN201
+            symmetrise: int = 0):
     from scipy.optimize import minimize
     from scipy.spatial.transform import Rotation
 
@@ -64,10 +83,18 @@ def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine:
     obj = object_from_points(pts, bb, voxel_size=params.voxel_size, name="025_mug")
     cls = classify_from_mask(scene, yf.frame.with_mask(mask), params=params.classifier)
     lp = replace(params.likelihood or LikelihoodParams(), **overrides)
-    lik = PoseLikelihood(scene, cls, obj, params=lp)
-    lik0 = PoseLikelihood(scene, cls, obj, params=replace(lp, beta=0.0))
     G = yf.poses["025_mug"]
     C = body_axis_offset(pts)
+    weights = None
+    if symmetrise:
+        obj, weights = symmetrised_body(obj, C, symmetrise)
+    lik1 = PoseLikelihood(scene, cls, obj, params=lp)
+    lik01 = PoseLikelihood(scene, cls, obj, params=replace(lp, beta=0.0))
+
+    def weighted(L):  # noqa: ANN001, ANN202
+        return L if weights is None else (lambda T: float(weights @ L.point_terms(T)))
+
+    lik, lik0 = weighted(lik1), weighted(lik01)
 
     def pose(theta: float, x: np.ndarray) -> np.ndarray:
         # Turn about the body axis through C (object frame), then tilt (x[:2], rad) and shift
@@ -90,7 +117,7 @@ def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine:
         T = pose(a, x)
         full.append(float(lik(T)))
         geo.append(float(lik0(T)))
-        hand.append(float(lik.point_terms(T)[handle].sum()))
+        hand.append(float(lik1.point_terms(T)[handle].sum()))
     full, hand = np.asarray(full), np.asarray(hand)
     return full, np.asarray(geo), full - hand, hand
 
@@ -120,6 +147,10 @@ def main() -> None:
                     help="LikelihoodParams.free_space_ramp (metres)")
     ap.add_argument("--log-p-unobserved", type=float, default=None, metavar="V",
                     help="LikelihoodParams.log_p_unobserved")
+    ap.add_argument("--symmetrise-body", type=int, default=0, metavar="M",
+                    help="diagnostic: replace the body by M turns of itself about its axis (weights "
+                         "1/M), a rotation-invariant sampling; shows what the body's point sampling "
+                         "adds to the range inside the arc")
     ap.add_argument("--no-refine", action="store_true", help="raw poses (no 5-DOF refinement)")
     args = ap.parse_args()
     if not (args.data / "0000").is_dir():
@@ -137,11 +168,13 @@ def main() -> None:
         overrides["free_space_ramp"] = args.ramp
     angles = np.arange(-60.0, 120.0 + 1e-9, args.step)
     print(f"load average {os.getloadavg()[0]:.2f}; arc {ARC} deg, guard {args.guard} deg, "
-          f"likelihood overrides {overrides or 'none'}, {'raw' if args.no_refine else 'refined'}")
+          f"likelihood overrides {overrides or 'none'}, {'raw' if args.no_refine else 'refined'}"
+          + (f", body symmetrised x{args.symmetrise_body}" if args.symmetrise_body else ""))
     print(f"{'frame':<12} {'part':<10} {'range in':>9} {'drop':>8} {'ratio':>7} {'mean |step|':>12}")
     ratios = []
     for f in args.frames.split(","):
-        full, geo, body, hand = profile(args.data, f"0000/{f}", angles, overrides, not args.no_refine)
+        full, geo, body, hand = profile(args.data, f"0000/{f}", angles, overrides, not args.no_refine,
+                                        args.symmetrise_body)
         for name, v in (("eq. (1)", full), ("beta = 0", geo), ("body", body), ("handle", hand)):
             s = arc_stats(angles, v, args.guard)
             print(f"{f:<12} {name:<10} {s['range_in']:>9.1f} {s['drop']:>8.1f} {s['ratio']:>7.2f} "
