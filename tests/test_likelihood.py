@@ -223,6 +223,7 @@ def test_free_space_values_graded_by_distance_to_the_surface():
     # 7.5 mm, then linear to c_empty at 17.5 mm, c_empty beyond.
     expected = [0.0, lpu, lpu + 0.25 * (c - lpu), lpu + 0.75 * (c - lpu)] + [c] * 8
     np.testing.assert_allclose(v[1, 1], expected, atol=1e-12)
+    assert np.all(v[1, 1, 4:] == c)  # exactly: the kernel's fast path for deep free space
     np.testing.assert_allclose(v[2, 2, 1:], lpu)  # unobserved voxels keep the prior
     # The default (no tolerance, no ramp) is the exact model: every free voxel pays c_empty.
     v0 = free_space_values(scene.state, scene.voxel_size, LikelihoodParams(c_empty=c))

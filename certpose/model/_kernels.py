@@ -4,9 +4,12 @@ Grid encoding shared with the Python side: ``index[x, y, z] >= 0`` is the row of
 voxel in the compact arrays; at every other voxel (observed free space, ``EMPTY_CODE``, or
 unobserved space, ``UNOBSERVED_CODE``) the per-voxel value is ``background[x, y, z]`` (the
 free-space penalty, possibly graded by the distance to the observed surface, or the unobserved
-prior). ``cells[x, y, z]`` is ``UNIFORM`` when the 8 voxel centres around the cell share one
-background value (no occupied corner), so the kernel returns it without interpolating. Points
-outside the (padded) grid count as unobserved.
+prior; unobserved voxels always hold ``c_unobs``). ``cells[x, y, z]`` tells when the 8 voxel
+centres around a cell share one value and no occupied corner, so the kernel returns it without
+interpolating: ``UNIFORM_EMPTY`` (all ``c_empty``) and ``UNIFORM_UNOBSERVED`` (all unobserved)
+without reading ``background`` (the common cells, kept free of a second memory access),
+``UNIFORM`` (another shared value, e.g. graded free space) from it. Points outside the (padded)
+grid count as unobserved.
 """
 
 from __future__ import annotations
@@ -22,17 +25,17 @@ F1, F2, F3 = nt.float64[::1], nt.float64[:, ::1], nt.float64[:, :, ::1]
 S2, I3, B3 = nt.float32[:, ::1], nt.int32[:, :, ::1], nt.int8[:, :, ::1]
 f4, f8 = nt.float32, nt.float64
 # Everything after the pose: points, descriptors, grid index, cell states, background values,
-# voxel descriptors, log p_O, origin, 1 / voxel size, offset, beta, c_unobs.
-_MODEL = (F2, S2, I3, B3, F3, S2, F1, F1, f8, f8, f4, f8)
+# voxel descriptors, log p_O, origin, 1 / voxel size, offset, beta, c_empty, c_unobs.
+_MODEL = (F2, S2, I3, B3, F3, S2, F1, F1, f8, f8, f4, f8, f8)
 
 EMPTY_CODE = -1
 UNOBSERVED_CODE = -2
-MIXED, UNIFORM = 0, 1
+MIXED, UNIFORM_EMPTY, UNIFORM_UNOBSERVED, UNIFORM = 0, 1, 2, 3
 
 
 @njit(inline="always")
 def _point_term(index, cells, background, desc, logp, zi, qx, qy, qz, origin, inv_vs, offset, beta,
-                c_unobs):  # pragma: no cover
+                c_empty, c_unobs):  # pragma: no cover
     # Continuous coordinates in the padded grid (one unobserved voxel on each side), integer
     # values at voxel centres.
     ux = (qx - origin[0]) * inv_vs - offset + 1.0
@@ -47,8 +50,13 @@ def _point_term(index, cells, background, desc, logp, zi, qx, qy, qz, origin, in
     x0 = int(fx0)
     y0 = int(fy0)
     z0 = int(fz0)
-    # Cells whose 8 corners share one background value need no interpolation.
-    if cells[x0, y0, z0] == UNIFORM:
+    # Cells whose 8 corners share one non-occupied value need no interpolation.
+    cell = cells[x0, y0, z0]
+    if cell == UNIFORM_EMPTY:
+        return c_empty
+    if cell == UNIFORM_UNOBSERVED:
+        return c_unobs
+    if cell == UNIFORM:
         return background[x0, y0, z0]
     ax = ux - fx0
     ay = uy - fy0
@@ -66,14 +74,16 @@ def _point_term(index, cells, background, desc, logp, zi, qx, qy, qz, origin, in
                     for k in range(zi.shape[0]):
                         s += desc[v, k] * zi[k]
                     acc += w * (logp[v] + beta * s)
-                else:
+                elif v == EMPTY_CODE:
                     acc += w * background[x0 + dx, y0 + dy, z0 + dz]
+                else:
+                    acc += w * c_unobs
     return acc
 
 
 @njit(fastmath=True, inline="always")
 def _pose_total(T, points, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset, beta,
-                c_unobs):  # pragma: no cover - compiled
+                c_empty, c_unobs):  # pragma: no cover - compiled
     R00, R01, R02, t0 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
     R10, R11, R12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
     R20, R21, R22, t2 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
@@ -84,13 +94,13 @@ def _pose_total(T, points, zdesc, index, cells, background, desc, logp, origin, 
         qy = R10 * px + R11 * py + R12 * pz + t1
         qz = R20 * px + R21 * py + R22 * pz + t2
         total += _point_term(index, cells, background, desc, logp, zdesc[i], qx, qy, qz, origin,
-                             inv_vs, offset, beta, c_unobs)
+                             inv_vs, offset, beta, c_empty, c_unobs)
     return total
 
 
 @kernel(F3, *_MODEL, fastmath=True, nogil=True)
 def eq1_batch(T, points, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset, beta,
-              c_unobs):  # pragma: no cover - compiled
+              c_empty, c_unobs):  # pragma: no cover - compiled
     """Sum of per-point log-localisation terms for each of the ``B`` poses ``T`` (B, 4, 4).
 
     The one eq. (1) kernel. It releases the GIL, so :mod:`certpose.model.likelihood` runs
@@ -99,13 +109,13 @@ def eq1_batch(T, points, zdesc, index, cells, background, desc, logp, origin, in
     out = np.empty(T.shape[0])
     for b in range(T.shape[0]):
         out[b] = _pose_total(T[b], points, zdesc, index, cells, background, desc, logp, origin, inv_vs,
-                             offset, beta, c_unobs)
+                             offset, beta, c_empty, c_unobs)
     return out
 
 
 @kernel(F2, *_MODEL, fastmath=True, nogil=True)
 def eq1_points(T, points, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset, beta,
-               c_unobs):  # pragma: no cover - compiled
+               c_empty, c_unobs):  # pragma: no cover - compiled
     """Per-point terms ``(N,)`` for one pose ``T`` (4, 4)."""
     N = points.shape[0]
     out = np.empty(N)
@@ -115,5 +125,5 @@ def eq1_points(T, points, zdesc, index, cells, background, desc, logp, origin, i
         qy = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
         qz = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
         out[i] = _point_term(index, cells, background, desc, logp, zdesc[i], qx, qy, qz, origin, inv_vs,
-                             offset, beta, c_unobs)
+                             offset, beta, c_empty, c_unobs)
     return out

@@ -134,19 +134,30 @@ def _morton_order(points: NDArray[np.float64], cell: float) -> NDArray[np.int64]
     return np.argsort(code, kind="stable")
 
 
-def _cell_codes(index: NDArray[np.int32], background: NDArray[np.float64]) -> NDArray[np.int8]:
-    """Per cell (between 8 neighbouring voxel centres): ``UNIFORM`` when no corner is occupied and
-    all 8 share one background value, else ``MIXED``."""
-    from certpose.model._kernels import MIXED, UNIFORM
+def _cell_codes(index: NDArray[np.int32], background: NDArray[np.float64], c_empty: float) -> NDArray[np.int8]:
+    """Per cell (between 8 neighbouring voxel centres), see :mod:`certpose.model._kernels`:
+    ``UNIFORM_UNOBSERVED`` (8 unobserved corners), ``UNIFORM_EMPTY`` (8 non-occupied corners
+    holding ``c_empty``), ``UNIFORM`` (8 non-occupied corners sharing another value) or
+    ``MIXED``."""
+    from certpose.model._kernels import (
+        MIXED,
+        UNIFORM,
+        UNIFORM_EMPTY,
+        UNIFORM_UNOBSERVED,
+        UNOBSERVED_CODE,
+    )
 
     def corners(a: NDArray[Any]) -> list[NDArray[Any]]:
         return [a[dx:a.shape[0] - 1 + dx, dy:a.shape[1] - 1 + dy, dz:a.shape[2] - 1 + dz]
                 for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
 
     ci, cb = corners(index), corners(background)
-    uniform = np.logical_and.reduce([c < 0 for c in ci] + [b == cb[0] for b in cb[1:]])
-    cells = np.full(uniform.shape, MIXED, dtype=np.int8)
-    cells[uniform] = UNIFORM
+    free = np.logical_and.reduce([c < 0 for c in ci])
+    same = free & np.logical_and.reduce([b == cb[0] for b in cb[1:]])
+    cells = np.full(free.shape, MIXED, dtype=np.int8)
+    cells[same] = UNIFORM
+    cells[same & (cb[0] == c_empty)] = UNIFORM_EMPTY
+    cells[np.logical_and.reduce([c == UNOBSERVED_CODE for c in ci])] = UNIFORM_UNOBSERVED
     return cells
 
 
@@ -198,7 +209,9 @@ def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodPar
         else:  # no observed surface at all: every free voxel is deep in free space
             d = np.full(int(empty.sum()), np.inf)
         frac = (d > tol).astype(np.float64) if ramp == 0 else np.clip((d - tol) / ramp, 0.0, 1.0)
-        out[empty] = params.log_p_unobserved + frac * (params.c_empty - params.log_p_unobserved)
+        graded = params.log_p_unobserved + frac * (params.c_empty - params.log_p_unobserved)
+        # Exactly c_empty deep in free space (the kernel's fast path tests for it).
+        out[empty] = np.where(frac >= 1.0, params.c_empty, graded)
     return out
 
 
@@ -277,7 +290,7 @@ class PoseLikelihood:
         # One unobserved voxel of padding on each side lets the kernel skip bounds checks.
         self._index = np.pad(index.reshape(state.shape), 1, constant_values=UNOBSERVED_CODE)
         self._background = np.pad(background, 1, constant_values=self.params.log_p_unobserved)
-        self._cells = _cell_codes(self._index, self._background)
+        self._cells = _cell_codes(self._index, self._background, self.params.c_empty)
         self._desc = np.ascontiguousarray(occ_desc, dtype=np.float32)
         self._logp = np.ascontiguousarray(occ_logp, dtype=np.float64)
         # Points in Morton (Z-curve) order: neighbours in memory stay neighbours in the grid
@@ -294,7 +307,7 @@ class PoseLikelihood:
         return (
             self._points, self._z, self._index, self._cells, self._background, self._desc,
             self._logp, self.grid.origin, 1.0 / self.grid.voxel_size, self.grid.offset,
-            np.float32(p.beta), p.log_p_unobserved,
+            np.float32(p.beta), p.c_empty, p.log_p_unobserved,
         )
 
     def __call__(self, T: ArrayLike) -> float | NDArray[np.float64]:
