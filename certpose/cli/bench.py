@@ -94,8 +94,8 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--scheduler", metavar="ADDRESS", default=None,
                    help="send the work to a running Dask scheduler (e.g. tcp://host:8786)")
     p.add_argument("--batch-size", type=int, default=None, metavar="K",
-                   help="protocol instances per Dask task (default: up to 50, two tasks per "
-                        "worker at least)")
+                   help="protocol instances per Dask task (default: up to 50, fewer towards "
+                        "the end so that the workers finish together)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     add_common(p, seed_help="instance seed (default: 0)",
                json_help="also write the summary as JSON to OUT ('-': standard output)")
