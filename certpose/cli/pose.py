@@ -84,12 +84,11 @@ def kernels(argv: list[str]) -> tuple[str, ...]:
     """The compiled kernels of eq. (1), the eq. (2) solve and its certificate, which come after
     the scene: on a first run they compile meanwhile (read from the raw arguments)."""
     from solvers.certify import CERTIFY_KERNELS
-    from solvers.registration import PRUNED_SOLVE_KERNELS
+    from solvers.registration import LARGE_CORE_KERNELS, PRUNED_SOLVE_KERNELS
 
     # eq. (2)'s consistency graphs have cores of hundreds of vertices: the bitset clique search,
     # the longest compilation, goes first (the command compiles the small ones when it gets there).
-    solve = ("solvers.registration._clique_kernels:max_clique_bitset", *PRUNED_SOLVE_KERNELS,
-             "certpose.model._kernels:eq1_batch")
+    solve = (*LARGE_CORE_KERNELS, *PRUNED_SOLVE_KERNELS, "certpose.model._kernels:eq1_batch")
     return solve + (() if "--no-certify" in argv else CERTIFY_KERNELS)
 
 

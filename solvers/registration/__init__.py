@@ -15,6 +15,7 @@ from solvers.registration.pruning import (
     vote_translation,
 )
 from solvers.registration.solve import (
+    LARGE_CORE_KERNELS,
     PRUNED_SOLVE_KERNELS,
     GNCParams,
     PruningParams,
@@ -28,6 +29,7 @@ from solvers.registration.solve import (
 )
 
 __all__ = [
+    "LARGE_CORE_KERNELS",
     "PRUNED_SOLVE_KERNELS",
     "GNCParams",
     "PruningParams",

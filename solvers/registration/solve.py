@@ -18,6 +18,7 @@ from solvers.result import RegistrationResult, SolverStatus
 from solvers.validation import check_count
 
 __all__ = [
+    "LARGE_CORE_KERNELS",
     "PRUNED_SOLVE_KERNELS",
     "GNCParams",
     "PruningParams",
@@ -105,6 +106,10 @@ PRUNED_SOLVE_KERNELS = tuple(f"solvers.registration._kernels:{name}" for name in
     "scalar_tls_rows", "weighted_spread"))
 """The compiled kernels every pruned solve calls (for :func:`solvers.jit.warm_up`); the exact
 clique search (``max_clique_bnb``) runs only when the peeled graph is not a clique."""
+
+LARGE_CORE_KERNELS = ("solvers.registration._clique_kernels:max_clique_bitset",)
+"""The exact clique search of cores over a few hundred vertices (dense graphs of real features,
+e.g. eq. (2) problems), for :func:`solvers.jit.warm_up`."""
 
 
 def degeneracy(
