@@ -29,6 +29,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -203,7 +204,14 @@ def wait(modules: Iterable[str] | None = None) -> None:
     has not started (from the back of its list), then wait until the helper has cached the ones
     it took, meanwhile compiling here the warm-up's other kernels the helper has not reached.
     The helper goes on with the rest."""
-    wanted = None if modules is None else set(modules)
+    with _WAIT_LOCK:  # threads (e.g. a certifier thread) share the warm-ups
+        _wait(None if modules is None else set(modules))
+
+
+_WAIT_LOCK = threading.RLock()
+
+
+def _wait(wanted: set[str] | None) -> None:
     for item in list(_PENDING):
         specs = [s for s in item.specs if wanted is None or s.module in wanted]
         if not specs:

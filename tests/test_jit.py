@@ -160,3 +160,28 @@ def test_commands_warm_what_they_will_call():
     assert jit.warm_up([]) == 0
     names = {f"{s.module}:{s.name}" for s in jit.declared(MODULES)}
     assert set(full) <= names
+
+
+@pytest.mark.slow
+def test_threads_share_a_warm_up(tmp_path):
+    """The MLE certifies in a thread: two threads reaching warmed modules at once."""
+    out = _run("""
+        import json, threading
+        from solvers import jit
+        jit.warm_up(["solvers.registration._kernels:row_degrees",
+                     "solvers.registration._kernels:k_core"])
+        errors = []
+        def load():
+            try:
+                jit.compiled("solvers.registration._kernels")
+            except Exception as exc:
+                errors.append(repr(exc))
+        threads = [threading.Thread(target=load) for _ in range(4)]
+        [t.start() for t in threads]
+        [t.join() for t in threads]
+        specs = jit.declared(["solvers.registration._kernels"])
+        print(json.dumps({"errors": errors, "left": jit.pending(),
+                          "cached": [jit.is_cached(s) for s in specs
+                                     if s.name in ("row_degrees", "k_core")]}))
+    """, tmp_path)
+    assert out == {"errors": [], "left": [], "cached": [True, True]}
