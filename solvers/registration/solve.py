@@ -102,10 +102,11 @@ class PruningParams:
 
 
 PRUNED_SOLVE_KERNELS = tuple(f"solvers.registration._kernels:{name}" for name in (
-    "consistency_matrix", "row_degrees", "multistart_greedy_clique", "k_core", "gnc_tls",
-    "scalar_tls_rows", "weighted_spread"))
-"""The compiled kernels every pruned solve calls (for :func:`solvers.jit.warm_up`); the exact
-clique search (``max_clique_bnb``) runs only when the peeled graph is not a clique."""
+    "gnc_tls", "weighted_spread", "multistart_greedy_clique", "k_core", "scalar_tls_rows",
+    "consistency_matrix", "row_degrees"))
+"""The compiled kernels every pruned solve calls, longest compilation first (for
+:func:`solvers.jit.warm_up`: its helper takes them from the front, the command from the back);
+the exact clique search (``max_clique_bnb``) runs only when the peeled graph is not a clique."""
 
 LARGE_CORE_KERNELS = ("solvers.registration._clique_kernels:max_clique_bitset",)
 """The exact clique search of cores over a few hundred vertices (dense graphs of real features,
