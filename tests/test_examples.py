@@ -156,11 +156,12 @@ def test_bench_eq2_on_a_real_frame(tmp_path: Path) -> None:
     require_data("ycbv", "0002")
     out = tmp_path / "eq2.jsonl"
     proc = _run("bench_eq2.py", "--ycbv", str(YCBV), "--scenes", "0002", "--frames", "000001",
-                "--objects", "006_mustard_bottle", "--json", str(out))
+                "--objects", "006_mustard_bottle", "--num-object-points", "100", "--top-k", "40",
+                "--json", str(out))
     assert proc.returncode == 0, proc.stdout + proc.stderr
     row = json.loads(out.read_text().splitlines()[0])
     assert row["case"] == "0002/000001 006_mustard_bottle"
-    # The default eq. (2): 100 object points x top-40, some of them right at the true pose.
+    # The wide eq. (2): 100 object points x top-40, some of them right at the true pose.
     assert row["N"] == 4000
     assert 0 < row["points"] <= row["inliers"] <= row["N"]
     assert row["adds_cm"] > 0 and 0 <= row["rot_deg"] <= 180

@@ -20,6 +20,7 @@ from certpose.estimation.mle import (
 )
 from certpose.geometry.objects import ObjectModel
 from certpose.model.classifier import ClassifierStatus, ObjectClassification
+from certpose.model.eq2 import WIDE_EQ2
 from certpose.model.grid import EMPTY, OCCUPIED
 from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 from certpose.model.scene import SceneField
@@ -289,8 +290,8 @@ def test_ties_of_a_symmetric_box_are_reported_as_modes():
 
 
 
-def test_eq2_defaults_keep_the_right_voxels_on_a_real_frame():
-    """Issue 10: at the true pose, eq. (2)'s candidates must hold the right voxel for enough
+def test_wide_eq2_keeps_the_right_voxels_on_a_real_frame():
+    """Issue 10: at the true pose, the wide eq. (2)'s candidates hold the right voxel for enough
     object points that the truth is a consistent set no random rotation matches."""
     from certpose.estimation.pipeline import PoseParams
     from certpose.geometry.features import FPFHBackbone
@@ -318,8 +319,8 @@ def test_eq2_defaults_keep_the_right_voxels_on_a_real_frame():
         ok = eq2.problem.residuals_sq(R, t) <= eq2.problem.cbar2
         return int(np.unique(eq2.object_index[ok]).size)
 
-    eq2 = build_eq2_problem(scene, cls, obj, rng=0)  # the defaults
-    assert eq2.problem.n == Eq2Params().num_object_points * Eq2Params().top_k
+    eq2 = build_eq2_problem(scene, cls, obj, params=WIDE_EQ2, rng=0)
+    assert eq2.problem.n == WIDE_EQ2.num_object_points * WIDE_EQ2.top_k
     at_truth = points_with_an_inlier(eq2, T[:3, :3], T[:3, 3])
     assert at_truth >= 8
     # No random rotation about the object's true centre gathers as many.
@@ -327,7 +328,7 @@ def test_eq2_defaults_keep_the_right_voxels_on_a_real_frame():
     rand = [points_with_an_inlier(eq2, R, centre - R @ obj.centroid)
             for R in Rotation.random(200, random_state=0).as_matrix()]
     assert max(rand) < at_truth
-    # The former defaults (40 x top-4) kept the right voxel for almost no point.
-    old = build_eq2_problem(scene, cls, obj, params=Eq2Params(num_object_points=40, top_k=4),
-                            rng=0)
-    assert points_with_an_inlier(old, T[:3, :3], T[:3, 3]) < at_truth / 2
+    # The defaults (40 x top-4, certifiable) keep the right voxel for far fewer points.
+    default = build_eq2_problem(scene, cls, obj, params=Eq2Params(), rng=0)
+    assert default.problem.n == 160
+    assert points_with_an_inlier(default, T[:3, :3], T[:3, 3]) < at_truth / 2

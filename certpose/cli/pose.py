@@ -82,14 +82,14 @@ def _fmt(x: float | None, scale: float = 1.0, unit: str = "", digits: int = 2) -
 
 def kernels(argv: list[str]) -> tuple[str, ...]:
     """The compiled kernels of eq. (1), the eq. (2) solve and its certificate, which come after
-    the scene: on a first run they compile meanwhile (read from the raw arguments)."""
+    the scene: on a first run they compile meanwhile (read from the raw arguments). Longest
+    compilations first: the warm-up's helper takes the front, the command the back."""
     from solvers.certify import CERTIFY_KERNELS
-    from solvers.registration import LARGE_CORE_KERNELS, PRUNED_SOLVE_KERNELS
+    from solvers.registration import PRUNED_SOLVE_KERNELS
 
-    # eq. (2)'s consistency graphs have cores of hundreds of vertices: the bitset clique search,
-    # the longest compilation, goes first (the command compiles the small ones when it gets there).
-    solve = (*LARGE_CORE_KERNELS, *PRUNED_SOLVE_KERNELS, "certpose.model._kernels:eq1_batch")
-    return solve + (() if "--no-certify" in argv else CERTIFY_KERNELS)
+    certify = () if "--no-certify" in argv else CERTIFY_KERNELS
+    return (PRUNED_SOLVE_KERNELS[0], *certify, "solvers.registration._kernels:max_clique_bnb",
+            *PRUNED_SOLVE_KERNELS[1:], "certpose.model._kernels:eq1_batch")
 
 
 def run(args: argparse.Namespace) -> int:

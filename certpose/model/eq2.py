@@ -39,7 +39,7 @@ if TYPE_CHECKING:
     from certpose.model.likelihood import LikelihoodParams
     from solvers import RegistrationResult, WeightedTLSProblem
 
-__all__ = ["Eq2Params", "Eq2Problem", "build_eq2_problem", "solve_eq2", "certify_eq2"]
+__all__ = ["Eq2Params", "Eq2Problem", "WIDE_EQ2", "build_eq2_problem", "solve_eq2", "certify_eq2"]
 
 log = logging.getLogger(__name__)
 
@@ -62,23 +62,26 @@ class Eq2Params:
 
     Notes
     -----
-    The defaults (100 x top-40, N = 4000, one voxel) were chosen on the 60 YCB-Video pairs of
-    the shared scenes (geometry-only FPFH models, mask classifier; ``examples/bench_eq2.py``).
-    FPFH barely ranks the right voxel above the others: at the true pose its median rank among
-    a point's candidates is about a third of the classifier's positives (150-250 of 300-1500).
-    With 40 x top-4 the right voxel was a candidate for a median of 1 object point (none in 19
-    pairs) and the raw minimiser was within 1 cm ADD-S in 14 of 60 pairs; with 100 x top-40,
-    for a median of 9 (3-25; on the frames checked, more than any of 200 random rotations
-    about the object's centre gathers), within 1 cm in 31 of 60. A noise bound of 1.5 voxels gave 32 of 60 and slower certificates;
-    N = 10,000 (200 x 50, 100 x 100) did no better on the 18 first frames (9-10 of 18, as
-    100 x 40). N is capped by the certifier, not by the solve (pruning + GNC: 0.2-0.7 s at
-    N = 4000): its clique bound builds the O(N^2) consistency graph whatever its time limit,
-    1-3 s at N = 4000 and 4-8 s at N = 10,000 (2 cores at load 10-13), and it certifies none
-    of these problems (40 x top-4: all 60, of a minimiser 1-4 cm off in most).
+    Measured on the 60 YCB-Video pairs of the shared scenes (geometry-only FPFH models, mask
+    classifier; ``examples/bench_eq2.py``). FPFH barely ranks the right voxel above the others:
+    at the true pose its median rank among a point's candidates is about a third of the
+    classifier's positives (150-250 of 300-1500). With the defaults (40 x top-4, N = 160) the
+    right voxel is a candidate for a median of 1 object point (none in 19 pairs) and the raw
+    minimiser is within 1 cm ADD-S in 14 of 60 pairs; with ``WIDE_EQ2`` (100 x top-40,
+    N = 4000), for a median of 9 object points (3-25; more than any of 200 random rotations about
+    the object's centre gathers), within 1 cm in 31 of 60 (20 of them 180-deg flips). Neither
+    carries the MLE: the refined eq. (2) pose wins, or lands within 0.5 cm and 2 deg of the
+    winner, in 6 of 60 pairs with the defaults and 3 of 60 with ``WIDE_EQ2``. The defaults stay
+    because the wider problem costs its certificate (the clique bound does not close at
+    N = 4000: none of the 60 is certified, against all 60 at N = 160, where the certificate
+    covers the eq. (2) minimiser, not the returned pose), about 5-14% of the MLE time and a
+    second compiled clique search on a first run. A noise bound of 1.5 voxels gave 32 of 60;
+    N = 10,000 did no better than 4000 on the 18 first frames, and the certifier's O(N^2)
+    graph then costs 4-8 s.
     """
 
-    num_object_points: int = 100
-    top_k: int = 40
+    num_object_points: int = 40
+    top_k: int = 4
     noise_bound: float | None = None
 
     def __post_init__(self) -> None:
@@ -90,6 +93,11 @@ class Eq2Params:
             math.isfinite(self.noise_bound) and self.noise_bound > 0
         ):
             raise ValueError(f"`noise_bound` must be positive, got {self.noise_bound}.")
+
+
+WIDE_EQ2 = Eq2Params(num_object_points=100, top_k=40)
+"""Eq. (2) with the right voxel among the candidates of many more object points (see
+:class:`Eq2Params`'s notes): a better raw minimiser, no certificate."""
 
 
 @dataclass(frozen=True, eq=False)
