@@ -51,24 +51,19 @@ def pairs(root: Path, scenes: list[str], frames: list[str] | None, objects: list
 
 def diagnose(root: Path, frame: str, name: str, *, seed: int = 0) -> dict:
     from certpose.estimation.mle import estimate_mle, refine_pose
-    from certpose.estimation.pipeline import YCBV_SYMMETRY_AXES, PoseParams, pose_errors
-    from certpose.geometry.features import FPFHBackbone
-    from certpose.geometry.objects import object_from_points
-    from certpose.io.ycbv import load_model_points, load_ycbv_frame
-    from certpose.model.classifier import classify_from_mask
+    from certpose.estimation.pipeline import (
+        YCBV_SYMMETRY_AXES,
+        PoseParams,
+        pose_errors,
+        ycbv_setup,
+    )
     from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
-    from certpose.model.scene import build_scene_field
 
     params = PoseParams()
-    yf = load_ycbv_frame(root, frame)
-    mask = yf.object_mask(name)
-    points = load_model_points(root / "models" / name / "points.xyz")
-    backbone = FPFHBackbone()
-    # The scene and classifier exactly as `certpose pose` builds them (run_ycbv).
-    scene = build_scene_field(yf.frame, backbone, voxel_size=params.voxel_size, roi_mask=mask,
-                              margin=params.roi_margin)
-    obj = object_from_points(points, backbone, voxel_size=params.voxel_size, name=name)
-    cls = classify_from_mask(scene, yf.frame.with_mask(mask), params=params.classifier)
+    # The scene, model and classifier exactly as `certpose pose` builds them.
+    setup = ycbv_setup(root, frame, name, params=params)
+    yf, points = setup.frame, setup.model_points
+    scene, obj, cls = setup.scene, setup.object_model, setup.classification
     lik = PoseLikelihood(scene, cls, obj, params=params.likelihood or LikelihoodParams())
     t0 = time.perf_counter()
     mle = estimate_mle(scene, cls, obj, params=params.mle, likelihood_params=params.likelihood,

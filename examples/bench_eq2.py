@@ -62,24 +62,14 @@ def inliers_at(eq2, T: np.ndarray) -> tuple[int, int]:
 
 def diagnose(root: Path, frame: str, name: str, params, *, mle: bool = True, seed: int = 0) -> dict:
     from certpose.estimation.mle import estimate_mle
-    from certpose.estimation.pipeline import YCBV_SYMMETRY_AXES, pose_errors
-    from certpose.geometry.features import FPFHBackbone
-    from certpose.geometry.objects import object_from_points
-    from certpose.io.ycbv import load_model_points, load_ycbv_frame
-    from certpose.model.classifier import classify_from_mask
+    from certpose.estimation.pipeline import YCBV_SYMMETRY_AXES, pose_errors, ycbv_setup
     from certpose.model.eq2 import build_eq2_problem, certify_eq2, solve_eq2
-    from certpose.model.scene import build_scene_field
     from solvers.lie import rotation_error_deg
 
-    yf = load_ycbv_frame(root, frame)
-    mask = yf.object_mask(name)
-    points = load_model_points(root / "models" / name / "points.xyz")
-    backbone = FPFHBackbone()
-    # The scene, model and classifier as `certpose pose` builds them (run_ycbv).
-    scene = build_scene_field(yf.frame, backbone, voxel_size=params.voxel_size, roi_mask=mask,
-                              margin=params.roi_margin)
-    obj = object_from_points(points, backbone, voxel_size=params.voxel_size, name=name)
-    cls = classify_from_mask(scene, yf.frame.with_mask(mask), params=params.classifier)
+    # The scene, model and classifier as `certpose pose` builds them.
+    setup = ycbv_setup(root, frame, name, params=params)
+    yf, points = setup.frame, setup.model_points
+    scene, obj, cls = setup.scene, setup.object_model, setup.classification
     T_gt = yf.poses[name]  # camera = scene frame in YCB-Video frames
     axis = YCBV_SYMMETRY_AXES.get(name)
     row: dict = {"case": f"{frame} {name}"}

@@ -43,6 +43,8 @@ __all__ = [
     "eq2_problem_data",
     "build_eq2_demo",
     "build_eq2_ycbv",
+    "YCBVSetup",
+    "ycbv_setup",
 ]
 
 log = logging.getLogger(__name__)
@@ -347,21 +349,31 @@ def build_eq2_demo(
                      {"suite": "eq2", "scene": "synthetic mug"})
 
 
-def build_eq2_ycbv(
-    root: str | Path, frame: str, object_name: str, *, rng: np.random.Generator | int | None = 0,
-    params: PoseParams | None = None,
-) -> dict[str, Any]:
-    """The eq. (2) problem of one object in one YCB-Video frame (geometry-only FPFH model, mask
-    classifier), without solving it; keyword arguments of
-    :func:`certpose.io.problems.save_problem`."""
+@dataclass(frozen=True, eq=False)
+class YCBVSetup:
+    """One object in one YCB-Video frame, prepared as ``certpose pose`` prepares it: the frame
+    (:class:`~certpose.io.ycbv.YCBVFrame`, camera = scene frame), the object's mask, the model
+    points (``points.xyz``), the scene field (FPFH, cropped to the mask + margin), the
+    geometry-only object model and the mask classifier."""
+
+    frame: Any
+    mask: NDArray[np.bool_]
+    model_points: NDArray[np.float64]
+    scene: Any
+    object_model: Any
+    classification: Any
+
+
+def ycbv_setup(root: str | Path, frame: str, object_name: str, *,
+               params: PoseParams | None = None) -> YCBVSetup:
+    """The inputs of the MLE for one object in one YCB-Video frame (see :class:`YCBVSetup`), for
+    benchmarks and diagnostics that look inside the estimate."""
     from certpose.geometry.features import FPFHBackbone
     from certpose.geometry.objects import object_from_points
     from certpose.io.ycbv import load_model_points, load_ycbv_frame
     from certpose.model.classifier import classify_from_mask
-    from certpose.model.eq2 import build_eq2_problem
 
     params = params or PoseParams()
-    gen = resolve_rng(rng)
     backbone = FPFHBackbone()
     root = Path(root)
     yf = load_ycbv_frame(root, frame)
@@ -370,8 +382,24 @@ def build_eq2_ycbv(
     scene = _scene_for(yf.frame, mask, params, backbone)
     obj = object_from_points(points, backbone, voxel_size=params.voxel_size, name=object_name)
     cls = classify_from_mask(scene, yf.frame.with_mask(mask), params=params.classifier)
-    eq2 = build_eq2_problem(scene, cls, obj, params=params.mle.eq2,
-                            likelihood_params=params.likelihood, rng=gen)
+    return YCBVSetup(yf, mask, points, scene, obj, cls)
+
+
+def build_eq2_ycbv(
+    root: str | Path, frame: str, object_name: str, *, rng: np.random.Generator | int | None = 0,
+    params: PoseParams | None = None,
+) -> dict[str, Any]:
+    """The eq. (2) problem of one object in one YCB-Video frame (geometry-only FPFH model, mask
+    classifier), without solving it; keyword arguments of
+    :func:`certpose.io.problems.save_problem`."""
+    from certpose.model.eq2 import build_eq2_problem
+
+    params = params or PoseParams()
+    gen = resolve_rng(rng)
+    setup = ycbv_setup(root, frame, object_name, params=params)
+    yf = setup.frame
+    eq2 = build_eq2_problem(setup.scene, setup.classification, setup.object_model,
+                            params=params.mle.eq2, likelihood_params=params.likelihood, rng=gen)
     return _eq2_data(eq2, yf.frame.T_world_camera, yf.poses.get(object_name),
                      YCBV_SYMMETRY_AXES.get(object_name),
                      {"suite": "eq2", "scene": f"ycbv {frame}", "object": object_name})
