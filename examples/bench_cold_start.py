@@ -9,11 +9,12 @@ load on a shared machine disturbs much less than the wall time.
 
 Issue #8's targets: cold ``register --demo`` <= 5 s, cold ``pose --demo`` <= 12 s.
 
-Measured on the 2-core VM, idle (load 1.2-1.5), ``--repeat 3``, best / median wall s: cold
-``register --demo`` 4.90 / 5.05 (8.9 CPU s: the warm-up's helper process compiles beside the
-command, see :mod:`solvers.jit`), ``pose --demo`` 10.99 / 11.78; warm 1.17 / 1.39 and
-6.24 / 6.76. The code before :mod:`solvers.jit`, back to back on the same machine: cold 7.42 /
-8.20 and 16.35 / 17.22, warm 1.24 / 1.32 and 6.10 / 6.14.
+Measured on the 2-core VM, idle (load 1.2-1.5), two runs of ``--repeat 3``, best / median wall
+s: cold ``register --demo`` 4.90 / 5.05 and 5.28 / 5.57 (8.9-10 CPU s: the warm-up's helper
+process compiles beside the command, see :mod:`solvers.jit`), ``pose --demo`` 10.99 / 11.78 and
+9.82 / 10.64; warm 1.17-1.19 / 1.33-1.39 and 5.11-6.24 / 5.27-6.76. The code before
+:mod:`solvers.jit`, back to back on the same machine: cold 7.42 / 8.20 and 16.35 / 17.22, warm
+1.24 / 1.32 and 6.10 / 6.14.
 
 usage::
 
