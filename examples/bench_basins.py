@@ -87,14 +87,19 @@ def diagnose(root: Path, frame: str, name: str, *, seed: int = 0) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_pair_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options that choose the YCB-Video pairs (see :func:`pairs`) and the JSON output."""
     ap.add_argument("--ycbv", type=Path, default=HERE.parents[2] / "shared" / "data" / "ycbv")
     ap.add_argument("--scenes", default="0000,0002,0049,0050")
     ap.add_argument("--frames", nargs="+", default=None)
     ap.add_argument("--objects", nargs="+", default=None)
     ap.add_argument("--min-px", type=int, default=2000)
     ap.add_argument("--json", type=Path, default=None, help="append one JSON line per pair")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_pair_arguments(ap)
     args = ap.parse_args(argv)
     if not args.ycbv.is_dir():
         ap.error(f"--ycbv {args.ycbv} is not a directory")

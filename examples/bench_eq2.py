@@ -45,7 +45,7 @@ import numpy as np
 HERE = Path(__file__).resolve()
 sys.path.insert(0, str(HERE.parent))
 
-from bench_basins import pairs  # noqa: E402  (the same pairs as bench_basins / ycbv_eval)
+from bench_basins import add_pair_arguments, pairs  # noqa: E402  (the pairs of ycbv_eval)
 
 #: "Within" the winner: translation and rotation of the refined eq. (2) pose from the winner's.
 NEAR_TRANSLATION = 0.005
@@ -120,17 +120,12 @@ def diagnose(root: Path, frame: str, name: str, params, *, mle: bool = True, see
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--ycbv", type=Path, default=HERE.parents[2] / "shared" / "data" / "ycbv")
-    ap.add_argument("--scenes", default="0000,0002,0049,0050")
-    ap.add_argument("--frames", nargs="+", default=None)
-    ap.add_argument("--objects", nargs="+", default=None)
-    ap.add_argument("--min-px", type=int, default=2000)
+    add_pair_arguments(ap)
     ap.add_argument("--num-object-points", type=int, default=None)
     ap.add_argument("--top-k", type=int, default=None)
     ap.add_argument("--noise-bound", type=float, default=None, help="metres (default one voxel)")
     ap.add_argument("--no-mle", action="store_true", help="only build, solve and certify eq. (2)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--json", type=Path, default=None, help="append one JSON line per pair")
     args = ap.parse_args(argv)
     if not args.ycbv.is_dir():
         ap.error(f"--ycbv {args.ycbv} is not a directory")
