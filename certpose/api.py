@@ -108,6 +108,8 @@ def register(
     if check_limit(tol, "tol", allow_none=False) == 0:
         raise ValueError("`tol` must be positive, got 0.")
     method = {"auto": "auto", "always": "pruned", "never": "gnc"}[prune]
+    if solver == "gnc" and not certify:
+        return solve_registration(problem, method=method)  # type: ignore[arg-type]  (scales itself)
     # Solve and certify at unit scale: the TLS cost, inliers and certificate bounds do not
     # depend on the units, and the solvers' tolerances are then meaningful at any scale.
     unit, scale = to_unit_scale(problem)

@@ -114,6 +114,19 @@ class WeightedTLSProblem:
         d *= d
         return d.sum(axis=1) / self._beta2
 
+    def residuals_sq_pair(
+        self, rotation: ArrayLike, translation: ArrayLike, other_translation: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """:meth:`residuals_sq` of ``(R, t)`` and of ``(R, t')``, rotating the points once."""
+        R = np.asarray(rotation, dtype=np.float64)
+        moved = self.target - self.source @ R.T
+        out = []
+        for t in (translation, other_translation):
+            d = moved - np.asarray(t, dtype=np.float64).reshape(3)
+            d *= d
+            out.append(d.sum(axis=1) / self._beta2)
+        return out[0], out[1]
+
     @property
     def _beta2(self) -> NDArray[np.float64]:
         beta2 = self.__dict__.get("_beta2_cache")

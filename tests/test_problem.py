@@ -103,3 +103,15 @@ def test_pickle_roundtrip():
     q = pickle.loads(pickle.dumps(p))
     np.testing.assert_array_equal(q.weights, p.weights)
     np.testing.assert_array_equal(q.source, p.source)
+
+
+def test_residuals_of_two_translations_match_one_at_a_time(rng):
+    a = rng.normal(size=(30, 3))
+    b = rng.normal(size=(30, 3))
+    problem = WeightedTLSProblem(a, b, noise_bound=rng.uniform(0.1, 1.0, 30))
+    R = Rotation.random(random_state=1).as_matrix()
+    t1, t2 = rng.normal(size=3), rng.normal(size=3)
+    r1, r2 = problem.residuals_sq_pair(R, t1, t2)
+    np.testing.assert_allclose(r1, problem.residuals_sq(R, t1), rtol=1e-12)
+    np.testing.assert_allclose(r2, problem.residuals_sq(R, t2), rtol=1e-12)
+    assert not np.allclose(r1, r2)

@@ -147,7 +147,7 @@ def maximum_cliques(
     """
     _kernels = compiled("solvers.registration._kernels")
 
-    adj = np.require(adjacency, dtype=np.uint8, requirements=["C", "W"])
+    adj = _kernels.as_kernel_array(adjacency, np.uint8)
     n = adj.shape[0]
     if n == 0:
         return [np.empty(0, dtype=np.int64)], True
@@ -269,10 +269,14 @@ def vote_translation(
     """
     _kernels = compiled("solvers.registration._kernels")
 
-    idx = np.arange(problem.n) if indices is None else np.asarray(indices)
     R = np.asarray(rotation, dtype=np.float64)
-    resid = problem.target[idx] - problem.source[idx] @ R.T
-    beta, w = problem.noise_bound[idx], problem.weights[idx]
+    if indices is None:
+        resid = problem.target - problem.source @ R.T
+        beta, w = problem.noise_bound, problem.weights
+    else:
+        idx = np.asarray(indices)
+        resid = problem.target[idx] - problem.source[idx] @ R.T
+        beta, w = problem.noise_bound[idx], problem.weights[idx]
     # scalar_tls per axis, its setup shared (this runs once per pruned solve: small-N overhead).
     n = resid.shape[0]
     if n == 0:
@@ -285,8 +289,9 @@ def vote_translation(
     ends = np.concatenate([vals - half, vals + half], axis=1)
     order = np.argsort(ends, axis=1, kind="stable")
     t, found = _kernels.scalar_tls_rows(vals, beta, w, cbar2, ends, order)
-    for d in np.flatnonzero(~found):
-        t[d] = np.median(vals[d])  # no piece beats all-outliers: any x is optimal
+    if not found.all():
+        for d in np.flatnonzero(~found):
+            t[d] = np.median(vals[d])  # no piece beats all-outliers: any x is optimal
     return t
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, replace
 from typing import Literal
@@ -101,6 +102,9 @@ class PruningParams:
             check_count(self.clique_max_work, "clique_max_work", minimum=1)
 
 
+_DEFAULT_GNC = GNCParams()
+_DEFAULT_PRUNING = PruningParams()  # frozen: shared, not rebuilt (and re-validated) per solve
+
 PRUNED_SOLVE_KERNELS = tuple(f"solvers.registration._kernels:{name}" for name in (
     "gnc_tls", "weighted_spread", "multistart_greedy_clique", "k_core", "scalar_tls_rows",
     "consistency_matrix", "row_degrees"))
@@ -157,7 +161,7 @@ def _finish(
     r2: NDArray[np.float64] | None = None,
 ) -> RegistrationResult:
     """The result of the pose ``(R, t)``; ``r2``: its residuals when already computed."""
-    if not (np.isfinite(R).all() and np.isfinite(t).all()):
+    if not math.isfinite(R.sum() + t.sum()):  # NaN/inf propagate into the sum
         R, t, r2 = np.eye(3), np.zeros(3), None
         status, message = SolverStatus.NUMERICAL_ERROR, "non-finite pose estimate"
     if r2 is None:
@@ -209,7 +213,7 @@ def _solve_gnc(
     problem: WeightedTLSProblem, *, params: GNCParams | None = None
 ) -> RegistrationResult:
     """See :func:`solve_gnc` (on a unit-scale problem)."""
-    params = params or GNCParams()
+    params = params or _DEFAULT_GNC
     t0 = time.perf_counter()
     R, t, it, converged, ok = _gnc_core(problem, None, params)
     if not ok:
@@ -230,8 +234,8 @@ def _solve_pruned(
     pruning: PruningParams | None = None,
 ) -> RegistrationResult:
     """See :func:`solve_pruned` (on a unit-scale problem)."""
-    params = params or GNCParams()
-    pruning = pruning or PruningParams()
+    params = params or _DEFAULT_GNC
+    pruning = pruning or _DEFAULT_PRUNING
     t0 = time.perf_counter()
     active = np.flatnonzero(problem.weights > 0)
     if active.size < 3:
@@ -260,11 +264,13 @@ def _solve_pruned(
     best: tuple[float, NDArray[np.float64], NDArray[np.float64], int, bool, NDArray[np.float64]] | None = None
     for clique in cliques:
         survivors = active[clique]
-        R, t, it, converged, ok = _gnc_core(problem, survivors, params)
+        # Every correspondence survived (no outliers): no gathered copies.
+        sel = None if survivors.size == problem.n else survivors
+        R, t, it, converged, ok = _gnc_core(problem, sel, params)
         if not ok:
             continue
-        t_vote = vote_translation(problem, R, survivors)
-        r2, r2_vote = problem.residuals_sq(R, t), problem.residuals_sq(R, t_vote)
+        t_vote = vote_translation(problem, R, sel)
+        r2, r2_vote = problem.residuals_sq_pair(R, t, t_vote)
         cost, cost_vote = problem.cost_from_residuals(r2), problem.cost_from_residuals(r2_vote)
         if cost_vote < cost:  # keep whichever translation the full TLS cost prefers
             t, cost, r2 = t_vote, cost_vote, r2_vote
@@ -291,7 +297,7 @@ def _solve_registration(
     pruning: PruningParams | None = None,
 ) -> RegistrationResult:
     """See :func:`solve_registration` (on a unit-scale problem)."""
-    pruning = pruning or PruningParams()
+    pruning = pruning or _DEFAULT_PRUNING
     if method not in ("auto", "gnc", "pruned"):
         raise ValueError(f"`method` must be 'auto', 'gnc' or 'pruned', got {method!r}.")
     if method == "gnc" or (method == "auto" and problem.n > pruning.max_correspondences):
