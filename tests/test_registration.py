@@ -149,6 +149,21 @@ def test_scalar_tls_is_exact_against_a_fine_grid(rng):
         assert c == pytest.approx((w * np.minimum((x - v) ** 2 / beta**2, 1.0)).sum(), abs=1e-9)
 
 
+def test_scalar_tls_is_exact_when_interval_ends_tie(rng):
+    # Values on a grid with half-width noise bounds: every interval ends where the next one
+    # starts, so the sweep meets ties (sorted in any order) at every endpoint.
+    xs = np.linspace(-8, 8, 160_001)
+    for _ in range(50):
+        n = int(rng.integers(2, 12))
+        v = rng.integers(-4, 5, n).astype(float)
+        beta = np.full(n, 0.5)
+        w = rng.choice([0.5, 1.0, 2.0], n)
+        x, c = scalar_tls(v, beta, w)
+        grid = (w * np.minimum((xs[:, None] - v) ** 2 / beta**2, 1.0)).sum(axis=1)
+        assert c <= grid.min() + 1e-9
+        assert c == pytest.approx((w * np.minimum((x - v) ** 2 / beta**2, 1.0)).sum(), abs=1e-9)
+
+
 def test_vote_translation_recovers_the_translation_through_outliers(rng):
     a, b, R, t, inl = make_instance(rng, 60, 0.5)
     p = WeightedTLSProblem(a, b, noise_bound=0.0554)

@@ -223,7 +223,8 @@ def scalar_tls_rows(vals, beta, w, cbar2, ends, order):  # pragma: no cover - co
 def scalar_tls(v, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
     """Exact scalar TLS by sweeping sorted interval endpoints; returns (x, cost, found).
 
-    ``ends`` (2N,) holds ``v - beta cbar`` then ``v + beta cbar``; ``order`` sorts it (stable).
+    ``ends`` (2N,) holds ``v - beta cbar`` then ``v + beta cbar``; ``order`` sorts it (ties in
+    any order: the cost is continuous at every endpoint, so either side of a tie is exact).
     ``found`` is False when no piece beats "all outliers" (then any x is optimal).
     """
     n = v.shape[0]

@@ -246,7 +246,7 @@ def scalar_tls(
     w = np.ones(n) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
     cbar = float(np.sqrt(cbar2))
     ends = np.concatenate([v - beta * cbar, v + beta * cbar])
-    order = np.argsort(ends, kind="stable")
+    order = np.argsort(ends)  # any order of ties: the cost is continuous at every endpoint
     x, cost, found = _kernels.scalar_tls(
         _kernels.as_kernel_array(v), _kernels.as_kernel_array(beta), _kernels.as_kernel_array(w),
         float(cbar2), ends, order,
@@ -287,7 +287,7 @@ def vote_translation(
     vals = np.ascontiguousarray(resid.T)
     half = beta * np.sqrt(cbar2)
     ends = np.concatenate([vals - half, vals + half], axis=1)
-    order = np.argsort(ends, axis=1, kind="stable")
+    order = np.argsort(ends, axis=1)  # ties in any order (see scalar_tls): quicksort is faster
     t, found = _kernels.scalar_tls_rows(vals, beta, w, cbar2, ends, order)
     if not found.all():
         for d in np.flatnonzero(~found):
