@@ -1,7 +1,5 @@
 """``python -m certpose``: the same as the ``certpose`` script."""
 
-import sys
+from certpose.cli import run
 
-from certpose.cli import main
-
-sys.exit(main())
+run()

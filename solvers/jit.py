@@ -22,6 +22,7 @@ the callers use only that one (a second signature would be a second compilation)
 from __future__ import annotations
 
 import atexit
+import gc
 import importlib
 import logging
 import os
@@ -119,10 +120,16 @@ def _claim(lock_dir: str, spec: KernelSpec) -> bool:
 def _compile(specs: Sequence[KernelSpec], lock_dir: str | None = None) -> int:
     """Compile ``specs`` in order, skipping those another process has claimed in ``lock_dir``."""
     done = 0
-    for spec in specs:
-        if lock_dir is None or _claim(lock_dir, spec):
-            spec.dispatcher().compile(tuple(spec.signature))
-            done += 1
+    enabled = gc.isenabled()
+    gc.disable()  # numba's compiler makes ~10^5 short-lived objects: collections cost ~8%
+    try:
+        for spec in specs:
+            if lock_dir is None or _claim(lock_dir, spec):
+                spec.dispatcher().compile(tuple(spec.signature))
+                done += 1
+    finally:
+        if enabled:
+            gc.enable()
     return done
 
 
@@ -278,6 +285,7 @@ def _main(argv: Sequence[str]) -> int:
             return 2
         specs.extend(found)
     _compile(specs, lock_dir)
+    gc.freeze()  # exiting: skip the last collection over the compiler's objects
     return 0
 
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import importlib
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -207,3 +209,20 @@ def test_register_bad_certificate_options(capsys):  # type: ignore[no-untyped-de
     assert main(["register", "--demo", "--certify", "--time-limit", "-1"]) == 2
     err = capsys.readouterr().err
     assert "time_limit" in err and "Traceback" not in err
+
+
+def test_console_script_and_python_m_run_the_same_program(tmp_path):
+    import tomllib
+
+    from certpose import cli
+
+    scripts = tomllib.loads((Path(cli.__file__).parents[2] / "pyproject.toml").read_text())
+    target = scripts["project"]["scripts"]["certpose"]
+    module, _, name = target.partition(":")
+    assert getattr(importlib.import_module(module), name) is cli.run
+    # `run` exits with main's code: 2 for an unknown command, 0 for --version.
+    for args, code in ((["no-such-command"], 2), (["--version"], 0)):
+        proc = subprocess.run([sys.executable, "-m", "certpose", *args], capture_output=True,
+                              text=True, timeout=120)
+        assert proc.returncode == code, proc.stderr
+    assert "certpose" in proc.stdout

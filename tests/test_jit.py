@@ -186,3 +186,23 @@ def test_threads_share_a_warm_up(tmp_path):
                                      if s.name in ("row_degrees", "k_core")]}))
     """, tmp_path)
     assert out == {"errors": [], "left": [], "cached": [True, True]}
+
+
+def test_compiling_pauses_the_garbage_collector_and_restores_it():
+    import gc
+
+    spec = next(s for s in jit.declared(["solvers.registration._kernels"])
+                if s.name == "row_degrees")
+    assert gc.isenabled()
+    assert jit._compile([spec]) == 1
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        jit._compile([spec])
+        assert not gc.isenabled()  # a caller's choice is kept
+    finally:
+        gc.enable()
+    broken = jit.KernelSpec(spec.module, spec.name, ("not a numba type",))
+    with pytest.raises(TypeError):
+        jit._compile([broken])
+    assert gc.isenabled()  # restored on failure too
