@@ -16,6 +16,8 @@ import argparse
 import contextlib
 import gc
 import importlib
+import importlib.abc
+import importlib.util
 import logging
 import sys
 import threading
@@ -202,9 +204,52 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_FAILED
 
 
+class _DeferredOpen3dPlotly(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Stands in for ``open3d.visualization.draw_plotly`` until one of its functions is called.
+
+    ``import open3d`` imports that module, which imports Dash, Plotly and IPython: about 1.3 s of
+    every ``certpose pose`` run on this project's machine (open3d itself takes 0.9 s), for
+    functions the program never calls. The stand-in's functions import the real module on first
+    use, so nothing is lost. Installed by :func:`run` only (the program, not the library)."""
+
+    NAME = "open3d.visualization.draw_plotly"
+    FUNCTIONS = ("get_plotly_fig", "draw_plotly", "draw_plotly_server")
+
+    def find_spec(self, name: str, path: Any = None, target: Any = None) -> Any:
+        if name != self.NAME:
+            return None
+        return importlib.util.spec_from_loader(name, self)
+
+    def create_module(self, spec: Any) -> None:
+        return None  # the default module object
+
+    def exec_module(self, module: Any) -> None:
+        for name in self.FUNCTIONS:
+            def proxy(*args: Any, _name: str = name, **kwargs: Any) -> Any:
+                return getattr(self.real(), _name)(*args, **kwargs)
+
+            proxy.__name__ = name
+            setattr(module, name, proxy)
+
+    def real(self) -> Any:
+        """The real module, imported now (the stand-in is retired)."""
+        if self in sys.meta_path:
+            sys.meta_path.remove(self)
+            sys.modules.pop(self.NAME, None)
+        return importlib.import_module(self.NAME)
+
+
+def defer_open3d_plotly() -> None:
+    """Install :class:`_DeferredOpen3dPlotly` unless open3d or its Plotly module is loaded."""
+    if "open3d" in sys.modules or any(isinstance(f, _DeferredOpen3dPlotly) for f in sys.meta_path):
+        return
+    sys.meta_path.insert(0, _DeferredOpen3dPlotly())
+
+
 def run() -> None:
     """The ``certpose`` program (console script and ``python -m certpose``): :func:`main`, then
     exit without the interpreter's last garbage collection."""
+    defer_open3d_plotly()
     code = main()
     # The process ends here: the last collection would walk every object numba and scipy
     # created (about 0.5 s per run); frozen objects are skipped, the OS frees the memory.
