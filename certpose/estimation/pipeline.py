@@ -215,6 +215,10 @@ class PoseResult:
         Seconds per stage (``"mle"`` is the MLE proper, scene building excluded).
     errors : PoseErrors or None
         Against the ground truth, when given.
+    classification : ObjectClassification or None
+        The classifier ``p_O`` the estimate used.
+    scene : SceneField or None
+        The scene field it ran on.
     success : bool
     status : str
     message : str
@@ -241,6 +245,8 @@ class PoseResult:
     T_camera_object_gt: NDArray[np.float64] | None = field(default=None, repr=False)
     T_world_camera: NDArray[np.float64] | None = field(default=None, repr=False)
     symmetry_axis: tuple[float, float, float] | None = None
+    classification: ObjectClassification | None = field(default=None, repr=False)
+    scene: Any = field(default=None, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary."""
@@ -420,6 +426,7 @@ def estimate_pose(
     T_camera_object_gt: ArrayLike | None = None,
     gt_model_points: ArrayLike | None = None,
     symmetry_axis: ArrayLike | None = None,
+    box: ArrayLike | None = None,
 ) -> PoseResult:
     """MLE pose of ``object_model`` in a built ``scene``.
 
@@ -431,7 +438,8 @@ def estimate_pose(
     object_model : ObjectModel
     classifier : ObjectClassification or {"mask", "best_buddies"}
         A ready classification, or which classifier to run: ``"mask"`` needs ``frame`` with a
-        ``mask``; ``"best_buddies"`` uses the descriptors.
+        ``mask``; ``"best_buddies"`` uses the descriptors (inside ``box`` when given; settings
+        in ``params.classifier``).
     frame : RGBDFrame, optional
         The camera: gives the viewpoint and ``T_camera_world``.
     params : PoseParams, optional
@@ -442,10 +450,20 @@ def estimate_pose(
         Model points for ADD/ADD-S (default: the object model's points).
     symmetry_axis : (3,) array_like, optional
         Object-frame symmetry axis for the axis error.
+    box : (4,) array_like, optional
+        The object's 2-D box ``(x0, y0, x1, y1)`` in ``frame`` (pixels), e.g. a detector's:
+        the best-buddy classifier's region of interest (voxels projecting outside it are
+        background). Only with ``classifier="best_buddies"``.
 
     Returns
     -------
     PoseResult
+
+    Raises
+    ------
+    ValueError
+        An unknown classifier, a ``box`` with another classifier or without ``frame``, a
+        malformed box (see :func:`certpose.model.classifier.check_box`).
     """
     from certpose.estimation.mle import estimate_mle
     from certpose.model.classifier import (
@@ -458,6 +476,9 @@ def estimate_pose(
     gen = resolve_rng(rng)
     timings: dict[str, float] = {}
     t = time.perf_counter()
+    if box is not None and not (isinstance(classifier, str) and classifier == "best_buddies"):
+        raise ValueError(f'`box` is the region of interest of classifier="best_buddies", got '
+                         f"classifier={classifier!r}.")
     if isinstance(classifier, ObjectClassification):
         cls = classifier
     elif classifier == "mask":
@@ -465,7 +486,8 @@ def estimate_pose(
             raise ValueError('classifier="mask" needs a `frame` with a `mask`.')
         cls = classify_from_mask(scene, frame, params=params.classifier)
     elif classifier == "best_buddies":
-        cls = classify_best_buddies(scene, object_model, params=params.classifier)
+        cls = classify_best_buddies(scene, object_model, params=params.classifier, frame=frame,
+                                    box=box)
     else:
         raise ValueError(
             f"`classifier` must be an ObjectClassification, 'mask' or 'best_buddies', got {classifier!r}."
@@ -516,7 +538,7 @@ def estimate_pose(
                       else np.asarray(T_camera_object_gt, dtype=np.float64),
                       np.asarray(T_world_camera, dtype=np.float64),
                       None if symmetry_axis is None
-                      else tuple(float(v) for v in np.ravel(symmetry_axis)))
+                      else tuple(float(v) for v in np.ravel(symmetry_axis)), cls, scene)
 
 
 def _sample(scene: Any, cls: Any, object_model: Any, mle: Any, T_cw: NDArray[np.float64],
@@ -586,8 +608,15 @@ def run_ycbv(
     backbone: Any = None,
     rng: np.random.Generator | int | None = 0,
     object_model: BuiltObjectModel | None = None,
+    classifier: str = "mask",
+    box: ArrayLike | None = None,
 ) -> PoseResult:
-    """Estimate one object's pose in one YCB-Video frame (mask classifier from ``label.png``).
+    """Estimate one object's pose in one YCB-Video frame.
+
+    The classifier ``p_O`` is the frame's segmentation (``label.png``, ``classifier="mask"``) or,
+    as the paper intends, best-buddy similarity inside the object's 2-D box
+    (``classifier="best_buddies"``: ``box.txt``, what a detector gives; the label image is then
+    not used, but for the errors against the ground truth).
 
     Parameters
     ----------
@@ -606,6 +635,11 @@ def run_ycbv(
     object_model : BuiltObjectModel, optional
         A ready object model (e.g. with appearance, :func:`build_ycbv_object_model`); the scene
         is then described with its backbone, and ``model_path`` only serves ADD/ADD-S.
+    classifier : {"mask", "best_buddies"}
+        ``"best_buddies"`` builds the scene around the box (plus ``params.roi_margin``) and
+        classifies with :func:`~certpose.model.classifier.classify_best_buddies` inside it.
+    box : (4,) array_like, optional
+        ``(x0, y0, x1, y1)`` pixels, for ``"best_buddies"``; default the frame's ``box.txt``.
 
     Returns
     -------
@@ -618,15 +652,21 @@ def run_ycbv(
     FileNotFoundError, OSError
         Missing files.
     KeyError
-        An object not annotated in the frame.
+        An object not annotated in the frame, or (``"best_buddies"``) without a box.
     ValueError
-        An object without labelled pixels, malformed inputs.
+        An object without labelled pixels (``"mask"``), a malformed box, malformed inputs.
     """
     from certpose.geometry.features import FPFHBackbone
     from certpose.geometry.objects import object_from_points
     from certpose.io.ycbv import load_model_points, load_ycbv_frame
+    from certpose.model.classifier import box_mask
 
     params = params or PoseParams()
+    if classifier not in ("mask", "best_buddies"):
+        raise ValueError(f"`classifier` must be 'mask' or 'best_buddies', got {classifier!r}.")
+    if box is not None and classifier != "best_buddies":
+        raise ValueError(f'`box` is the region of interest of classifier="best_buddies", got '
+                         f"classifier={classifier!r}.")
     if object_model is not None:
         if backbone is not None and backbone != object_model.backbone:
             raise ValueError("`backbone` differs from `object_model.backbone`: object and scene "
@@ -644,11 +684,16 @@ def run_ycbv(
     model_path = Path(model_path) if model_path is not None else root / "models" / object_name / "points.xyz"
     t = time.perf_counter()
     yf = load_ycbv_frame(root, frame)
-    mask = yf.object_mask(object_name)
+    if classifier == "mask":
+        mask = yf.object_mask(object_name)
+        roi = mask
+    else:
+        box = yf.object_box(object_name) if box is None else box
+        roi = box_mask(box, yf.frame.shape, margin=params.classifier.box_margin)
     model_points = load_model_points(model_path)
     t_load = time.perf_counter() - t
     t = time.perf_counter()
-    scene = _scene_for(yf.frame, mask, params, backbone)
+    scene = _scene_for(yf.frame, roi, params, backbone)
     t_scene = time.perf_counter() - t
     t = time.perf_counter()
     if object_model is not None:
@@ -658,9 +703,10 @@ def run_ycbv(
                                  name=object_name)
     t_obj = time.perf_counter() - t
     result = estimate_pose(
-        scene, obj, classifier="mask", frame=yf.frame.with_mask(mask), params=params, rng=rng,
-        T_camera_object_gt=yf.poses.get(object_name), gt_model_points=model_points,
-        symmetry_axis=YCBV_SYMMETRY_AXES.get(object_name),
+        scene, obj, classifier=classifier,
+        frame=yf.frame.with_mask(mask) if classifier == "mask" else yf.frame, params=params,
+        rng=rng, T_camera_object_gt=yf.poses.get(object_name), gt_model_points=model_points,
+        symmetry_axis=YCBV_SYMMETRY_AXES.get(object_name), box=box,
     )
     result.timings.update({"load": t_load, "scene": t_scene, "object": t_obj})
     return result

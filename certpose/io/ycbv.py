@@ -4,8 +4,9 @@ A frame ``<root>/<scene>/<frame>`` consists of ``<frame>-color.png`` (RGB), ``<f
 (uint16, metres = value / ``factor_depth``), ``<frame>-label.png`` (per-pixel class index,
 0 = background) and ``<frame>-meta.mat`` (``intrinsic_matrix``, ``factor_depth``,
 ``cls_indexes`` (1-based into ``models/classes.txt``) and ``poses`` (3, 4, n): ``[R | t]`` maps
-model points into the camera frame, i.e. ``T_camera_object``). Model points are
-``<root>/models/<name>/points.xyz``.
+model points into the camera frame, i.e. ``T_camera_object``), and optionally
+``<frame>-box.txt`` (one 2-D box per line, ``name x0 y0 x1 y1`` in pixels: what a detector
+gives). Model points are ``<root>/models/<name>/points.xyz``.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from solvers.lie import make_transform, project_to_so3
 if TYPE_CHECKING:
     from certpose.geometry.appearance import PosedView
 
-__all__ = ["YCBVFrame", "load_ycbv_frame", "load_model_points", "load_class_names"]
+__all__ = ["YCBVFrame", "load_ycbv_frame", "load_ycbv_boxes", "load_model_points", "load_class_names"]
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +48,9 @@ class YCBVFrame:
         ``T_camera_object`` of each annotated object (rotation projected onto SO(3)).
     name : str
         ``"<scene>/<frame>"``.
+    boxes : dict of str to tuple of float
+        2-D boxes ``(x0, y0, x1, y1)`` in pixels from ``<frame>-box.txt`` (empty when the frame
+        has no such file).
     """
 
     frame: RGBDFrame
@@ -55,6 +59,7 @@ class YCBVFrame:
     class_indexes: list[int]
     poses: dict[str, NDArray[np.float64]] = field(repr=False)
     name: str = ""
+    boxes: dict[str, tuple[float, float, float, float]] = field(default_factory=dict, repr=False)
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
@@ -74,6 +79,16 @@ class YCBVFrame:
         if not mask.any():
             raise ValueError(f"Object {name!r} has no labelled pixel in frame {self.name}.")
         return mask
+
+    def object_box(self, name: str) -> tuple[float, float, float, float]:
+        """The 2-D box ``(x0, y0, x1, y1)`` (pixels) of object ``name`` from ``box.txt``.
+
+        Raises ``KeyError`` when the frame has no box for it.
+        """
+        if name not in self.boxes:
+            have = ", ".join(self.boxes) if self.boxes else "none (no box.txt)"
+            raise KeyError(f"Frame {self.name} has no 2-D box for object {name!r}; boxes: {have}.")
+        return self.boxes[name]
 
     def posed_view(self, name: str) -> PosedView:
         """The view of object ``name`` in this frame: its mask and ground-truth ``T_camera_object``.
@@ -167,7 +182,50 @@ def load_ycbv_frame(root: str | Path, frame: str = "0000/000001") -> YCBVFrame:
         T = make_transform(project_to_so3(poses_arr[:, :3, k]), poses_arr[:, 3, k])
         names.append(name)
         poses[name] = T
-    return YCBVFrame(rgbd, label.astype(np.int64), names, indexes, poses, str(frame))
+    box_path = root / f"{frame}-box.txt"
+    boxes = load_ycbv_boxes(box_path, (height, width)) if box_path.is_file() else {}
+    return YCBVFrame(rgbd, label.astype(np.int64), names, indexes, poses, str(frame), boxes)
+
+
+def load_ycbv_boxes(path: str | Path, shape: tuple[int, int] | None = None
+                    ) -> dict[str, tuple[float, float, float, float]]:
+    """Read a YCB-Video ``box.txt``: one ``name x0 y0 x1 y1`` (pixels) per line.
+
+    Parameters
+    ----------
+    path : path
+    shape : (H, W), optional
+        The image size; each box is then checked to overlap the image.
+
+    Raises
+    ------
+    FileNotFoundError
+        A missing file.
+    ValueError
+        A malformed line (naming the file and line), a box in the wrong order or outside the
+        image, an object listed twice.
+    """
+    from certpose.model.classifier import check_box
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"The box file {path} does not exist.")
+    boxes: dict[str, tuple[float, float, float, float]] = {}
+    for n, line in enumerate(path.read_text().splitlines(), start=1):
+        parts = line.split()
+        if not parts:
+            continue
+        try:
+            if len(parts) != 5:
+                raise ValueError(f"expected 'name x0 y0 x1 y1', got {len(parts)} fields")
+            if parts[0] in boxes:
+                raise ValueError(f"object {parts[0]!r} listed twice")
+            vals = [float(x) for x in parts[1:]]
+            box = check_box(vals, shape if shape is not None else (10**9, 10**9))
+        except ValueError as exc:
+            raise ValueError(f"{path}, line {n}: {exc}") from exc
+        boxes[parts[0]] = box
+    return boxes
 
 
 def load_model_points(path: str | Path) -> NDArray[np.float64]:

@@ -33,6 +33,8 @@ __all__ = [
     "ClassifierParams",
     "ClassifierStatus",
     "ObjectClassification",
+    "box_mask",
+    "check_box",
     "classify_best_buddies",
     "classify_from_mask",
 ]
@@ -54,7 +56,7 @@ class ClassifierStatus(str, Enum):
 
 @dataclass(frozen=True)
 class ClassifierParams:
-    """Output values of the binary classifiers.
+    """Output values of the binary classifiers, and the best-buddy classifier's settings.
 
     Attributes
     ----------
@@ -62,13 +64,28 @@ class ClassifierParams:
         ``log p_O`` of a positive voxel (<= 0); default ``log 0.9``.
     c_min : float
         ``log p_O`` of a negative voxel: a large negative value instead of ``-inf``.
+    scene_neighbors : int
+        ``k`` of the relaxed best-buddy rule (:func:`classify_best_buddies`).
+    min_similarity : float
+        Best buddies with a lower inner product are not positives, in ``[-1, 1]``.
+    box_margin : float
+        With a 2-D box: pixels added on every side of the box before it selects candidate
+        voxels (a detector's box may cut the object's edge).
+    log_p_box : float or None
+        With a 2-D box: ``log p_O`` of occupied voxels inside the box that are not best buddies
+        (``None``: ``c_min``). A value between ``c_min`` and ``log_p_positive`` keeps them
+        possible object voxels, as the box says they may be.
     """
 
     log_p_positive: float = math.log(0.9)
     c_min: float = -5.0
+    scene_neighbors: int = 10
+    min_similarity: float = 0.0
+    box_margin: float = 0.0
+    log_p_box: float | None = None
 
     def __post_init__(self) -> None:
-        for name in ("log_p_positive", "c_min"):
+        for name in ("log_p_positive", "c_min", "min_similarity", "box_margin"):
             v = float(getattr(self, name))
             if not math.isfinite(v):
                 raise ValueError(f"`{name}` must be finite, got {v}.")
@@ -79,6 +96,19 @@ class ClassifierParams:
             raise ValueError(
                 f"`c_min` ({self.c_min}) must be below `log_p_positive` ({self.log_p_positive})."
             )
+        if int(self.scene_neighbors) != self.scene_neighbors or self.scene_neighbors < 1:
+            raise ValueError(f"`scene_neighbors` must be an integer >= 1, got {self.scene_neighbors}.")
+        object.__setattr__(self, "scene_neighbors", int(self.scene_neighbors))
+        if not -1.0 <= self.min_similarity <= 1.0:
+            raise ValueError(f"`min_similarity` must be in [-1, 1], got {self.min_similarity}.")
+        if self.box_margin < 0:
+            raise ValueError(f"`box_margin` must be >= 0, got {self.box_margin}.")
+        if self.log_p_box is not None:
+            v = float(self.log_p_box)
+            if not (math.isfinite(v) and self.c_min <= v <= self.log_p_positive):
+                raise ValueError(f"`log_p_box` must lie in [c_min, log_p_positive] = "
+                                 f"[{self.c_min}, {self.log_p_positive}], got {self.log_p_box}.")
+            object.__setattr__(self, "log_p_box", v)
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,8 +147,9 @@ class ObjectClassification:
 
 
 def _finish(scene: Any, positive: NDArray[np.bool_], params: ClassifierParams, method: str,
-            detail: str) -> ObjectClassification:
-    log_p = np.full(positive.shape, params.c_min)
+            detail: str, *, background: NDArray[np.float64] | None = None) -> ObjectClassification:
+    """``log p_O``: ``log_p_positive`` at positives, ``background`` (default ``c_min``) elsewhere."""
+    log_p = np.full(positive.shape, params.c_min) if background is None else background
     log_p[positive] = params.log_p_positive
     n_pos = int(positive.sum())
     n_occ = int(np.count_nonzero(np.asarray(scene.state) == OCCUPIED))
@@ -161,15 +192,79 @@ def _nearest_both_ways(
     return top_b, best_a, best_a_sim
 
 
+def _project(frame: RGBDFrame, centres: NDArray[np.float64]) -> tuple[
+        NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Pixel ``(row, col)`` and camera depth of world points, and whether they land in the image."""
+    T = frame.T_camera_world
+    pc = centres @ T[:3, :3].T + T[:3, 3]
+    u, v, z = frame.intrinsics.project(pc)
+    ok = np.isfinite(u) & np.isfinite(v)
+    col = np.full(u.shape, -1, dtype=np.int64)
+    row = np.full(v.shape, -1, dtype=np.int64)
+    col[ok] = np.floor(u[ok] + 0.5).astype(np.int64)
+    row[ok] = np.floor(v[ok] + 0.5).astype(np.int64)
+    h, w = frame.shape
+    ok &= (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    return row, col, z, ok
+
+
+def check_box(box: Any, shape: tuple[int, int], name: str = "box") -> tuple[float, float, float, float]:
+    """Validate a 2-D box ``(x0, y0, x1, y1)`` (pixels; x = column, y = row) against an image
+    of ``shape`` ``(H, W)``; return it as floats.
+
+    Raises
+    ------
+    ValueError
+        Not four finite numbers, ``x1 <= x0`` or ``y1 <= y0`` (wrong order or empty), or a box
+        that does not overlap the image.
+    """
+    try:
+        b = np.asarray(box, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"Expected `{name}` to be four numbers (x0, y0, x1, y1), got {box!r}.") from exc
+    if b.shape != (4,):
+        raise ValueError(f"Expected `{name}` to have shape (4,) as (x0, y0, x1, y1), got {b.shape}.")
+    if not np.all(np.isfinite(b)):
+        raise ValueError(f"`{name}` must be finite, got {b.tolist()}.")
+    x0, y0, x1, y1 = (float(x) for x in b)
+    if not (x1 > x0 and y1 > y0):
+        raise ValueError(f"`{name}` must have x1 > x0 and y1 > y0 (x0, y0, x1, y1 in pixels), "
+                         f"got ({x0:g}, {y0:g}, {x1:g}, {y1:g}).")
+    h, w = shape
+    if x1 <= -0.5 or y1 <= -0.5 or x0 >= w - 0.5 or y0 >= h - 0.5:
+        raise ValueError(f"`{name}` ({x0:g}, {y0:g}, {x1:g}, {y1:g}) lies outside the "
+                         f"{w}x{h} image.")
+    return x0, y0, x1, y1
+
+
+def box_mask(box: Any, shape: tuple[int, int], *, margin: float = 0.0) -> NDArray[np.bool_]:
+    """The pixels of a 2-D box ``(x0, y0, x1, y1)`` grown by ``margin`` pixels, shape ``(H, W)``.
+
+    A pixel belongs to the box when its centre (integer coordinates) lies inside it.
+    """
+    x0, y0, x1, y1 = check_box(box, shape)
+    if not (math.isfinite(margin) and margin >= 0):
+        raise ValueError(f"`margin` must be >= 0, got {margin}.")
+    h, w = shape
+    rows = np.arange(h, dtype=np.float64)
+    cols = np.arange(w, dtype=np.float64)
+    in_r = (rows >= y0 - margin) & (rows <= y1 + margin)
+    in_c = (cols >= x0 - margin) & (cols <= x1 + margin)
+    return in_r[:, None] & in_c[None, :]
+
+
 def classify_best_buddies(
     scene: Any,
     object_model: ObjectModel,
     *,
-    scene_neighbors: int = 10,
-    min_similarity: float = 0.0,
+    scene_neighbors: int | None = None,
+    min_similarity: float | None = None,
     params: ClassifierParams | None = None,
+    frame: RGBDFrame | None = None,
+    box: Any = None,
 ) -> ObjectClassification:
-    """Best-buddy classifier (the paper's appendix, after Dekel et al. 2015).
+    """Best-buddy classifier (the paper's appendix, after Dekel et al. 2015), optionally inside
+    a 2-D box.
 
     An occupied scene voxel ``j`` and an object point ``i`` are best buddies when ``i`` is the
     object point most similar to ``j`` and ``j`` is among the ``scene_neighbors`` scene voxels
@@ -178,15 +273,25 @@ def classify_best_buddies(
     when it has a best buddy with similarity ``>= min_similarity``: a noisy binary output whose
     negatives get ``c_min``.
 
+    With a ``box`` (a detector's output), only occupied voxels whose centre projects into the
+    box (grown by ``params.box_margin`` pixels) in ``frame`` are candidates: best buddies are
+    sought among them only, and every voxel projecting outside the box is background
+    (``c_min``). Candidates that are not positives get ``params.log_p_box``.
+
     Parameters
     ----------
     scene : SceneField
     object_model : ObjectModel
     scene_neighbors : int, optional
-        ``k`` of the relaxed rule (>= 1).
+        ``k`` of the relaxed rule (>= 1); default ``params.scene_neighbors``.
     min_similarity : float, optional
-        Threshold on the best buddy's inner product, in ``[-1, 1]``.
+        Threshold on the best buddy's inner product, in ``[-1, 1]``; default
+        ``params.min_similarity``.
     params : ClassifierParams, optional
+    frame : RGBDFrame, optional
+        The camera of ``box`` (its intrinsics, image size and ``T_camera_world``); needed with it.
+    box : (4,) array_like, optional
+        ``(x0, y0, x1, y1)`` in pixels (x = column, y = row), as in YCB-Video's ``box.txt``.
 
     Returns
     -------
@@ -195,30 +300,53 @@ def classify_best_buddies(
     Raises
     ------
     ValueError
-        Mismatched descriptor dimensions, NaN descriptors, or a scene without occupied voxels.
+        Mismatched descriptor dimensions, NaN descriptors, a scene without occupied voxels, a
+        ``box`` without ``frame``, a malformed box (not four numbers, wrong order, empty,
+        outside the image), or a box that holds no occupied voxel.
     """
     params = params or ClassifierParams()
-    if int(scene_neighbors) < 1:
+    k = params.scene_neighbors if scene_neighbors is None else scene_neighbors
+    thr = params.min_similarity if min_similarity is None else min_similarity
+    if int(k) != k or int(k) < 1:
         raise ValueError(f"`scene_neighbors` must be >= 1, got {scene_neighbors}.")
-    if not -1.0 <= float(min_similarity) <= 1.0:
+    if not -1.0 <= float(thr) <= 1.0:
         raise ValueError(f"`min_similarity` must be in [-1, 1], got {min_similarity}.")
-    idx, _ = _occupied(scene)
+    k = int(k)
+    idx, centres = _occupied(scene)
+    candidate = np.ones(idx.shape[0], dtype=bool)
+    if box is not None:
+        if frame is None:
+            raise ValueError("A `box` needs the `frame` it was drawn in.")
+        inside = box_mask(box, frame.shape, margin=params.box_margin)
+        row, col, _, ok = _project(frame, centres)
+        candidate = ok.copy()
+        candidate[ok] = inside[row[ok], col[ok]]
+        if not candidate.any():
+            raise ValueError(f"No occupied voxel of the scene projects into the box "
+                             f"{tuple(round(float(x), 2) for x in box)}: is it the box of this frame?")
     desc = np.asarray(scene.descriptors)
     d = desc.shape[-1]
     if object_model.dim != d:
         raise ValueError(f"Descriptor dimensions differ: object {object_model.dim}, scene {d}.")
-    s = desc[idx[:, 0], idx[:, 1], idx[:, 2]].astype(np.float32)
+    cand = idx[candidate]
+    s = desc[cand[:, 0], cand[:, 1], cand[:, 2]].astype(np.float32)
     if not np.all(np.isfinite(s)):
         raise ValueError("`scene.descriptors` contains NaN or inf values at occupied voxels.")
     z = object_model.descriptors.astype(np.float32)
-    top_scene, best_obj, best_sim = _nearest_both_ways(z, s, int(scene_neighbors))
+    top_scene, best_obj, best_sim = _nearest_both_ways(z, s, k)
     # j is a buddy when its best object point i lists j among its top-k scene voxels.
     mutual = (top_scene[best_obj] == np.arange(s.shape[0])[:, None]).any(axis=1)
-    hit = mutual & (best_sim >= min_similarity)
+    hit = mutual & (best_sim >= thr)
     positive = np.zeros(np.asarray(scene.state).shape, dtype=bool)
-    positive[tuple(idx[hit].T)] = True
-    detail = f"best buddies, k={int(scene_neighbors)}, min similarity {float(min_similarity):g}"
-    return _finish(scene, positive, params, "best_buddies", detail)
+    positive[tuple(cand[hit].T)] = True
+    detail = f"best buddies, k={k}, min similarity {float(thr):g}"
+    background = None
+    if box is not None:
+        detail += f", {cand.shape[0]} occupied voxels in the box"
+        if params.log_p_box is not None:
+            background = np.full(positive.shape, params.c_min)
+            background[tuple(cand.T)] = params.log_p_box
+    return _finish(scene, positive, params, "best_buddies", detail, background=background)
 
 
 def classify_from_mask(
@@ -268,17 +396,8 @@ def classify_from_mask(
     if not (math.isfinite(tol) and tol > 0):
         raise ValueError(f"`depth_tolerance` must be positive, got {depth_tolerance}.")
     idx, centres = _occupied(scene)
-    T = frame.T_camera_world
-    pc = centres @ T[:3, :3].T + T[:3, 3]
-    u, v, z = frame.intrinsics.project(pc)
-    ok = np.isfinite(u) & np.isfinite(v)
-    col = np.full(u.shape, -1, dtype=np.int64)
-    row = np.full(v.shape, -1, dtype=np.int64)
-    col[ok] = np.floor(u[ok] + 0.5).astype(np.int64)
-    row[ok] = np.floor(v[ok] + 0.5).astype(np.int64)
-    h, w = frame.shape
-    ok &= (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    hit = np.zeros(u.shape, dtype=bool)
+    row, col, z, ok = _project(frame, centres)
+    hit = np.zeros(z.shape, dtype=bool)
     r, c = row[ok], col[ok]
     depth = frame.depth[r, c]
     hit[ok] = m[r, c] & (depth > 0) & (np.abs(depth - z[ok]) <= tol)
