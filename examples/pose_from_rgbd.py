@@ -4,9 +4,14 @@ Usage::
 
     python examples/pose_from_rgbd.py                          # synthetic mug scene (no data)
     python examples/pose_from_rgbd.py --ycbv ../shared/data/ycbv --frame 0000/000001 --object 025_mug
+    python examples/pose_from_rgbd.py --ycbv ../shared/data/ycbv --frame 0049/000001 \
+        --object 010_potted_meat_can --box-only --views 0002/000001 0002/000010
 
 The YCB-Video path uses the frame's ground-truth mask as the classifier and the object's
-``points.xyz`` as the model; it reports the errors against the frame's ground truth.
+``points.xyz`` as the model; it reports the errors against the frame's ground truth. With
+``--box-only`` no mask is used: the object's 2-D box (``box.txt``, what a detector gives) is the
+region of interest and ``p_O`` comes from best buddies; ``--views`` builds the object model with
+appearance from posed views of another scene (never of the scene evaluated).
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ import sys
 
 import numpy as np
 
-from certpose.estimation.pipeline import run_demo, run_ycbv
+from certpose.estimation.pipeline import build_ycbv_object_model, run_demo, run_ycbv
 
 
 def main() -> int:
@@ -24,11 +29,21 @@ def main() -> int:
     parser.add_argument("--ycbv", help="YCB-Video folder (holding <scene>/ and models/)")
     parser.add_argument("--frame", default="0000/000001", help="<scene>/<frame>")
     parser.add_argument("--object", default="025_mug", help="object name, e.g. 025_mug")
+    parser.add_argument("--box-only", action="store_true",
+                        help="no mask: best buddies inside the object's box from box.txt")
+    parser.add_argument("--views", nargs="+", default=None, metavar="SCENE/FRAME",
+                        help="build an appearance model from these posed views (another scene)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
 
     if args.ycbv:
-        res = run_ycbv(args.ycbv, args.frame, args.object, rng=args.seed)
+        model = None
+        if args.views:
+            if any(v.split("/")[0] == args.frame.split("/")[0] for v in args.views):
+                parser.error("--views must come from another scene than --frame")
+            model = build_ycbv_object_model(args.ycbv, args.views, args.object)
+        res = run_ycbv(args.ycbv, args.frame, args.object, rng=args.seed, object_model=model,
+                       classifier="best_buddies" if args.box_only else "mask")
     else:
         res = run_demo(rng=args.seed)
     print(f"status: {res.status} ({res.message})")

@@ -13,6 +13,8 @@ from certpose.geometry.rgbd import CameraIntrinsics, RGBDFrame
 from certpose.model.classifier import (
     ClassifierParams,
     ClassifierStatus,
+    box_mask,
+    check_box,
     classify_best_buddies,
     classify_from_mask,
 )
@@ -138,3 +140,112 @@ def test_classifier_params_validation():
         ClassifierParams(c_min=-0.01)
     with pytest.raises(ValueError, match="finite"):
         ClassifierParams(c_min=float("-inf"))
+
+
+def _textured_step():
+    """The step frame with a random unit descriptor per pixel, its scene, and an object whose
+    points copy the descriptors of three voxels of each wall (exact best buddies)."""
+    frame = _step_frame()
+    rng = np.random.default_rng(3)
+    desc = rng.normal(size=(48, 64, 8))
+    scene = build_scene_field(frame, ArrayBackbone(desc), voxel_size=0.01)
+    idx = np.argwhere(scene.state == OCCUPIED)
+    centres = scene.grid_to_world(idx.astype(float))
+    near = np.flatnonzero(centres[:, 2] < 0.6)
+    far = np.flatnonzero(centres[:, 2] > 0.6)
+    pick = np.concatenate([near[[5, len(near) // 2, -5]], far[[5, len(far) // 2, -5]]])
+    z = scene.descriptors[tuple(idx[pick].T)].astype(np.float64)
+    obj = ObjectModel(centres[pick] - centres[pick].mean(0), z)
+    return frame, scene, obj, idx, centres, pick
+
+
+def _pixels(frame, centres):
+    u, v, _ = frame.intrinsics.project(centres @ frame.T_camera_world[:3, :3].T
+                                       + frame.T_camera_world[:3, 3])
+    return np.floor(u + 0.5), np.floor(v + 0.5)
+
+
+def test_box_restricts_best_buddies_to_voxels_seen_in_it():
+    frame, scene, obj, idx, centres, pick = _textured_step()
+    params = ClassifierParams(scene_neighbors=1, min_similarity=0.99)
+    free = classify_best_buddies(scene, obj, params=params)
+    # Without a box the exact copies on both walls are buddies.
+    assert free.positive[tuple(idx[pick].T)].all()
+    box = (0.0, 0.0, 25.0, 47.0)  # the left, near wall only
+    cls = classify_best_buddies(scene, obj, params=params, frame=frame, box=box)
+    assert cls.success and "in the box" in cls.message
+    u, v = _pixels(frame, centres)
+    inside = (u >= 0) & (u <= 25) & (v >= 0) & (v <= 47)
+    assert inside.any() and (~inside).any()
+    pos = cls.positive[tuple(idx.T)]
+    val = cls.log_p[tuple(idx.T)]
+    # Voxels seen outside the box are background; inside, positives get log 0.9, the rest
+    # log_p_box.
+    assert not pos[~inside].any()
+    assert np.all(val[~inside] == params.c_min)
+    assert np.all(val[inside & pos] == pytest.approx(params.log_p_positive))
+    assert np.all(val[inside & ~pos] == pytest.approx(params.log_p_box))
+    assert pos[inside].any()
+    # The near wall's copies that project into the box stay buddies; the far wall's are gone.
+    near_in = [p for p in pick if inside[p]]
+    assert near_in and cls.positive[tuple(idx[near_in].T)].all()
+    assert not cls.positive[tuple(idx[pick[3:]].T)].any()
+    # Non-occupied voxels hold c_min.
+    assert np.all(cls.log_p[scene.state != OCCUPIED] == params.c_min)
+    # log_p_box=None: the box's non-buddies are negatives too.
+    hard = classify_best_buddies(scene, obj, params=ClassifierParams(
+        scene_neighbors=1, min_similarity=0.99, log_p_box=None), frame=frame, box=box)
+    assert np.array_equal(hard.positive, cls.positive)
+    assert np.all(hard.log_p[~hard.positive] == params.c_min)
+
+
+def test_box_margin_grows_the_box():
+    assert box_mask((10, 10, 20, 20), (48, 64)).sum() == 11 * 11
+    assert box_mask((10, 10, 20, 20), (48, 64), margin=2).sum() == 15 * 15
+    # Clipped at the image border.
+    assert box_mask((-5.0, -5.0, 3.0, 3.0), (48, 64)).sum() == 4 * 4
+
+
+@pytest.mark.parametrize("box, match", [
+    ((20, 10, 10, 30), "x1 > x0"),            # wrong order
+    ((10, 30, 20, 10), "y1 > y0"),
+    ((10, 10, 10, 30), "x1 > x0"),            # empty
+    ((70, 10, 90, 30), "outside the 64x48 image"),
+    ((-30, -30, -5, -5), "outside"),
+    ((1, 2, 3), r"shape \(4,\)"),
+    ((1, 2, 3, float("nan")), "finite"),
+    ("abcd", "four numbers"),
+])
+def test_bad_boxes_are_refused(box, match):
+    with pytest.raises(ValueError, match=match):
+        check_box(box, (48, 64))
+    frame, scene, obj, *_ = _textured_step()
+    with pytest.raises(ValueError, match=match):
+        classify_best_buddies(scene, obj, frame=frame, box=box)
+
+
+def test_box_needs_its_frame_and_voxels():
+    frame, scene, obj, *_ = _textured_step()
+    with pytest.raises(ValueError, match="needs the `frame`"):
+        classify_best_buddies(scene, obj, box=(0, 0, 10, 10))
+    # A box over pixels without depth holds no occupied voxel.
+    depth = frame.depth.copy()
+    depth[:10, :10] = 0.0
+    holed = RGBDFrame(None, depth, CAM)
+    rng = np.random.default_rng(0)
+    sc = build_scene_field(holed, ArrayBackbone(rng.normal(size=(48, 64, 8))), voxel_size=0.01)
+    with pytest.raises(ValueError, match="No occupied voxel"):
+        classify_best_buddies(sc, obj, frame=holed, box=(0, 0, 4, 4))
+
+
+def test_best_buddy_settings_are_validated():
+    with pytest.raises(ValueError, match="log_p_box"):
+        ClassifierParams(log_p_box=-10.0)  # below c_min
+    with pytest.raises(ValueError, match="log_p_box"):
+        ClassifierParams(log_p_box=0.0)  # above log_p_positive
+    with pytest.raises(ValueError, match="box_margin"):
+        ClassifierParams(box_margin=-1.0)
+    with pytest.raises(ValueError, match="scene_neighbors"):
+        ClassifierParams(scene_neighbors=0)
+    with pytest.raises(ValueError, match="min_similarity"):
+        ClassifierParams(min_similarity=1.5)

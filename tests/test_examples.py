@@ -72,6 +72,37 @@ def test_pose_from_rgbd_real_frame() -> None:
 
 
 @pytest.mark.slow
+def test_pose_from_rgbd_box_only_with_views_of_another_scene() -> None:
+    import re
+
+    require_data("ycbv", "0049")
+    proc = _run("pose_from_rgbd.py", "--ycbv", str(YCBV), "--frame", "0049/000001",
+                "--object", "010_potted_meat_can", "--box-only", "--views", "0002/000001",
+                "0002/000010")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "best buddies" in proc.stdout and "in the box" in proc.stdout
+    assert float(re.search(r"add_s=([0-9.e-]+)", proc.stdout).group(1)) <= 0.01, proc.stdout
+    # Views of the scene evaluated are refused.
+    proc = _run("pose_from_rgbd.py", "--ycbv", str(YCBV), "--frame", "0049/000001",
+                "--object", "010_potted_meat_can", "--box-only", "--views", "0049/000010")
+    assert proc.returncode == 2 and "another scene" in proc.stderr
+
+
+@pytest.mark.slow
+def test_bench_box_on_a_real_frame(tmp_path: Path) -> None:
+    require_data("ycbv", "0050")
+    out = tmp_path / "box.jsonl"
+    proc = _run("bench_box.py", "--ycbv", str(YCBV), "--models", "appearance", "--scenes", "0050",
+                "--frames", "000020", "--objects", "011_banana", "--json", str(out))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    row = json.loads(out.read_text().splitlines()[0])
+    assert row["case"] == "0050/000020 011_banana" and row["models"] == "appearance"
+    assert row["adds_cm"] <= row["add_cm"] and 0 <= row["rot_deg"] <= 180
+    assert row["positives"] > 0 and 0 <= row["precision"] <= 1
+    assert "pairs 1 |" in proc.stdout and "load average" in proc.stdout
+
+
+@pytest.mark.slow
 def test_bench_dense_quick(tmp_path: Path) -> None:
     require_data("3dmatch", "gt.npy")
     require_data("bunny", "bun_zipper_res3.ply")

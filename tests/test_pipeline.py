@@ -216,3 +216,83 @@ def test_cli_pose_particles_need_samples(tmp_path, capsys):  # type: ignore[no-u
     assert "--particles needs --samples" in capsys.readouterr().err
     assert main(["pose", "--demo", "--samples", "10", "--particles",
                  str(tmp_path / "missing" / "p.npz")]) == 2
+
+
+def test_box_only_bad_input_is_refused_before_any_work(tmp_path, capsys):
+    root = require_data("ycbv", "0000", "000001-box.txt").parents[1]
+    with pytest.raises(ValueError, match="x1 > x0"):
+        run_ycbv(root, "0000/000001", "025_mug", classifier="best_buddies", box=(10, 10, 5, 5))
+    with pytest.raises(ValueError, match="outside the 640x480 image"):
+        run_ycbv(root, "0000/000001", "025_mug", classifier="best_buddies", box=(700, 0, 800, 9))
+    with pytest.raises(ValueError, match="classifier"):
+        run_ycbv(root, "0000/000001", "025_mug", classifier="boxes")
+    with pytest.raises(ValueError, match="region of interest"):
+        run_ycbv(root, "0000/000001", "025_mug", box=(0, 0, 10, 10))  # mask classifier
+    with pytest.raises(KeyError, match="no 2-D box"):
+        run_ycbv(root, "0000/000001", "004_sugar_box", classifier="best_buddies")
+    from certpose.estimation.pipeline import estimate_pose
+
+    with pytest.raises(ValueError, match="region of interest"):
+        estimate_pose(None, None, classifier="mask", box=(0, 0, 10, 10))
+    # The CLI: one-line errors, exit code 2.
+    base = ["pose", "--ycbv", str(root), "--frame", "0000/000001", "--object", "025_mug",
+            "--no-certify"]
+    for extra, needle in (
+        (["--classifier", "best-buddies", "--box", "10", "10", "5", "5"], "x1 > x0"),
+        (["--classifier", "best-buddies", "--box", "0", "0", "0", "9"], "x1 > x0"),
+        (["--classifier", "best-buddies", "--box", "700", "0", "800", "9"], "outside"),
+        (["--classifier", "best-buddies", "--box-margin", "-3"], "--box-margin"),
+        (["--box", "0", "0", "10", "10"], "need --classifier best-buddies"),
+    ):
+        assert main(base + extra) == 2, extra
+        err = capsys.readouterr().err
+        assert needle in err and err.count("\n") == 1, (extra, err)
+    assert main(["pose", "--demo", "--classifier", "best-buddies"]) == 2
+    assert "needs --ycbv" in capsys.readouterr().err
+    assert main(base[:4] + ["0000/000001", "--object", "004_sugar_box", "--classifier",
+                            "best-buddies"]) == 2
+    err = capsys.readouterr().err
+    assert "no 2-D box" in err and err.count("\n") == 1
+
+
+@pytest.mark.slow  # over 3 s
+def test_box_only_pose_with_an_appearance_model_from_another_scene():
+    """No mask: the potted-meat can's box in 0049 and best buddies with a model built from the
+    views of scene 0002 (never evaluated on 0002)."""
+    from certpose.estimation.pipeline import build_ycbv_object_model
+    from certpose.model.classifier import box_mask
+    from certpose.model.grid import OCCUPIED, scene_grid_spec
+
+    root = require_data("ycbv")
+    require_data("ycbv", "0049", "000001-box.txt")
+    name = "010_potted_meat_can"
+    model = build_ycbv_object_model(root, ["0002/000001", "0002/000010", "0002/000020"], name)
+    res = run_ycbv(root, "0049/000001", name, object_model=model, classifier="best_buddies")
+    assert res.success, res.message
+    assert res.errors.add_s <= 0.01, res.errors
+    cls = res.classification
+    assert cls.method == "best_buddies" and "in the box" in cls.message
+    # Every positive, and every voxel above c_min, is seen inside the box.
+    from certpose.io.ycbv import load_ycbv_frame
+
+    yf = load_ycbv_frame(root, "0049/000001")
+    inside = box_mask(yf.object_box(name), yf.frame.shape)
+    above = np.argwhere((cls.log_p > cls.c_min) & (np.asarray(res.scene.state) == OCCUPIED))
+    assert cls.num_positive > 20 and above.shape[0] > cls.num_positive
+    u, v, _ = yf.intrinsics.project(scene_grid_spec(res.scene).centres(above))
+    assert inside[np.floor(v + 0.5).astype(int), np.floor(u + 0.5).astype(int)].all()
+
+
+@pytest.mark.slow  # over 3 s
+def test_cli_box_only_geometry_model(tmp_path, capsys):
+    root = require_data("ycbv")
+    out = tmp_path / "pose.json"
+    code = main(["pose", "--ycbv", str(root), "--frame", "0000/000002", "--object",
+                 "061_foam_brick", "--classifier", "best-buddies", "--no-certify", "--json",
+                 str(out)])
+    text = capsys.readouterr().out
+    assert code == 0, text
+    assert "best buddies in the box of box.txt (no mask)" in text and "in the box" in text
+    data = strict_json(out.read_text())
+    assert data["input"]["classifier"] == "best-buddies" and data["input"]["box"] is None
+    assert data["errors"]["add_s"] <= 0.01

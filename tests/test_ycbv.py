@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from certpose.io.ycbv import load_class_names, load_model_points, load_ycbv_frame
+from certpose.io.ycbv import load_class_names, load_model_points, load_ycbv_boxes, load_ycbv_frame
 from tests.conftest import require_data
 
 OBJECTS = ["009_gelatin_box", "025_mug", "061_foam_brick"]
@@ -113,3 +113,34 @@ def test_model_points_errors(tmp_path):
     good = tmp_path / "good.xyz"
     good.write_text("1 2 3\n4 5 6\n")
     np.testing.assert_array_equal(load_model_points(good), [[1, 2, 3], [4, 5, 6]])
+
+
+def test_boxes_hold_the_labelled_pixels(root, frame):
+    assert sorted(frame.boxes) == sorted(OBJECTS)
+    for name in OBJECTS:
+        x0, y0, x1, y1 = frame.object_box(name)
+        rows, cols = np.nonzero(frame.object_mask(name))
+        inside = (cols >= x0 - 1) & (cols <= x1 + 1) & (rows >= y0 - 1) & (rows <= y1 + 1)
+        assert inside.mean() > 0.99, name
+    with pytest.raises(KeyError, match="no 2-D box for object '004_sugar_box'"):
+        frame.object_box("004_sugar_box")
+
+
+def test_malformed_box_files_name_the_line(tmp_path):
+    path = tmp_path / "000001-box.txt"
+    cases = {
+        "025_mug 1 2 3\n": "line 1: expected 'name x0 y0 x1 y1'",
+        "025_mug 1 2 3 4\n025_mug 1 2 3 4\n": "line 2: object '025_mug' listed twice",
+        "\n025_mug 10 20 5 30\n": "line 2: `box` must have x1 > x0",
+        "025_mug 1 2 three 4\n": "line 1",
+        "025_mug 700 10 800 20\n": "outside the 640x480 image",
+    }
+    for text, match in cases.items():
+        path.write_text(text)
+        with pytest.raises(ValueError, match=match):
+            load_ycbv_boxes(path, (480, 640))
+    with pytest.raises(FileNotFoundError, match="missing-box.txt"):
+        load_ycbv_boxes(tmp_path / "missing-box.txt")
+    path.write_text("025_mug 1.5 2 30 40.25\n\n009_gelatin_box 0 0 10 10\n")
+    assert load_ycbv_boxes(path) == {"025_mug": (1.5, 2.0, 30.0, 40.25),
+                                     "009_gelatin_box": (0.0, 0.0, 10.0, 10.0)}

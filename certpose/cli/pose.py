@@ -10,7 +10,8 @@ from typing import Any
 
 _DESCRIPTION = """\
 Estimate an object's pose with the paper's probabilistic model: a scene field from the RGB-D
-frame, an object model, a classifier p_O (the frame's segmentation), eq. (2) solved as a
+frame, an object model, a classifier p_O (the frame's segmentation, or with --classifier
+best-buddies the paper's best-buddy similarity inside the object's 2-D box), eq. (2) solved as a
 weighted TLS problem (max-clique pruning + GNC, certified when a certifier is installed) and
 refined on eq. (1). Prints T_camera_object (maps object-model points into the camera frame),
 its eq. (1) log-likelihood, the eq. (2) certificate and, when the frame has ground truth, the
@@ -20,6 +21,8 @@ examples:
   certpose pose --demo
   certpose pose --ycbv ../shared/data/ycbv --frame 0000/000001 --object 025_mug \\
       --model ../shared/data/ycbv/models/025_mug/points.xyz --json pose.json
+  certpose pose --ycbv ../shared/data/ycbv --frame 0050/000001 --object 006_mustard_bottle \\
+      --classifier best-buddies --object-model mustard_0002.npz   # no mask: box.txt + best buddies
   certpose pose --demo --samples 10000 --particles mug.npz --plot mug.png
   certpose pose --demo --samples 10000 --method de --plot mug_de.png   # the paper's sampler
 """
@@ -48,6 +51,17 @@ def add_parser(subparsers: Any) -> None:
                    help="object model with appearance from `certpose object build` (default: "
                         "geometry only, from the model points); the scene is described with its "
                         "descriptors")
+    p.add_argument("--classifier", choices=("mask", "best-buddies"), default="mask",
+                   help="p_O, the probability that a voxel belongs to the object: the frame's "
+                        "segmentation (label.png, default), or best-buddy similarity between the "
+                        "object model's descriptors and the scene's inside the object's 2-D box "
+                        "(box.txt, what a detector gives; no mask is read)")
+    p.add_argument("--box", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"), default=None,
+                   help="with --classifier best-buddies: the object's box in pixels (x = column, "
+                        "y = row) instead of the frame's box.txt")
+    p.add_argument("--box-margin", type=float, default=None, metavar="PX",
+                   help="with --classifier best-buddies: pixels added on every side of the box "
+                        "(default: 0)")
     p.add_argument("--voxel-size", type=float, default=0.005, metavar="M",
                    help="scene/object voxel size in metres (default: 0.005)")
     p.add_argument("--no-certify", action="store_true", help="skip the eq. (2) certificate")
@@ -121,7 +135,16 @@ def run(args: argparse.Namespace) -> int:
         raise CLIError("--method needs --samples N")
     if not (math.isfinite(args.voxel_size) and args.voxel_size > 0):
         raise CLIError(f"--voxel-size must be positive, got {args.voxel_size}")
+    boxed = args.classifier == "best-buddies"
+    if not boxed and (args.box is not None or args.box_margin is not None):
+        raise CLIError("--box and --box-margin need --classifier best-buddies")
+    if boxed and args.demo:
+        raise CLIError("--classifier best-buddies needs --ycbv (the demo has no 2-D box)")
+    if args.box_margin is not None and not (math.isfinite(args.box_margin) and args.box_margin >= 0):
+        raise CLIError(f"--box-margin must be >= 0 pixels, got {args.box_margin}")
     params = PoseParams(voxel_size=args.voxel_size)
+    if args.box_margin is not None:
+        params = replace(params, classifier=replace(params.classifier, box_margin=args.box_margin))
     if args.no_certify:
         params = replace(params, mle=replace(MLEParams(), certify=False))
     if args.samples:
@@ -141,6 +164,9 @@ def run(args: argparse.Namespace) -> int:
         if args.model is not None and not Path(args.model).is_file():
             raise CLIError(f"--model {args.model} does not exist")
         title = f"YCB-Video {args.frame}, {args.object}"
+        if boxed:
+            title += (", best buddies in the box " + ("given" if args.box is not None
+                                                      else "of box.txt") + " (no mask)")
         built = None
         if args.object_model is not None:
             from certpose.geometry.appearance import BuiltObjectModel
@@ -155,7 +181,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             with busy(args, "certpose pose"):
                 result = run_ycbv(root, args.frame, args.object, args.model, params=params,
-                                  rng=args.seed, object_model=built)
+                                  rng=args.seed, object_model=built,
+                                  classifier="best_buddies" if boxed else "mask", box=args.box)
         except KeyError as exc:
             raise CLIError(str(exc.args[0]) if exc.args else str(exc)) from exc
     say(args, f"pose of {title}")
@@ -185,7 +212,8 @@ def run(args: argparse.Namespace) -> int:
         e = result.errors
         say(args, f"errors vs ground truth: translation {_fmt(e.translation, 100, ' cm')}, "
               f"symmetry axis {_fmt(e.symmetry_axis_deg, 1, ' deg', 1)}, "
-              f"rotation {_fmt(e.rotation_deg, 1, ' deg', 1)}, ADD-S {_fmt(e.add_s, 100, ' cm')}")
+              f"rotation {_fmt(e.rotation_deg, 1, ' deg', 1)}, ADD-S {_fmt(e.add_s, 100, ' cm')}, "
+              f"ADD {_fmt(e.add, 100, ' cm')}")
     t = result.timings
     say(args, f"time: MLE {_fmt(t.get('mle'), 1, ' s')} (scene building "
           f"{_fmt(t.get('scene'), 1, ' s')}, object model {_fmt(t.get('object'), 1, ' s')})")
@@ -204,7 +232,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None:
         payload = {"input": {"demo": bool(args.demo), "ycbv": args.ycbv, "frame": args.frame,
                              "object": args.object, "model": args.model,
-                             "object_model": args.object_model, "seed": args.seed},
+                             "object_model": args.object_model, "seed": args.seed,
+                             "classifier": args.classifier, "box": args.box},
                    **result.to_dict()}
         emit_json(args, payload)
     sys.stdout.flush()
