@@ -20,6 +20,7 @@ usage::
     python examples/bench_arc.py                                   # frames 1-5
     python examples/bench_arc.py --frames 000001 --c-empty -30 --erosion 2
     python examples/bench_arc.py --tolerance 0.0075 --ramp 0.005 --c-empty -20
+    python examples/bench_arc.py --sampling surface --density 4
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ def symmetrised_body(obj, C: np.ndarray, copies: int, handle_x: float = 0.045): 
 
 
 def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine: bool,  # noqa: ANN201
-            symmetrise: int = 0):
+            symmetrise: int = 0, sampling: dict | None = None):
     from scipy.optimize import minimize
     from scipy.spatial.transform import Rotation
 
@@ -80,7 +81,7 @@ def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine:
     scene = build_scene_field(yf.frame, bb, voxel_size=params.voxel_size, roi_mask=mask,
                               margin=params.roi_margin)
     pts = load_model_points(root / "models" / "025_mug" / "points.xyz")
-    obj = object_from_points(pts, bb, voxel_size=params.voxel_size, name="025_mug")
+    obj = object_from_points(pts, bb, voxel_size=params.voxel_size, name="025_mug", **(sampling or {}))
     cls = classify_from_mask(scene, yf.frame.with_mask(mask), params=params.classifier)
     lp = replace(params.likelihood or LikelihoodParams(), **overrides)
     G = yf.poses["025_mug"]
@@ -151,6 +152,10 @@ def main() -> None:
                     help="diagnostic: replace the body by M turns of itself about its axis (weights "
                          "1/M), a rotation-invariant sampling; shows what the body's point sampling "
                          "adds to the range inside the arc")
+    ap.add_argument("--sampling", choices=("voxel", "surface"), default=None,
+                    help="object_from_points' sampling of the model points (default: its default)")
+    ap.add_argument("--density", type=float, default=None,
+                    help="object_from_points' density with --sampling surface (per voxel_size**2)")
     ap.add_argument("--no-refine", action="store_true", help="raw poses (no 5-DOF refinement)")
     args = ap.parse_args()
     if not (args.data / "0000").is_dir():
@@ -166,15 +171,17 @@ def main() -> None:
         overrides["free_space_tolerance"] = args.tolerance
     if args.ramp is not None:
         overrides["free_space_ramp"] = args.ramp
+    sampling = {k: v for k, v in (("sampling", args.sampling), ("density", args.density)) if v is not None}
     angles = np.arange(-60.0, 120.0 + 1e-9, args.step)
     print(f"load average {os.getloadavg()[0]:.2f}; arc {ARC} deg, guard {args.guard} deg, "
           f"likelihood overrides {overrides or 'none'}, {'raw' if args.no_refine else 'refined'}"
-          + (f", body symmetrised x{args.symmetrise_body}" if args.symmetrise_body else ""))
+          + (f", body symmetrised x{args.symmetrise_body}" if args.symmetrise_body else "")
+          + (f", object {sampling}" if sampling else ""))
     print(f"{'frame':<12} {'part':<10} {'range in':>9} {'drop':>8} {'ratio':>7} {'mean |step|':>12}")
     ratios = []
     for f in args.frames.split(","):
         full, geo, body, hand = profile(args.data, f"0000/{f}", angles, overrides, not args.no_refine,
-                                        args.symmetrise_body)
+                                        args.symmetrise_body, sampling)
         for name, v in (("eq. (1)", full), ("beta = 0", geo), ("body", body), ("handle", hand)):
             s = arc_stats(angles, v, args.guard)
             print(f"{f:<12} {name:<10} {s['range_in']:>9.1f} {s['drop']:>8.1f} {s['ratio']:>7.2f} "

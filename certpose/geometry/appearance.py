@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from certpose.geometry.features import FPFHBackbone
-from certpose.geometry.objects import ObjectModel
+from certpose.geometry.objects import ObjectModel, _oriented_normals
 from certpose.geometry.rgbd import check_mask, normalize_rows
 from solvers.validation import as_float_array, check_points, check_transform
 
@@ -411,6 +411,8 @@ class BuiltObjectModel:
             arrays["colors"] = m.colors
         if m.normals is not None:
             arrays["normals"] = m.normals
+        if m.areas is not None:
+            arrays["areas"] = m.areas
         np.savez_compressed(Path(path), **arrays)
 
     @classmethod
@@ -428,22 +430,9 @@ class BuiltObjectModel:
         if missing or str(d.get("format", "")) != "certpose-object-model-1":
             raise ValueError(f"{path} is not a certpose object model (missing {missing or 'format'}).")
         model = ObjectModel(d["points"], d["descriptors"], d.get("colors"), d.get("normals"),
-                            str(d.get("name", "")))
+                            str(d.get("name", "")), d.get("areas"))
         return cls(model, backbone_from_json(str(d["backbone"])), d["observed"],
                    tuple(json.loads(str(d.get("views", "[]")))), float(d.get("voxel_size", 0.005)))
-
-
-def _model_normals(points: NDArray[np.float64], radius: float) -> NDArray[np.float64]:
-    """Normals oriented consistently over the surface, pointing outwards on the whole."""
-    import open3d as o3d
-
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points, dtype=np.float64)))
-    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
-    pcd.orient_normals_consistent_tangent_plane(10)
-    n = np.asarray(pcd.normals, dtype=np.float64).copy()
-    if np.sum(n * (points - points.mean(axis=0))) < 0:
-        n = -n
-    return n
 
 
 def object_from_posed_views(
@@ -511,7 +500,7 @@ def object_from_posed_views(
     p = cloud.points
     if p.shape[0] < 5:
         raise ValueError(f"Only {p.shape[0]} voxel(s) left at {vs:g} m; use a smaller `voxel_size`.")
-    normals = _model_normals(p, 3.0 * vs)
+    normals = _oriented_normals(p, 3.0 * vs)
     acc = np.zeros((p.shape[0], 3))
     wsum = np.zeros(p.shape[0])
     for k, view in enumerate(views):

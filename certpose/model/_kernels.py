@@ -24,9 +24,10 @@ from solvers.jit import kernel
 F1, F2, F3 = nt.float64[::1], nt.float64[:, ::1], nt.float64[:, :, ::1]
 S2, I3, B3 = nt.float32[:, ::1], nt.int32[:, :, ::1], nt.int8[:, :, ::1]
 f4, f8 = nt.float32, nt.float64
-# Everything after the pose: points, descriptors, grid index, cell states, background values,
-# voxel descriptors, log p_O, origin, 1 / voxel size, offset, beta, c_empty, c_unobs.
-_MODEL = (F2, S2, I3, B3, F3, S2, F1, F1, f8, f8, f4, f8, f8)
+# Everything after the pose: points, their weights, descriptors, grid index, cell states,
+# background values, voxel descriptors, log p_O, origin, 1 / voxel size, offset, beta, c_empty,
+# c_unobs.
+_MODEL = (F2, F1, S2, I3, B3, F3, S2, F1, F1, f8, f8, f4, f8, f8)
 
 EMPTY_CODE = -1
 UNOBSERVED_CODE = -2
@@ -82,7 +83,7 @@ def _point_term(index, cells, background, desc, logp, zi, qx, qy, qz, origin, in
 
 
 @njit(fastmath=True, inline="always")
-def _pose_total(T, points, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset, beta,
+def _pose_total(T, points, weights, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset, beta,
                 c_empty, c_unobs):  # pragma: no cover - compiled
     R00, R01, R02, t0 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
     R10, R11, R12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
@@ -93,30 +94,30 @@ def _pose_total(T, points, zdesc, index, cells, background, desc, logp, origin, 
         qx = R00 * px + R01 * py + R02 * pz + t0
         qy = R10 * px + R11 * py + R12 * pz + t1
         qz = R20 * px + R21 * py + R22 * pz + t2
-        total += _point_term(index, cells, background, desc, logp, zdesc[i], qx, qy, qz, origin,
+        total += weights[i] * _point_term(index, cells, background, desc, logp, zdesc[i], qx, qy, qz, origin,
                              inv_vs, offset, beta, c_empty, c_unobs)
     return total
 
 
 @kernel(F3, *_MODEL, fastmath=True, nogil=True)
-def eq1_batch(T, points, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset, beta,
+def eq1_batch(T, points, weights, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset, beta,
               c_empty, c_unobs):  # pragma: no cover - compiled
-    """Sum of per-point log-localisation terms for each of the ``B`` poses ``T`` (B, 4, 4).
+    """Weighted sum of per-point log-localisation terms for each of the ``B`` poses ``T`` (B, 4, 4).
 
     The one eq. (1) kernel. It releases the GIL, so :mod:`certpose.model.likelihood` runs
     large batches as chunks on a thread pool: no ``parallel=True`` second copy to compile.
     """
     out = np.empty(T.shape[0])
     for b in range(T.shape[0]):
-        out[b] = _pose_total(T[b], points, zdesc, index, cells, background, desc, logp, origin, inv_vs,
+        out[b] = _pose_total(T[b], points, weights, zdesc, index, cells, background, desc, logp, origin, inv_vs,
                              offset, beta, c_empty, c_unobs)
     return out
 
 
 @kernel(F2, *_MODEL, fastmath=True, nogil=True)
-def eq1_points(T, points, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset, beta,
+def eq1_points(T, points, weights, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset, beta,
                c_empty, c_unobs):  # pragma: no cover - compiled
-    """Per-point terms ``(N,)`` for one pose ``T`` (4, 4)."""
+    """Per-point weighted terms ``(N,)`` for one pose ``T`` (4, 4)."""
     N = points.shape[0]
     out = np.empty(N)
     for i in range(N):
@@ -124,6 +125,6 @@ def eq1_points(T, points, zdesc, index, cells, background, desc, logp, origin, i
         qx = T[0, 0] * px + T[0, 1] * py + T[0, 2] * pz + T[0, 3]
         qy = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
         qz = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
-        out[i] = _point_term(index, cells, background, desc, logp, zdesc[i], qx, qy, qz, origin, inv_vs,
+        out[i] = weights[i] * _point_term(index, cells, background, desc, logp, zdesc[i], qx, qy, qz, origin, inv_vs,
                              offset, beta, c_empty, c_unobs)
     return out

@@ -238,7 +238,10 @@ class PoseLikelihood:
     classification : ObjectClassification
         ``log_p`` (X, Y, Z) on the scene's grid (read at occupied voxels).
     object_model : ObjectModel
-        Points ``p_i`` (N, 3) in the object frame and descriptors ``z_i`` (N, d).
+        Points ``p_i`` (N, 3) in the object frame and descriptors ``z_i`` (N, d). With
+        ``areas`` (surface-sampled models), point ``i``'s term is weighted by
+        ``w_i = areas[i] / voxel_size**2``: eq. (1) then sums over the surface, one unit per voxel
+        face, however densely it is sampled.
     params : LikelihoodParams, optional
 
     Notes
@@ -299,13 +302,20 @@ class PoseLikelihood:
         self._inverse = np.argsort(self._order)
         self._points = np.ascontiguousarray(object_model.points[self._order], dtype=np.float64)
         self._z = np.ascontiguousarray(object_model.descriptors[self._order], dtype=np.float32)
+        # Area-weighted models count one unit per voxel face of surface (ObjectModel.areas).
+        areas = getattr(object_model, "areas", None)
+        weights = (np.ones(len(self._order)) if areas is None
+                   else np.asarray(areas, dtype=np.float64)[self._order] / self.grid.voxel_size**2)
+        self._weights = np.ascontiguousarray(weights, dtype=np.float64)
         self.num_points = int(self._points.shape[0])
+        #: Sum of the point weights: the number of points for unweighted models.
+        self.total_weight = float(self._weights.sum())
         self.centroid = object_model.points.mean(axis=0)
 
     def _args(self) -> tuple[Any, ...]:
         p = self.params
         return (
-            self._points, self._z, self._index, self._cells, self._background, self._desc,
+            self._points, self._weights, self._z, self._index, self._cells, self._background, self._desc,
             self._logp, self.grid.origin, 1.0 / self.grid.voxel_size, self.grid.offset,
             np.float32(p.beta), p.c_empty, p.log_p_unobserved,
         )
@@ -340,7 +350,9 @@ class PoseLikelihood:
         return float(out[0]) if single else out
 
     def point_terms(self, T: ArrayLike) -> NDArray[np.float64]:
-        """Per-point terms ``log p_loc(q_i)`` (N,) at one pose ``T`` (4, 4); they sum to eq. (1)."""
+        """Per-point terms ``w_i log p_loc(q_i)`` (N,) at one pose ``T`` (4, 4), weighted as in
+        eq. (1) (``w_i = 1`` unless the model has :attr:`~certpose.geometry.objects.ObjectModel.areas`);
+        they sum to eq. (1)."""
         eq1_points = compiled("certpose.model._kernels").eq1_points
 
         poses, single = _as_poses(T)

@@ -587,15 +587,16 @@ def default_temperature(likelihood, T: ArrayLike, *, scale: float = 1.0,  # noqa
                         correlation_voxels: float = 4.0) -> float:
     """The default temperature rule (see the module docstring): ``scale * N / n_eff``.
 
-    ``n_eff`` is the number of distinct cells of side ``correlation_voxels`` grid voxels that the
-    ``N`` model points of ``likelihood`` (a :class:`~certpose.model.likelihood.PoseLikelihood`)
+    ``N`` is the model's total point weight (its number of points unless it is area-weighted),
+    ``n_eff`` the number of distinct cells of side ``correlation_voxels`` grid voxels that the
+    model points of ``likelihood`` (a :class:`~certpose.model.likelihood.PoseLikelihood`)
     occupy at pose ``T`` (4, 4).
     """
     T = np.asarray(T, dtype=np.float64)
     pts = likelihood._points @ T[:3, :3].T + T[:3, 3]
     cell = likelihood.grid.voxel_size * float(correlation_voxels)
     n_eff = len(np.unique(np.floor((pts - likelihood.grid.origin) / cell).astype(np.int64), axis=0))
-    return float(scale) * likelihood.num_points / max(n_eff, 1)
+    return float(scale) * likelihood.total_weight / max(n_eff, 1)
 
 
 def seeds_from_mle(mle) -> NDArray[np.float64]:  # noqa: ANN001
