@@ -277,3 +277,30 @@ def test_batch_equals_reference_with_graded_free_space():
     assert np.all(slow >= np.array([_reference(scene, cls, obj, T, replace(params, free_space_tolerance=0.0,
                                                                            free_space_ramp=0.0))
                                     for T in poses]) - 1e-9)
+
+
+def test_area_weighted_points():
+    # Eq. (1) weighs point i by areas[i] / voxel_size**2 (surface-sampled models): one unit of
+    # area per voxel face gives the unweighted sum; any other area scales the point's term.
+    rng, scene, cls, obj = _world(3)
+    T = _random_poses(rng, 8, np.array([0.0, 0.0, 0.25]), 0.02)
+    plain = PoseLikelihood(scene, cls, obj)
+    unit = PoseLikelihood(scene, cls, replace_areas(obj, np.full(len(obj), scene.voxel_size**2)))
+    np.testing.assert_allclose(unit(T), plain(T), rtol=1e-12, atol=1e-9)
+    assert plain.total_weight == len(obj) and unit.total_weight == pytest.approx(len(obj))
+    w = rng.uniform(0.2, 3.0, len(obj))
+    weighted = PoseLikelihood(scene, cls, replace_areas(obj, w * scene.voxel_size**2))
+    assert weighted.total_weight == pytest.approx(w.sum())
+    for Tk in T[:3]:
+        terms = plain.point_terms(Tk)
+        np.testing.assert_allclose(weighted.point_terms(Tk), w * terms, rtol=1e-9, atol=1e-9)
+        assert weighted(Tk) == pytest.approx(float(w @ terms), rel=1e-9, abs=1e-7)
+        ref = [_reference(scene, cls, obj.select([i, i, i]), Tk, LikelihoodParams()) / 3
+               for i in range(len(obj))]
+        assert weighted(Tk) == pytest.approx(float(w @ ref), abs=1e-5)
+    np.testing.assert_allclose(weighted(T), [float(w @ plain.point_terms(Tk)) for Tk in T], rtol=1e-9,
+                               atol=1e-7)
+
+
+def replace_areas(obj: ObjectModel, areas: np.ndarray) -> ObjectModel:
+    return ObjectModel(obj.points, obj.descriptors, obj.colors, obj.normals, obj.name, areas)
