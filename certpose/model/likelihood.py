@@ -5,6 +5,11 @@ r"""Eq. (1) of the paper: the log-likelihood of an object pose, for a batch of p
     \log p(\mathcal{O}_{R,t}) = \sum_{i=1}^N \log p_\mathcal{O}(q_i) + \beta f_{scn}(q_i)^T z_i,
     \qquad q_i = R p_i + t .
 
+Object models sampled evenly over their surface carry the area each point stands for
+(:attr:`~certpose.geometry.objects.ObjectModel.areas`); their terms are weighted by
+``areas[i] / voxel_size**2``, so the sum approximates the same surface integral however densely
+the surface is sampled.
+
 How the special scene states enter (NOTES.md 1.4), voxel by voxel:
 
 * **occupied** voxel ``v``: ``log p_O(v)`` from the classifier and ``beta * f_v^T z_i``;
