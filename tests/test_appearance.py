@@ -90,6 +90,22 @@ def test_save_load_round_trip(gelatin, tmp_path):
     assert back.backbone == gelatin.backbone
     assert back.views == ("0000/000001", "0000/000002") and back.scenes == ("0000",)
     assert back.model.name == OBJ and back.voxel_size == gelatin.voxel_size
+    assert back.model.areas is None
+
+
+def test_surface_sampled_appearance_model(root, tmp_path):
+    # Points spread evenly over the reconstructed surface, coloured by the views, with their
+    # areas (saved and loaded with the model).
+    built = build_ycbv_object_model(root, ["0000/000001"], OBJ, sampling="surface")
+    m = built.model
+    assert m.areas is not None and m.areas.shape == (len(m),)
+    assert 0.01 < m.area < 0.03  # the gelatin box: 8.9 x 7.3 x 2.9 cm, 0.022 m^2 in all
+    assert 0 < built.observed.sum() < len(m)
+    path = tmp_path / "gelatin_surface.npz"
+    built.save(path)
+    np.testing.assert_array_equal(BuiltObjectModel.load(path).model.areas, m.areas)
+    with pytest.raises(ValueError, match="sampling"):
+        build_ycbv_object_model(root, ["0000/000001"], OBJ, sampling="mesh")
 
 
 def test_load_refuses_other_files(tmp_path):

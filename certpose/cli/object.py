@@ -44,6 +44,9 @@ def add_parser(subparsers: Any) -> None:
                    help="voxel size in metres; use the one given to `certpose pose` (default: 0.005)")
     b.add_argument("--color-weight", type=float, default=0.5, metavar="W",
                    help="share of colour in the descriptor similarity, in [0, 1] (default: 0.5)")
+    b.add_argument("--sampling", choices=("voxel", "surface"), default="voxel",
+                   help="model points averaged per voxel (default), or spread evenly over a surface "
+                        "reconstructed from them, weighted by area in eq. (1)")
     b.add_argument("-o", "--output", metavar="OUT.npz", required=True, help="where to save the model")
     from certpose.cli import add_common
 
@@ -78,7 +81,7 @@ def run_build(args: argparse.Namespace) -> int:
         built = build_ycbv_object_model(
             root, args.views, args.object, args.model,
             backbone=AppearanceBackbone(color_weight=args.color_weight),
-            voxel_size=args.voxel_size)
+            voxel_size=args.voxel_size, sampling=args.sampling)
     built.save(out)
     n, seen = len(built.model), int(built.observed.sum())
     say(args, f"object model {args.object}: {n} points, {seen} seen by {len(built.views)} "

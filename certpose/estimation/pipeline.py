@@ -721,6 +721,7 @@ def build_ycbv_object_model(
     backbone: Any = None,
     voxel_size: float = 0.005,
     unseen: str = "prior",
+    sampling: str = "voxel",
 ) -> BuiltObjectModel:
     """An object model with appearance from YCB-Video frames (their ground-truth poses and labels).
 
@@ -738,6 +739,8 @@ def build_ycbv_object_model(
     voxel_size : float, optional
         Metres (use the scene's).
     unseen : {"prior", "shape", "zero"}, optional
+        See :func:`~certpose.geometry.appearance.object_from_posed_views`.
+    sampling : {"voxel", "surface"}, optional
         See :func:`~certpose.geometry.appearance.object_from_posed_views`.
 
     Raises
@@ -766,7 +769,7 @@ def build_ycbv_object_model(
     if absent:
         log.warning("object %s is absent from %s (skipped)", object_name, ", ".join(absent))
     return object_from_posed_views(points, views, backbone, voxel_size=voxel_size,
-                                   name=object_name, unseen=unseen)
+                                   name=object_name, unseen=unseen, sampling=sampling)
 
 
 def run_demo(

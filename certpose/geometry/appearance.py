@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from certpose.geometry.features import FPFHBackbone
-from certpose.geometry.objects import ObjectModel, _oriented_normals
+from certpose.geometry.objects import ObjectModel, _oriented_normals, sample_surface
 from certpose.geometry.rgbd import check_mask, normalize_rows
 from solvers.validation import as_float_array, check_points, check_transform
 
@@ -444,11 +444,14 @@ def object_from_posed_views(
     name: str = "",
     depth_tolerance: float = 0.01,
     unseen: str = "prior",
+    sampling: str = "voxel",
 ) -> BuiltObjectModel:
     """Colour and describe model points from posed RGB-D views.
 
     The points are averaged per voxel of ``voxel_size`` (as the scene is) and given outward
-    normals; each view colours the points it sees (see :func:`project_model_colors`), views
+    normals (``sampling="voxel"``, the default), or spread evenly over a surface reconstructed
+    from them, with their areas (``"surface"``, see
+    :func:`~certpose.geometry.objects.sample_surface`); each view colours the points it sees (see :func:`project_model_colors`), views
     weighted by how squarely they see a point; then ``backbone`` describes the coloured points.
 
     Parameters
@@ -468,6 +471,9 @@ def object_from_posed_views(
         the mean over the seen points), ``"shape"`` (colour block zero) or ``"zero"`` (no
         information at all; always so for a backbone other than :class:`AppearanceBackbone`).
         See the module docstring.
+    sampling : {"voxel", "surface"}, optional
+        How the model points are sampled (see
+        :func:`~certpose.geometry.objects.object_from_points`).
 
     Returns
     -------
@@ -495,12 +501,17 @@ def object_from_posed_views(
     vs = float(voxel_size)
     if not (math.isfinite(vs) and vs > 0):
         raise ValueError(f"`voxel_size` must be positive and finite, got {voxel_size}.")
+    if sampling not in ("voxel", "surface"):
+        raise ValueError(f"`sampling` must be 'voxel' or 'surface', got {sampling!r}.")
     pts = check_points(points, "points", min_points=5)
-    cloud = StructuredPointCloud(pts, np.zeros((pts.shape[0], 0))).voxel_downsample(vs)
-    p = cloud.points
-    if p.shape[0] < 5:
-        raise ValueError(f"Only {p.shape[0]} voxel(s) left at {vs:g} m; use a smaller `voxel_size`.")
-    normals = _oriented_normals(p, 3.0 * vs)
+    areas = None
+    if sampling == "surface":
+        p, normals, areas = sample_surface(pts, voxel_size=vs, rng=0)
+    else:
+        p = StructuredPointCloud(pts, np.zeros((pts.shape[0], 0))).voxel_downsample(vs).points
+        if p.shape[0] < 5:
+            raise ValueError(f"Only {p.shape[0]} voxel(s) left at {vs:g} m; use a smaller `voxel_size`.")
+        normals = _oriented_normals(p, 3.0 * vs)
     acc = np.zeros((p.shape[0], 3))
     wsum = np.zeros(p.shape[0])
     for k, view in enumerate(views):
@@ -528,5 +539,5 @@ def object_from_posed_views(
         desc[~observed, _FPFH_DIM:] = 0.0
     log.info("object model %r from %d views: %d points, %d observed", name, len(views),
              p.shape[0], int(observed.sum()))
-    model = ObjectModel(p, desc, np.where(observed[:, None], colors, 0.0), normals, name)
+    model = ObjectModel(p, desc, np.where(observed[:, None], colors, 0.0), normals, name, areas)
     return BuiltObjectModel(model, backbone, observed, tuple(v.name for v in views), vs)
