@@ -46,19 +46,25 @@ def body_axis_offset(points: np.ndarray, handle_x: float = 0.045) -> np.ndarray:
 def symmetrised_body(obj, C: np.ndarray, copies: int, handle_x: float = 0.045):  # noqa: ANN001, ANN201
     """The model with its body replaced by ``copies`` turns of itself about the body axis (a
     diagnostic: a rotation-invariant sampling of the body), and the per-point weights
-    (``1 / copies`` on the body) that keep eq. (1) on the same scale."""
+    (``1 / copies`` on the body) that keep eq. (1) on the same scale. An area-weighted model
+    carries them in its areas instead (the weights returned are then 1)."""
     from scipy.spatial.transform import Rotation
 
     from certpose.geometry.objects import ObjectModel
 
     body = obj.points[:, 0] < handle_x
-    pts, desc, w = [obj.points[~body]], [obj.descriptors[~body]], [np.ones(int((~body).sum()))]
+    area = obj.areas if obj.areas is not None else np.ones(len(obj))
+    pts, desc, w = [obj.points[~body]], [obj.descriptors[~body]], [area[~body]]
     for k in range(copies):
         Rz = Rotation.from_rotvec([0.0, 0.0, 2 * np.pi * k / copies]).as_matrix()
         pts.append((obj.points[body] - C) @ Rz.T + C)
         desc.append(obj.descriptors[body])
-        w.append(np.full(int(body.sum()), 1.0 / copies))
-    return ObjectModel(np.concatenate(pts), np.concatenate(desc), name=obj.name), np.concatenate(w)
+        w.append(area[body] / copies)
+    w = np.concatenate(w)
+    if obj.areas is None:
+        return ObjectModel(np.concatenate(pts), np.concatenate(desc), name=obj.name), w
+    model = ObjectModel(np.concatenate(pts), np.concatenate(desc), name=obj.name, areas=w)
+    return model, np.ones(len(model))
 
 
 def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine: bool,  # noqa: ANN201
