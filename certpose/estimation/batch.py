@@ -9,6 +9,11 @@ call of the batched eq. (1). A trial that improves is kept and the step grows; o
 not is dropped and the step shrinks (a per-hypothesis trust region). The objective is
 piecewise linear (trilinear interpolation), which suits a normalised-gradient method with
 step control better than curvature models.
+
+:func:`basin_hop` does not stop at the first local maximum: it perturbs the best pose at random,
+refines the perturbed poses (first on a cheap eq. (1), then the best few on the exact one, all
+batched) and keeps any that climbs higher, for a few rounds. scipy's ``basinhopping`` does the
+same one start at a time; batching is what makes it affordable here.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 if TYPE_CHECKING:
     from certpose.model.likelihood import PoseLikelihood
 
-__all__ = ["refine_poses", "twists_to_poses"]
+__all__ = ["basin_hop", "refine_poses", "twists_to_poses"]
 
 log = logging.getLogger(__name__)
 
@@ -135,3 +140,95 @@ def refine_poses(
         active[idx[flat]] = False
         active[radius < min_step] = False
     return T, value
+
+
+def basin_hop(
+    likelihood: PoseLikelihood,
+    T0: ArrayLike,
+    *,
+    scale: float,
+    coarse_likelihood: PoseLikelihood | None = None,
+    rounds: int = 3,
+    samples: int = 32,
+    keep: int = 4,
+    translation: float = 0.08,
+    rotation_deg: float = 8.0,
+    max_iter: int = 30,
+    coarse_max_iter: int = 15,
+    rng: np.random.Generator | int | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Climb from each of ``T0`` past the local maxima next to it (see the module docstring).
+
+    Each round draws, for every start, ``samples`` poses ``T @ [exp(omega), scale * rho]``
+    around its best pose ``T`` so far, with ``rho ~ N(0, translation^2)`` and
+    ``omega ~ N(0, rotation_deg^2)`` per axis; refines them on ``coarse_likelihood``
+    (``coarse_max_iter`` iterations), keeps the ``keep`` best on ``likelihood`` and refines those
+    on it (``max_iter``). A refined pose that beats ``T`` replaces it. All starts share one
+    batched eq. (1) call per iteration.
+
+    Parameters
+    ----------
+    likelihood : PoseLikelihood
+        The exact eq. (1).
+    T0 : (4, 4) or (H, 4, 4) array_like
+        Starting ``T_scene_object`` poses (usually local maxima already).
+    scale : float
+        Metres per unit of ``rho`` (e.g. the object radius).
+    coarse_likelihood : PoseLikelihood, optional
+        A cheaper eq. (1) for the first refinement (e.g. an object subsample); without it every
+        sample is refined on ``likelihood``.
+    rounds, samples, keep : int
+        Rounds of perturbation, poses drawn per start and round, poses per start refined on
+        ``likelihood`` per round.
+    translation : float
+        Standard deviation of each translation coordinate, in units of ``scale``.
+    rotation_deg : float
+        Standard deviation of each rotation-vector coordinate, degrees.
+    max_iter, coarse_max_iter : int
+        Iterations of :func:`refine_poses` on ``likelihood`` and ``coarse_likelihood``.
+    rng : numpy Generator, int or None
+
+    Returns
+    -------
+    T : (H, 4, 4) ndarray
+        The best pose found from each start (the start when nothing beat it).
+    values : (H,) ndarray
+        Eq. (1) at ``T`` (on ``likelihood``).
+    """
+    from solvers.validation import resolve_rng
+
+    T = np.array(T0, dtype=np.float64)
+    if T.ndim == 2:
+        T = T[None]
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"Expected `T0` to have shape (4, 4) or (H, 4, 4) and finite values, "
+                         f"got {T.shape}.")
+    if not (math.isfinite(scale) and scale > 0):
+        raise ValueError(f"`scale` must be positive, got {scale}.")
+    if int(samples) < 1 or int(keep) < 1 or int(rounds) < 0:
+        raise ValueError(f"`samples` and `keep` must be >= 1 and `rounds` >= 0, got {samples}, "
+                         f"{keep} and {rounds}.")
+    if not (translation >= 0 and rotation_deg >= 0):
+        raise ValueError(f"`translation` and `rotation_deg` must be >= 0, got {translation} and "
+                         f"{rotation_deg}.")
+    gen = resolve_rng(rng)
+    H, M = T.shape[0], int(samples)
+    values = np.asarray(likelihood(T), dtype=np.float64).reshape(H)
+    for _ in range(int(rounds)):
+        X = np.empty((H, M, 6))
+        X[..., :3] = gen.normal(scale=translation, size=(H, M, 3))
+        X[..., 3:] = gen.normal(scale=math.radians(rotation_deg), size=(H, M, 3))
+        P = twists_to_poses(T, X, scale).reshape(-1, 4, 4)
+        if coarse_likelihood is not None:
+            P, _ = refine_poses(coarse_likelihood, P, scale=scale, max_iter=coarse_max_iter)
+            k = min(int(keep), M)
+            exact = np.asarray(likelihood(P)).reshape(H, M)
+            top = np.argsort(-exact, axis=1)[:, :k]
+            P = P.reshape(H, M, 4, 4)[np.arange(H)[:, None], top].reshape(-1, 4, 4)
+        P, v = refine_poses(likelihood, P, scale=scale, max_iter=max_iter)
+        P, v = P.reshape(H, -1, 4, 4), v.reshape(H, -1)
+        i = np.argmax(v, axis=1)
+        better = v[np.arange(H), i] > values
+        T[better] = P[better, i[better]]
+        values[better] = v[better, i[better]]
+    return T, values
