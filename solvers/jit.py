@@ -290,6 +290,7 @@ def _main(argv: Sequence[str]) -> int:
 
 
 if __name__ == "__main__":
+    gc.disable()  # a short-lived compiler process: no collections at all
     # Run as a script this file is ``__main__``; the kernels register with ``solvers.jit``.
     from solvers.jit import _main as _registered_main
 

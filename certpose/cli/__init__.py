@@ -164,10 +164,13 @@ def _message(exc: BaseException) -> str:
     return text
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, *, _startup_gc_paused: bool = False) -> int:
     warming = warm_kernels(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
     args = parser.parse_args(argv)  # exits 2 on unknown options
+    if _startup_gc_paused:  # (run) the imports are done: they are never collected again
+        gc.freeze()
+        gc.enable()
     verbose = args.verbose + getattr(args, "sub_verbose", 0)
     quiet = getattr(args, "quiet", False)
     logging.basicConfig(
@@ -250,7 +253,12 @@ def run() -> None:
     """The ``certpose`` program (console script and ``python -m certpose``): :func:`main`, then
     exit without the interpreter's last garbage collection."""
     defer_open3d_plotly()
-    code = main()
+    # No collections while the start-up imports build their ~10^6 objects (none of them garbage).
+    gc.disable()
+    try:
+        code = main(_startup_gc_paused=True)
+    finally:
+        gc.enable()
     # The process ends here: the last collection would walk every object numba and scipy
     # created (about 0.5 s per run); frozen objects are skipped, the OS frees the memory.
     gc.freeze()
