@@ -16,6 +16,13 @@ process compiles beside the command, see :mod:`solvers.jit`), ``pose --demo`` 10
 :mod:`solvers.jit`, back to back on the same machine: cold 7.42 / 8.20 and 16.35 / 17.22, warm
 1.24 / 1.32 and 6.10 / 6.14.
 
+After the collector changes and open3d's deferred plotting module (the ``certpose`` program,
+:func:`certpose.cli.run`), quiet (load 1.1-2.0), ``--repeat 5`` / ``--repeat 3``: cold
+``register --demo`` 4.42 / 4.79 s (8.84 CPU s), ``pose --demo`` 9.66 / 9.84 s; warm 0.91 / 1.09
+and 4.76 / 4.90. Interleaved with the code before them (8 runs each, fresh cache every run):
+cold register median 5.81 -> 4.71 s. The VM's speed varies by up to 2x within minutes: only
+interleaved figures compare code.
+
 usage::
 
     python examples/bench_cold_start.py               # both commands, 1 cold + 1 warm run each

@@ -35,6 +35,10 @@ Measured (2-core machine shared with other sessions, load average 2.8 -> 2.6 ove
   128.8 ms), every maximum clique proven; sparse graphs 2.0-5.8 ms (load); worst dense /
   median sparse 4.7x and 7.5x (before 31x and 44x).
 * Bunny N = 100, 0-95% outliers: median 0.27-0.32 ms per solve (0.36-0.43 ms before).
+* After the small-solve changes (23 November, quiet, load 0.8-1.1, four runs within ten
+  minutes): bunny N = 100 medians 0.222-0.246, 0.170-0.184, 0.266-0.308 and 0.306-0.365 ms
+  (the VM's speed phases); interleaved with the code before them, 0.160-0.175 against
+  0.183-0.294 ms. 3DMatch pair 6.7-9.4 ms; worst dense / median sparse 6.3-7.1x.
 """
 
 from __future__ import annotations
