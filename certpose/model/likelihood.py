@@ -96,6 +96,12 @@ class LikelihoodParams:
     free_space_ramp : float
         Metres (>= 0). Beyond ``free_space_tolerance`` the free-space cost falls linearly to
         ``c_empty`` over this distance (0: a step). See :func:`free_space_values`.
+    free_space_from : {"surface", "boundary"}
+        What the tolerance's distance is measured from: ``"surface"``, the nearest occupied voxel
+        centre (an observed surface); ``"boundary"``, the nearest voxel centre that is not
+        observed free space (an observed surface or unobserved space: the edge of a shadow or
+        of the grid too), i.e. how deep the voxel lies in free space, the measure of
+        :func:`certpose.model.arc.free_space_arc`.
     """
 
     beta: float = 1.0
@@ -104,6 +110,7 @@ class LikelihoodParams:
     free_space_erosion: int = 0
     free_space_tolerance: float = 0.0
     free_space_ramp: float = 0.0
+    free_space_from: str = "surface"
 
     def __post_init__(self) -> None:
         for name in ("beta", "c_empty", "log_p_unobserved", "free_space_tolerance",
@@ -121,6 +128,10 @@ class LikelihoodParams:
         for name in ("free_space_tolerance", "free_space_ramp"):
             if getattr(self, name) < 0:
                 raise ValueError(f"`{name}` must be >= 0 metres, got {getattr(self, name)}.")
+        if self.free_space_from not in ("surface", "boundary"):
+            raise ValueError(
+                f"`free_space_from` must be 'surface' or 'boundary', got {self.free_space_from!r}."
+            )
         if int(self.free_space_erosion) != self.free_space_erosion or self.free_space_erosion < 0:
             raise ValueError(
                 f"`free_space_erosion` must be a non-negative integer, got {self.free_space_erosion}."
@@ -209,7 +220,10 @@ def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodPar
     elif empty.any():
         from scipy.ndimage import distance_transform_edt
 
-        if occupied.any():
+        if params.free_space_from == "boundary":
+            # Padded: outside the grid is unobserved, so the grid's faces are a boundary too.
+            d = distance_transform_edt(np.pad(empty, 1), sampling=float(voxel_size))[1:-1, 1:-1, 1:-1][empty]
+        elif occupied.any():
             d = distance_transform_edt(~occupied, sampling=float(voxel_size))[empty]
         else:  # no observed surface at all: every free voxel is deep in free space
             d = np.full(int(empty.sum()), np.inf)
