@@ -232,10 +232,18 @@ def main() -> None:
         in_mean = float(full[reg["computed"][0]].mean()) if arc.arc else float("nan")
         other_best = (f"; best eq. (1) there {full[reg['other free']].max() - in_mean:+.1f} nats from the "
                       "arc's mean" if reg["other free"].any() else "")
+        beyond = ""
+        if arc.arc:
+            # How far the handle stands in free space at the guard's edges (the nearest 'outside').
+            ends = [arc.arc[0] - args.guard, arc.arc[1] + args.guard]
+            ks = [int(np.argmin(np.abs(np.mod(arc.angles - e + 180.0, 360.0) - 180.0))) for e in ends]
+            beyond = ("; at the ends -/+ guard the deepest point stands "
+                      + " / ".join(f"{1e3 * arc.depth[k]:.1f} mm ({arc.violations[k]} points beyond "
+                                   "tolerance)" for k in ks) + " in free space")
         print(f"\n{f}: free-space arc (tolerance {1e3 * arc.tolerance:.1f} mm, {arc.step:.1f} deg grid) "
               + (f"{arc.arc[0]:.1f}..{arc.arc[1]:.1f} deg" if arc.arc else f"NONE ({arc.message})")
               + "; other free runs: " + (", ".join(f"{lo:.1f}..{hi:.1f}" for lo, hi in others) or "none")
-              + other_best)
+              + other_best + beyond)
         print(header)
         for which in ("computed", "stated"):
             inside, outside = reg[which]

@@ -109,7 +109,7 @@ def test_bad_input_is_named(kwargs: dict, match: str) -> None:
         free_space_arc(half_space_scene(), pts, T, **args)
 
 
-@pytest.mark.parametrize("seed", [0, 5])
+@pytest.mark.parametrize("seed", [pytest.param(0, marks=pytest.mark.slow), 5])
 def test_demo_mug_arc_matches_the_depth_image(seed: int) -> None:
     """The demo mug's handle is hidden by construction (behind its body and the occluder box).
     The arc from the voxel grid agrees within a few degrees with the arc found directly from the

@@ -207,13 +207,21 @@ def test_bench_arc_reports_the_ratio_per_frame_and_part() -> None:
     proc = _run("bench_arc.py", "--frames", "000001", "--step", "10", "--no-refine",
                 "--tolerance", "0.0075", "--ramp", "0.005")
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    rows = [x.split() for x in proc.stdout.splitlines() if x.startswith("000001")]
-    parts = {r[1] if r[1] != "eq." else "eq1": r for r in rows}
-    assert {"eq1", "body", "handle"} <= set(parts), proc.stdout
-    assert "free_space_tolerance" in proc.stdout and "eq. (1) ratio over 1 frames" in proc.stdout
-    # The handle is hidden inside most of the arc and emerges outside it: its share drops
-    # outside by more than twice its range inside, and so does eq. (1).
-    rng_in, drop = (float(x) for x in parts["handle"][-4:-2])
+    assert "free_space_tolerance" in proc.stdout
+    # The computed arc (issue 11's definition) holds the ground truth and about the stated
+    # -15..80 deg; the other free runs are printed with it.
+    line = next(x for x in proc.stdout.splitlines() if x.startswith("000001: free-space arc"))
+    lo, hi = (float(v) for v in line.split("grid) ")[1].split(" deg")[0].split(".."))
+    assert -40 < lo < -10 and 60 < hi < 110, line
+    assert "other free runs" in line
+    rows = [x.split() for x in proc.stdout.splitlines() if x.startswith("000001 ")]
+    parts = {(r[1], r[2] if r[2] != "eq." else "eq1"): r for r in rows}
+    assert {(a, p) for a in ("computed", "stated") for p in ("eq1", "body", "handle")} <= set(parts), proc.stdout
+    assert "computed arc: eq. (1) ratio over 1 frames" in proc.stdout
+    assert "stated arc: eq. (1) ratio over 1 frames" in proc.stdout
+    # On the stated arc the handle is hidden inside most of it and emerges outside: its share
+    # drops outside by more than twice its range inside, and so does eq. (1).
+    rng_in, drop = (float(x) for x in parts[("stated", "handle")][-4:-2])
     assert drop > 2 * rng_in, proc.stdout
-    rng_in, drop = (float(x) for x in parts["eq1"][-4:-2])
+    rng_in, drop = (float(x) for x in parts[("stated", "eq1")][-4:-2])
     assert drop > 2 * rng_in, proc.stdout

@@ -239,6 +239,29 @@ def test_free_space_values_graded_by_distance_to_the_surface():
         free_space_values(np.zeros((3, 3)), 0.005, params)
 
 
+def test_free_space_graded_from_the_free_regions_boundary():
+    # "boundary": the distance counts to the nearest voxel that is not observed free space, so
+    # free voxels beside the unobserved column (2, 2) are spared as well as those on the plane,
+    # and the grid's faces (outside is unobserved) are a boundary too.
+    scene = _plane_scene()
+    lpu, c = math.log(0.1), -30.0
+    params = LikelihoodParams(c_empty=c, free_space_tolerance=0.0075, free_space_from="boundary")
+    v = free_space_values(scene.state, scene.voxel_size, params)
+    surface = free_space_values(scene.state, scene.voxel_size, replace(params, free_space_from="surface"))
+    # Column (1, 1) at k = 6: 30 mm from the plane, 7.1 mm (a diagonal step) from column (2, 2).
+    assert v[1, 1, 6] == pytest.approx(lpu) and surface[1, 1, 6] == c
+    # A bigger grid without the unobserved column: the centre column is 15 mm from the faces.
+    big = SceneField(0.005, np.zeros(3), (5, 5, 12), np.zeros((5, 5, 12, 2)),
+                     np.where(np.arange(12)[None, None, :] == 0, OCCUPIED, EMPTY).astype(np.int8)
+                     * np.ones((5, 5, 1), np.int8))
+    vb = free_space_values(big.state, big.voxel_size, params)
+    assert vb[2, 2, 1] == pytest.approx(lpu)  # 5 mm above the plane
+    assert vb[2, 2, 6] == c  # 15 mm from the nearest face, 30 mm from the plane
+    assert vb[0, 2, 6] == pytest.approx(lpu)  # on a face of the grid
+    with pytest.raises(ValueError, match="free_space_from"):
+        LikelihoodParams(free_space_from="occupied")
+
+
 def test_free_space_tolerance_spares_points_near_a_surface_only():
     scene = _plane_scene()
     lpu, c = math.log(0.1), -30.0
