@@ -10,12 +10,14 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import replace
 
 import numpy as np
 
 
-def build_demo(seed: int = 0):  # noqa: ANN201
-    """The `certpose pose --demo` scene, its likelihood, MLE and ground truth."""
+def build_demo(seed: int = 0, likelihood_params=None):  # noqa: ANN001, ANN201
+    """The `certpose pose --demo` scene, its likelihood, MLE and ground truth (``likelihood_params``:
+    other eq. (1) constants than the defaults, for the MLE and the likelihood)."""
     from certpose.data.synthetic import make_mug_scene
     from certpose.estimation.mle import estimate_mle
     from certpose.estimation.pipeline import PoseParams, _scene_for
@@ -25,6 +27,8 @@ def build_demo(seed: int = 0):  # noqa: ANN201
     from certpose.model.likelihood import PoseLikelihood
 
     params, backbone, gen = PoseParams(), FPFHBackbone(), np.random.default_rng(seed)
+    if likelihood_params is not None:
+        params = replace(params, likelihood=likelihood_params)
     sc = make_mug_scene(rng=gen)
     views = sc.render_object_views(4)
     scene = _scene_for(sc.frame, sc.object_mask, params, backbone)

@@ -47,6 +47,7 @@ import math
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +56,7 @@ from scipy.spatial.transform import Rotation
 AXIS = np.array([0.0, 0.0, 1.0])  # the mug's axis in its model frame (demo and YCB-Video)
 
 
-def demo_problem(seed: int):  # noqa: ANN201
+def demo_problem(seed: int, lparams=None):  # noqa: ANN001, ANN201
     """The demo's likelihood, MLE seeds, ground truth (scene frame = camera frame) and its
     free-space arc (the axis through the model origin)."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -67,7 +68,7 @@ def demo_problem(seed: int):  # noqa: ANN201
     from certpose.model.arc import free_space_arc
     from certpose.sampling.sampler import seeds_from_mle
 
-    lik, mle, gt = build_demo(seed)
+    lik, mle, gt = build_demo(seed, lparams)
     # build_demo's scene: the same seed draws the same layout first.
     sc = make_mug_scene(rng=np.random.default_rng(seed), n_model_points=6000)
     assert np.allclose(sc.T_camera_object, gt)
@@ -76,7 +77,7 @@ def demo_problem(seed: int):  # noqa: ANN201
     return lik, seeds_from_mle(mle), gt, arc, np.zeros(3)
 
 
-def ycbv_problem(root: Path, frame: str, seed: int):  # noqa: ANN201
+def ycbv_problem(root: Path, frame: str, seed: int, lparams=None):  # noqa: ANN001, ANN201
     """Scene 0000's mug: likelihood (ground-truth mask classifier), seeds, ground truth (scene
     frame), the free-space arc about the body's axis and the axis's centre (object frame)."""
     from certpose.estimation.mle import estimate_mle
@@ -94,6 +95,8 @@ def ycbv_problem(root: Path, frame: str, seed: int):  # noqa: ANN201
     from bench_arc import body_axis_offset
 
     params, bb = PoseParams(), FPFHBackbone()
+    if lparams is not None:
+        params = replace(params, likelihood=lparams)
     pts = load_model_points(root / "models" / "025_mug" / "points.xyz")
     obj = object_from_points(pts, bb, voxel_size=params.voxel_size, name="025_mug")
     yf = load_ycbv_frame(root, f"0000/{frame}")
@@ -199,6 +202,9 @@ def main() -> None:
     ap.add_argument("--no-ycbv", action="store_true", help="the demo scene only")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--likelihood", nargs="+", default=[], metavar="NAME=VALUE",
+                    help="LikelihoodParams fields other than the defaults (MLE and target), e.g. "
+                         "free_space_tolerance=0.0075 free_space_from=boundary")
     ap.add_argument("--arc", choices=("free", "slice"), default="free",
                     help="the demo's reference arc: the free-space arc (default) or the eq. (1) slice")
     args = ap.parse_args()
@@ -207,10 +213,17 @@ def main() -> None:
 
         check_output_path(args.json, what="--json output")
 
+    from certpose.model.likelihood import LikelihoodParams
     from certpose.sampling import DEParams, ISParams, MCMCParams, de_sample, mcmc_sample
     from certpose.sampling.sampler import sample_pose_distribution
 
-    lik, seeds, gt, arc, centre = demo_problem(args.seed)
+    lparams = None
+    if args.likelihood:
+        fields = dict(item.split("=", 1) for item in args.likelihood)
+        lparams = LikelihoodParams(**{k: (v if k == "free_space_from" else float(v))
+                                      for k, v in fields.items()})
+        print(f"likelihood: {lparams}")
+    lik, seeds, gt, arc, centre = demo_problem(args.seed, lparams)
     # Warm-up (numba, Nevergrad, arviz imports): not timed.
     sample_pose_distribution(lik, seeds, params=ISParams(draws=500, rounds=1), rng=0)
     de_sample(lik, seeds[0], params=DEParams(max_evaluations=64), rng=0)
@@ -222,7 +235,7 @@ def main() -> None:
         print(f"(YCB-Video folder {args.ycbv} not found: the demo scene only)")
     if use_ycbv:
         for frame in args.frames:
-            lik, seeds, gt, arc, centre = ycbv_problem(args.ycbv, frame, args.seed)
+            lik, seeds, gt, arc, centre = ycbv_problem(args.ycbv, frame, args.seed, lparams)
             rows += run_scene(f"0000/{frame}", lik, seeds, gt, arc, centre, args.seed)
     print(f"\nsame target (eq. (1) / default temperature) and wall-clock budget (ours' sampling "
           f"time) per scene; {time.perf_counter() - t0:.0f} s in all")
