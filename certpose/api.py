@@ -8,8 +8,8 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from solvers import RegistrationResult, WeightedTLSProblem, solve_registration
-from solvers.registration import from_unit_scale, to_unit_scale
+from solvers import RegistrationResult, solve_registration
+from solvers.registration import from_unit_scale, unit_scale_problem
 from solvers.validation import check_limit
 
 __all__ = ["register", "as_points"]
@@ -93,7 +93,9 @@ def register(
         ``prune="always"`` with more correspondences than memory's N^2-byte consistency graph
         holds (raised before allocating).
     """
-    problem = WeightedTLSProblem(
+    # Solve (and certify) at unit scale: the TLS cost, inliers and certificate bounds do not
+    # depend on the units, and the solvers' tolerances are then meaningful at any scale.
+    unit, scale = unit_scale_problem(
         as_points(source, "source"),
         as_points(target, "target"),
         noise_bound=noise_bound,
@@ -108,11 +110,6 @@ def register(
     if check_limit(tol, "tol", allow_none=False) == 0:
         raise ValueError("`tol` must be positive, got 0.")
     method = {"auto": "auto", "always": "pruned", "never": "gnc"}[prune]
-    if solver == "gnc" and not certify:
-        return solve_registration(problem, method=method)  # type: ignore[arg-type]  (scales itself)
-    # Solve and certify at unit scale: the TLS cost, inliers and certificate bounds do not
-    # depend on the units, and the solvers' tolerances are then meaningful at any scale.
-    unit, scale = to_unit_scale(problem)
     if solver == "sdp":
         from solvers.certify import solve_sdp  # cvxpy: imported on demand
 

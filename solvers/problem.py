@@ -63,13 +63,9 @@ class WeightedTLSProblem:
         src, dst, beta, w, c2 = check_correspondences(
             source, target, noise_bound=noise_bound, weights=weights, cbar2=cbar2, min_n=3
         )
-        for arr in (src, dst, beta, w):
-            arr.setflags(write=False)
-        object.__setattr__(self, "source", src)
-        object.__setattr__(self, "target", dst)
-        object.__setattr__(self, "noise_bound", beta)
-        object.__setattr__(self, "weights", w)
-        object.__setattr__(self, "cbar2", c2)
+        self._set(src, dst, beta, w, c2)
+        if weights is None:
+            self.__dict__["_uniform_cache"] = True  # all ones
 
     @classmethod
     def _from_checked(
@@ -87,14 +83,27 @@ class WeightedTLSProblem:
         right shapes, with positive ``noise_bound`` and non-negative ``weights``.
         """
         self = object.__new__(cls)
-        for arr in (source, target, noise_bound, weights):
-            arr.setflags(write=False)
-        object.__setattr__(self, "source", source)
-        object.__setattr__(self, "target", target)
-        object.__setattr__(self, "noise_bound", noise_bound)
-        object.__setattr__(self, "weights", weights)
-        object.__setattr__(self, "cbar2", float(cbar2))
+        self._set(source, target, noise_bound, weights, float(cbar2))
         return self
+
+    def _set(self, src: NDArray[np.float64], dst: NDArray[np.float64],
+             beta: NDArray[np.float64], w: NDArray[np.float64], c2: float) -> None:
+        # The fields are read-only views; the compiled kernels take the arrays themselves
+        # (their signatures are for writable arrays: a read-only input would be copied on
+        # every call). The kernels never write into them.
+        d = self.__dict__  # a frozen dataclass: its fields are set through the instance dict
+        kernel = []
+        for name, arr in (("source", src), ("target", dst), ("noise_bound", beta),
+                          ("weights", w)):
+            flags = arr.flags
+            if not (flags.writeable and flags.c_contiguous):
+                arr = np.array(arr, dtype=np.float64, order="C")
+            kernel.append(arr)
+            view = arr.view()
+            view.flags.writeable = False
+            d[name] = view
+        d["cbar2"] = c2
+        d["_kernel_arrays"] = tuple(kernel)
 
     @property
     def n(self) -> int:
@@ -127,6 +136,18 @@ class WeightedTLSProblem:
             out.append(d.sum(axis=1) / self._beta2)
         return out[0], out[1]
 
+    def _residuals_sq_pair_t(
+        self, moved: NDArray[np.float64], t: NDArray[np.float64], t_other: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], float, float]:
+        """:meth:`residuals_sq_pair` from the rotated points ``moved`` = ``b_k - R a_k`` laid out
+        as (3, N), and both TLS costs (both translations in each numpy call: small-N overhead)."""
+        d = moved[None] - np.stack((t, t_other))[:, :, None]  # (2, 3, N)
+        d *= d
+        r2 = d.sum(axis=1)  # x + y + z in that order, as residuals_sq
+        r2 /= self._beta2
+        costs = np.minimum(r2, self.cbar2) @ self.weights
+        return r2[0], r2[1], float(costs[0]), float(costs[1])
+
     @property
     def _beta2(self) -> NDArray[np.float64]:
         beta2 = self.__dict__.get("_beta2_cache")
@@ -134,6 +155,43 @@ class WeightedTLSProblem:
             beta2 = self.noise_bound**2
             self.__dict__["_beta2_cache"] = beta2
         return beta2
+
+    @property
+    def _inv_beta2(self) -> NDArray[np.float64]:
+        """``1 / beta^2`` (N,), writable and C-contiguous (a kernel input)."""
+        inv = self.__dict__.get("_inv_beta2_cache")
+        if inv is None:
+            inv = 1.0 / self._beta2
+            self.__dict__["_inv_beta2_cache"] = inv
+        return inv
+
+    @property
+    def _points_t(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``source.T`` and ``target.T`` (3, N), C-contiguous and writable (kernel inputs)."""
+        pts = self.__dict__.get("_points_t_cache")
+        if pts is None:
+            pts = (np.ascontiguousarray(self.source.T), np.ascontiguousarray(self.target.T))
+            self.__dict__["_points_t_cache"] = pts
+        return pts
+
+    @property
+    def _min_noise_bound(self) -> float:
+        beta_min = self.__dict__.get("_min_beta_cache")
+        if beta_min is None:
+            beta_min = float(self.noise_bound.min())
+            self.__dict__["_min_beta_cache"] = beta_min
+        return beta_min
+
+    @property
+    def _uniform_weights(self) -> bool:
+        """True when every weight is the same positive value."""
+        uniform = self.__dict__.get("_uniform_cache")
+        if uniform is None:
+            w = self.weights
+            wmin, wmax = float(w.min()), float(w.max())
+            uniform = wmin > 0.0 and not wmax - wmin > 1e-12 * wmax
+            self.__dict__["_uniform_cache"] = uniform
+        return uniform
 
     def cost(self, rotation: ArrayLike, translation: ArrayLike) -> float:
         """TLS cost of the pose ``(R, t)``."""

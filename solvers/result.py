@@ -95,6 +95,27 @@ class RegistrationResult:
             object.__setattr__(self, name, arr)
         object.__setattr__(self, "info", MappingProxyType(dict(self.info)))
 
+    @classmethod
+    def _fresh(cls, **values: Any) -> RegistrationResult:
+        """A result from arrays the solver has just made and holds no other reference to: they
+        are made read-only instead of copied (a copy costs more than a small solve's arithmetic)."""
+        self = object.__new__(cls)
+        d = self.__dict__
+        for name, default in _RESULT_DEFAULTS:
+            d[name] = values.get(name, default)
+        d["info"] = MappingProxyType(dict(values.get("info") or {}))
+        self.T_target_source.setflags(write=False)
+        self.inliers.setflags(write=False)
+        return self
+
+    def _with_transform(self, T: NDArray[np.float64]) -> RegistrationResult:
+        """This result with ``T_target_source`` replaced by the fresh array ``T``."""
+        new = object.__new__(type(self))
+        new.__dict__.update(self.__dict__)
+        T.setflags(write=False)
+        object.__setattr__(new, "T_target_source", T)
+        return new
+
     def __reduce__(self) -> tuple[Any, ...]:  # pickling (e.g. to a Dask worker)
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         values["info"] = dict(self.info)
@@ -135,6 +156,9 @@ class RegistrationResult:
             "info": {k: _jsonable(v) for k, v in self.info.items()},
         }
         return out
+
+
+_RESULT_DEFAULTS = tuple((f.name, f.default) for f in fields(RegistrationResult))
 
 
 def _rebuild_result(values: dict[str, Any]) -> RegistrationResult:

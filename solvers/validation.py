@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -36,6 +37,11 @@ def as_float_array(value: Any, name: str) -> NDArray[np.float64]:
 
 def check_points(value: Any, name: str, *, min_points: int = 1) -> NDArray[np.float64]:
     """Validate an ``(N, 3)`` array of finite points."""
+    return _points_and_extent(value, name, min_points)[0]
+
+
+def _points_and_extent(value: Any, name: str, min_points: int) -> tuple[NDArray[np.float64], float]:
+    """:func:`check_points` and the largest absolute coordinate (0 when there are no points)."""
     arr = as_float_array(value, name)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"Expected `{name}` to have shape (N, 3), got {arr.shape}.")
@@ -43,16 +49,26 @@ def check_points(value: Any, name: str, *, min_points: int = 1) -> NDArray[np.fl
         raise ValueError(
             f"Expected `{name}` to have at least {min_points} points, got {arr.shape[0]}."
         )
-    if not np.isfinite(arr).all():
+    if arr.shape[0] == 0:
+        return arr, 0.0
+    extent = float(np.abs(arr).max())  # NaN and inf make it non-finite: one pass checks both
+    if not math.isfinite(extent):
         bad = int(np.count_nonzero(~np.isfinite(arr).all(axis=1)))
         raise ValueError(f"`{name}` contains NaN or inf values in {bad} row(s).")
-    return arr
+    return arr, extent
 
 
 def check_per_item(
     value: Any, name: str, n: int, *, positive: bool, allow_scalar: bool
 ) -> NDArray[np.float64]:
     """Validate a scalar or ``(n,)`` array of finite, non-negative (or positive) values."""
+    if type(value) is float and allow_scalar:  # the usual scalar: math is cheaper than numpy
+        if not math.isfinite(value):
+            raise ValueError(f"`{name}` contains NaN or inf values.")
+        if value <= 0 if positive else value < 0:
+            kind = "strictly positive" if positive else "non-negative"
+            raise ValueError(f"`{name}` must be {kind}, got minimum {value:g}.")
+        return np.full(n, value)
     arr = as_float_array(value, name)
     if arr.ndim == 0:
         if not allow_scalar:
@@ -108,6 +124,10 @@ def check_limit(value: Any, name: str, *, allow_none: bool = True) -> float | No
     """Validate a non-negative finite limit (e.g. a time limit in seconds), or ``None``."""
     if value is None and allow_none:
         return None
+    if type(value) is float:  # the usual case: math is cheaper than numpy on one float
+        if not math.isfinite(value) or value < 0:
+            raise ValueError(f"`{name}` must be a non-negative finite number, got {value}.")
+        return value
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)):
         raise TypeError(f"`{name}` must be a number, got {value!r}.")
     if not np.isfinite(value) or value < 0:
@@ -138,8 +158,24 @@ def check_correspondences(
     ``noise_bound`` is a positive scalar or (N,) array, ``weights`` None (all ones), a
     non-negative scalar or (N,) array, and ``cbar2`` a positive finite scalar.
     """
-    src = check_points(source, "source")
-    dst = check_points(target, "target")
+    return _check_correspondences(source, target, noise_bound=noise_bound, weights=weights,
+                                  cbar2=cbar2, min_n=min_n)[:5]
+
+
+def _check_correspondences(
+    source: Any,
+    target: Any,
+    *,
+    noise_bound: Any,
+    weights: Any,
+    cbar2: Any,
+    min_n: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+           float, float]:
+    """:func:`check_correspondences` and the largest absolute coordinate of the points."""
+    src, extent_src = _points_and_extent(source, "source", 1)
+    dst, extent_dst = _points_and_extent(target, "target", 1)
+    extent = max(extent_src, extent_dst)
     if src.shape[0] != dst.shape[0]:
         raise ValueError(
             "Expected `source` and `target` to have the same number of rows, got "
@@ -156,7 +192,11 @@ def check_correspondences(
         if weights is None
         else check_per_item(weights, "weights", n, positive=False, allow_scalar=True)
     )
+    if type(cbar2) is float:  # the usual case
+        if not (math.isfinite(cbar2) and cbar2 > 0):
+            raise ValueError(f"`cbar2` must be a positive finite scalar, got {cbar2!r}.")
+        return src, dst, beta, w, cbar2, extent
     c2 = as_float_array(cbar2, "cbar2")
     if c2.ndim != 0 or not np.isfinite(c2) or c2 <= 0:
         raise ValueError(f"`cbar2` must be a positive finite scalar, got {cbar2!r}.")
-    return src, dst, beta, w, float(c2)
+    return src, dst, beta, w, float(c2), extent

@@ -26,6 +26,7 @@ from solvers.registration.solve import (
     solve_pruned,
     solve_registration,
     to_unit_scale,
+    unit_scale_problem,
 )
 
 __all__ = [
@@ -46,5 +47,6 @@ __all__ = [
     "solve_pruned",
     "solve_registration",
     "to_unit_scale",
+    "unit_scale_problem",
     "vote_translation",
 ]

@@ -7,6 +7,7 @@ holds the mutually consistent correspondences; translation is then voted exactly
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -148,11 +149,25 @@ def maximum_cliques(
     _kernels = compiled("solvers.registration._kernels")
 
     adj = _kernels.as_kernel_array(adjacency, np.uint8)
-    n = adj.shape[0]
-    if n == 0:
+    if adj.shape[0] == 0:
         return [np.empty(0, dtype=np.int64)], True
-    budget = np.iinfo(np.int64).max if max_work is None else int(max_work)
-    deg = _kernels.row_degrees(adj)
+    return _max_cliques_from(adj, _kernels.row_degrees(adj), limit, exact_max_vertices, max_work)
+
+
+_NO_BUDGET = int(np.iinfo(np.int64).max)
+
+
+def _max_cliques_from(
+    adj: NDArray[np.uint8],
+    deg: NDArray[np.int64],
+    limit: int,
+    exact_max_vertices: int | None,
+    max_work: int | None,
+) -> tuple[list[NDArray[np.int64]], bool]:
+    """:func:`maximum_cliques` of a kernel-ready, non-empty ``adj`` with vertex degrees ``deg``."""
+    _kernels = compiled("solvers.registration._kernels")
+    n = adj.shape[0]
+    budget = _NO_BUDGET if max_work is None else int(max_work)
     order = np.argsort(-deg, kind="stable")
     best = np.sort(_kernels.multistart_greedy_clique(adj, deg, order, GREEDY_STARTS))
     core = _peel_to_core(adj, deg, best.size - 1)
@@ -277,16 +292,24 @@ def vote_translation(
         idx = np.asarray(indices)
         resid = problem.target[idx] - problem.source[idx] @ R.T
         beta, w = problem.noise_bound[idx], problem.weights[idx]
-    # scalar_tls per axis, its setup shared (this runs once per pruned solve: small-N overhead).
-    n = resid.shape[0]
-    if n == 0:
+    if resid.shape[0] == 0:
         raise ValueError("`indices` must not be empty.")
-    cbar2 = float(problem.cbar2)
-    beta = _kernels.as_kernel_array(beta)
-    w = _kernels.as_kernel_array(w)
-    vals = np.ascontiguousarray(resid.T)
-    half = beta * np.sqrt(cbar2)
-    ends = np.concatenate([vals - half, vals + half], axis=1)
+    arr = _kernels.as_kernel_array
+    return _vote_rows(np.ascontiguousarray(resid.T), arr(beta), arr(w), float(problem.cbar2))
+
+
+def _vote_rows(
+    vals: NDArray[np.float64], beta: NDArray[np.float64], w: NDArray[np.float64], cbar2: float
+) -> NDArray[np.float64]:
+    """:func:`vote_translation` on the residuals ``vals`` (3, n), C-contiguous and writable, with
+    kernel-ready ``beta`` and ``w`` (n,): one scalar TLS per row, their setup shared (this runs
+    once per pruned solve: small-N overhead)."""
+    _kernels = compiled("solvers.registration._kernels")
+    n = vals.shape[1]
+    half = beta if cbar2 == 1.0 else beta * math.sqrt(cbar2)
+    ends = np.empty((3, 2 * n))
+    np.subtract(vals, half, out=ends[:, :n])
+    np.add(vals, half, out=ends[:, n:])
     order = np.argsort(ends, axis=1)  # ties in any order (see scalar_tls): quicksort is faster
     t, found = _kernels.scalar_tls_rows(vals, beta, w, cbar2, ends, order)
     if not found.all():
@@ -323,10 +346,29 @@ def prune_maximum_cliques(
     max_work: int | None = WORK_BUDGET,
 ) -> tuple[list[NDArray[np.int64]], int, bool]:
     """Tied maximum consistent sets (up to ``limit``), the number of edges, and exactness."""
-    adj = consistency_graph(source, target, noise_bound, np.sqrt(cbar2))
-    cliques, exact = maximum_cliques(adj, limit=limit, exact_max_vertices=exact_max_vertices,
-                                     max_work=max_work)
-    n_edges = int(np.count_nonzero(adj)) // 2
+    _, at, bt, beta = _kernel_inputs(source, target, noise_bound)
+    return _prune_rows(at, bt, beta, cbar2, limit=limit, exact_max_vertices=exact_max_vertices,
+                       max_work=max_work)
+
+
+def _prune_rows(
+    at: NDArray[np.float64],
+    bt: NDArray[np.float64],
+    beta: NDArray[np.float64],
+    cbar2: float,
+    *,
+    limit: int,
+    exact_max_vertices: int | None,
+    max_work: int | None,
+) -> tuple[list[NDArray[np.int64]], int, bool]:
+    """:func:`prune_maximum_cliques` on kernel-ready points ``at``, ``bt`` (3, N) and ``beta``."""
+    if at.shape[1] == 0:
+        return [np.empty(0, dtype=np.int64)], 0, True
+    _kernels = compiled("solvers.registration._kernels")
+    adj = _kernels.consistency_matrix(at, bt, beta, math.sqrt(cbar2), 0.0, 0.0)
+    deg = _kernels.row_degrees(adj)
+    cliques, exact = _max_cliques_from(adj, deg, limit, exact_max_vertices, max_work)
+    n_edges = int(deg.sum()) // 2
     log.debug("consistency graph: %d vertices, %d edges, %d maximum clique(s) of %d (exact: %s)",
-              source.shape[0], n_edges, len(cliques), cliques[0].size, exact)
+              at.shape[1], n_edges, len(cliques), cliques[0].size, exact)
     return cliques, n_edges, exact

@@ -9,14 +9,13 @@ from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from solvers.jit import compiled
-from solvers.lie import make_transform
 from solvers.problem import WeightedTLSProblem
-from solvers.registration.pruning import prune_maximum_cliques, vote_translation
+from solvers.registration.pruning import _prune_rows, _vote_rows
 from solvers.result import RegistrationResult, SolverStatus
-from solvers.validation import check_count
+from solvers.validation import _check_correspondences, check_count
 
 __all__ = [
     "LARGE_CORE_KERNELS",
@@ -131,17 +130,18 @@ def degeneracy(
     arr = _kernels.as_kernel_array
     # Spread judged in units of the points' extent, so any scale works (1e-200 .. 1e200).
     count, scale, ev = _kernels.weighted_spread(arr(points), arr(weights))
+    ev0, ev1 = float(ev[0]), float(ev[1])
     if count < 3:
         return f"only {count} inlier(s); at least 3 non-collinear points are needed"
     if not scale > 0:
         return "the inliers are coincident (all at the origin)"
     # Below ~1e-12 of the extent, spread is floating-point rounding, not geometry.
     floor = max(noise_bound, 1e-12 * scale)
-    if ev[0] <= floor:
-        return f"the inliers are coincident (spread {ev[0]:.3g} <= noise bound {floor:.3g})"
-    if ev[1] <= floor:
+    if ev0 <= floor:
+        return f"the inliers are coincident (spread {ev0:.3g} <= noise bound {floor:.3g})"
+    if ev1 <= floor:
         return (
-            f"the inliers are collinear (spread across the line {ev[1]:.3g} <= noise bound "
+            f"the inliers are collinear (spread across the line {ev1:.3g} <= noise bound "
             f"{floor:.3g}); the rotation about that line is undetermined"
         )
     return None
@@ -159,24 +159,33 @@ def _finish(
     solver: str,
     info: dict | None = None,
     r2: NDArray[np.float64] | None = None,
+    cost: float | None = None,
 ) -> RegistrationResult:
-    """The result of the pose ``(R, t)``; ``r2``: its residuals when already computed."""
-    if not math.isfinite(R.sum() + t.sum()):  # NaN/inf propagate into the sum
-        R, t, r2 = np.eye(3), np.zeros(3), None
+    """The result of the pose ``(R, t)``; ``r2`` and ``cost``: its residuals and TLS cost when
+    already computed."""
+    T = np.empty((4, 4))
+    T[:3, :3] = R
+    T[:3, 3] = t
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    if not math.isfinite(T.sum()):  # NaN/inf propagate into the sum (|R|, |t| ~ 1: no overflow)
+        T, r2 = np.eye(4), None
         status, message = SolverStatus.NUMERICAL_ERROR, "non-finite pose estimate"
     if r2 is None:
-        r2 = problem.residuals_sq(R, t)
+        r2, cost = problem.residuals_sq(T[:3, :3], T[:3, 3]), None
+    if cost is None:
+        cost = problem.cost_from_residuals(r2)
     inliers = r2 <= problem.cbar2
     if status is SolverStatus.CONVERGED:
-        why = degeneracy(problem.source, problem.weights * inliers, float(problem.noise_bound.min()))
+        src, _, _, w = problem._kernel_arrays
+        why = degeneracy(src, w * inliers, problem._min_noise_bound)
         if why is not None:
             status, message = SolverStatus.DEGENERATE, f"degenerate geometry: {why}"
             if inliers.sum() < 3:
                 status = SolverStatus.INSUFFICIENT_INLIERS
-    return RegistrationResult(
-        T_target_source=make_transform(R, t),
+    return RegistrationResult._fresh(
+        T_target_source=T,
         inliers=inliers,
-        cost=problem.cost_from_residuals(r2),
+        cost=cost,
         iterations=int(iterations),
         solve_time=time.perf_counter() - t0,
         status=status,
@@ -189,18 +198,17 @@ def _finish(
 def _gnc_core(
     problem: WeightedTLSProblem, idx: NDArray[np.int64] | None, params: GNCParams
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], int, bool, bool]:
-    a, b = problem.source, problem.target
-    w, beta = problem.weights, problem.noise_bound
+    a, b, _, w = problem._kernel_arrays  # writable: no copies for the kernel
+    inv_beta2 = problem._inv_beta2
     if idx is not None:
-        a, b, w, beta = a[idx], b[idx], w[idx], beta[idx]
+        a, b, w, inv_beta2 = a[idx], b[idx], w[idx], inv_beta2[idx]
     _kernels = compiled("solvers.registration._kernels")  # numba: imported on first solve
 
-    arr = _kernels.as_kernel_array
     R, t, _gw, it, converged, ok = _kernels.gnc_tls(
-        arr(a),
-        arr(b),
-        arr(w),
-        arr(1.0 / beta**2),
+        a,
+        b,
+        w,
+        inv_beta2,
         problem.cbar2,
         params.max_iterations,
         params.mu_factor,
@@ -237,18 +245,22 @@ def _solve_pruned(
     params = params or _DEFAULT_GNC
     pruning = pruning or _DEFAULT_PRUNING
     t0 = time.perf_counter()
-    active = np.flatnonzero(problem.weights > 0)
+    # Uniform positive weights (the usual case): every correspondence is active.
+    active = (np.arange(problem.n) if problem._uniform_weights
+              else np.flatnonzero(problem.weights > 0))
     if active.size < 3:
         return _finish(problem, np.eye(3), np.zeros(3), iterations=0, t0=t0,
                        status=SolverStatus.INSUFFICIENT_INLIERS,
                        message=f"only {active.size} correspondence(s) have positive weight",
                        solver="pruned")
     check_graph_memory(int(active.size))
+    at, bt = problem._points_t
+    _, _, beta, w = problem._kernel_arrays
     every = active.size == problem.n  # the usual case: no copies of the data
-    cliques, n_edges, exact = prune_maximum_cliques(
-        problem.source if every else problem.source[active],
-        problem.target if every else problem.target[active],
-        problem.noise_bound if every else problem.noise_bound[active],
+    cliques, n_edges, exact = _prune_rows(
+        at if every else at[:, active],
+        bt if every else bt[:, active],
+        beta if every else beta[active],
         problem.cbar2, limit=pruning.max_tied_cliques,
         exact_max_vertices=pruning.exact_clique_max_vertices, max_work=pruning.clique_max_work,
     )
@@ -262,6 +274,7 @@ def _solve_pruned(
                        solver="pruned", info=info)
     # Tied maximum cliques (likely with few inliers): solve each, keep the lowest TLS cost.
     best: tuple[float, NDArray[np.float64], NDArray[np.float64], int, bool, NDArray[np.float64]] | None = None
+    cbar2 = problem.cbar2
     for clique in cliques:
         survivors = active[clique]
         # Every correspondence survived (no outliers): no gathered copies.
@@ -269,9 +282,13 @@ def _solve_pruned(
         R, t, it, converged, ok = _gnc_core(problem, sel, params)
         if not ok:
             continue
-        t_vote = vote_translation(problem, R, sel)
-        r2, r2_vote = problem.residuals_sq_pair(R, t, t_vote)
-        cost, cost_vote = problem.cost_from_residuals(r2), problem.cost_from_residuals(r2_vote)
+        # The rotated points, once, for the vote and for both translations' residuals.
+        moved = bt - R @ at  # (3, N): b_k - R a_k
+        if sel is None:
+            t_vote = _vote_rows(moved, beta, w, cbar2)
+        else:
+            t_vote = _vote_rows(moved[:, sel], beta[sel], w[sel], cbar2)
+        r2, r2_vote, cost, cost_vote = problem._residuals_sq_pair_t(moved, t, t_vote)
         if cost_vote < cost:  # keep whichever translation the full TLS cost prefers
             t, cost, r2 = t_vote, cost_vote, r2_vote
         if best is None or cost < best[0]:
@@ -286,7 +303,7 @@ def _solve_pruned(
     msg = (f"max clique kept {size}/{problem.n}{tied}; GNC converged in {it} iterations"
            if converged else f"GNC on the survivors hit the iteration limit ({params.max_iterations})")
     return _finish(problem, R, t, iterations=it, t0=t0, status=status, message=msg,
-                   solver="pruned", info=info, r2=r2)
+                   solver="pruned", info=info, r2=r2, cost=best[0])
 
 
 def _solve_registration(
@@ -306,8 +323,8 @@ def _solve_registration(
     if method != "auto":
         return result
     w = problem.weights
-    wmin, wmax = float(w.min()), float(w.max())
-    if wmin > 0.0:  # the usual case, two reductions
+    wmin, wmax = (1.0, 1.0) if problem._uniform_weights else (float(w.min()), float(w.max()))
+    if wmin > 0.0:  # the usual case
         uneven = wmax - wmin > 1e-12 * wmax
     else:
         uneven = bool(np.ptp(w[w > 0]) > 1e-12 * wmax) if wmax > 0.0 else False
@@ -339,14 +356,52 @@ def to_unit_scale(problem: WeightedTLSProblem) -> tuple[WeightedTLSProblem, floa
     Residuals, inliers and the TLS cost are invariant under a common scaling of the points,
     the noise bound and the translation; the scale is a power of two, so the scaling is exact.
     """
-    extent = max(float(np.abs(problem.source).max()), float(np.abs(problem.target).max()))
-    scale = float(np.ldexp(1.0, int(np.frexp(extent)[1]))) if extent > 0 else 1.0
-    if scale == 1.0 and float(problem.noise_bound.min()) >= _MIN_RELATIVE_NOISE_BOUND:
+    if problem.__dict__.get("_at_unit_scale"):
+        return problem, 1.0  # made by this function or unit_scale_problem
+    src, dst, beta, w = problem._kernel_arrays
+    extent = max(float(src.max()), -float(src.min()), float(dst.max()), -float(dst.min()))
+    scale = math.ldexp(1.0, math.frexp(extent)[1]) if extent > 0 else 1.0
+    if scale == 1.0 and float(beta.min()) >= _MIN_RELATIVE_NOISE_BOUND:
         return problem, 1.0  # already at unit scale (e.g. the second call of a solve)
-    beta = np.maximum(problem.noise_bound / scale, _MIN_RELATIVE_NOISE_BOUND)
+    beta = np.maximum(beta / scale, _MIN_RELATIVE_NOISE_BOUND)
     # Division by a power of two is exact (and keeps the data valid): no second validation.
-    return WeightedTLSProblem._from_checked(problem.source / scale, problem.target / scale, beta,
-                                            problem.weights, problem.cbar2), scale
+    unit = WeightedTLSProblem._from_checked(src / scale, dst / scale, beta, w, problem.cbar2)
+    if "_uniform_cache" in problem.__dict__:
+        unit.__dict__["_uniform_cache"] = problem.__dict__["_uniform_cache"]
+    unit.__dict__["_at_unit_scale"] = True
+    return unit, scale
+
+
+def unit_scale_problem(
+    source: ArrayLike,
+    target: ArrayLike,
+    *,
+    noise_bound: ArrayLike,
+    weights: ArrayLike | None = None,
+    cbar2: float = 1.0,
+) -> tuple[WeightedTLSProblem, float]:
+    """``to_unit_scale(WeightedTLSProblem(source, target, ...))`` in one pass.
+
+    Validates like :class:`~solvers.problem.WeightedTLSProblem` and scales the validated copies
+    in place (one problem, no second set of arrays: a small solve's overhead).
+    """
+    src, dst, beta, w, c2, extent = _check_correspondences(
+        source, target, noise_bound=noise_bound, weights=weights, cbar2=cbar2, min_n=3
+    )
+    scale = math.ldexp(1.0, math.frexp(extent)[1]) if extent > 0 else 1.0
+    inv = 1.0 / scale  # a power of two: multiplying by it is the exact division
+    if scale != 1.0:
+        src *= inv
+        dst *= inv
+        beta *= inv
+    beta_min = noise_bound if type(noise_bound) is float else float(beta.min())
+    if beta_min * inv < _MIN_RELATIVE_NOISE_BOUND:
+        np.maximum(beta, _MIN_RELATIVE_NOISE_BOUND, out=beta)
+    unit = WeightedTLSProblem._from_checked(src, dst, beta, w, c2)
+    if weights is None:
+        unit.__dict__["_uniform_cache"] = True  # all ones
+    unit.__dict__["_at_unit_scale"] = True
+    return unit, scale
 
 
 def from_unit_scale(result: RegistrationResult, scale: float) -> RegistrationResult:
@@ -358,7 +413,7 @@ def from_unit_scale(result: RegistrationResult, scale: float) -> RegistrationRes
         return result
     T = np.array(result.T_target_source)
     T[:3, 3] *= scale
-    return replace(result, T_target_source=T)
+    return result._with_transform(T)
 
 
 _ALWAYS_AFFORDABLE = 1 << 24
