@@ -217,6 +217,23 @@ def test_embedded_workers_run_one_thread_each(cluster):
     assert all(p == {1} for p in pools.values()), pools
 
 
+@pytest.mark.slow  # starts a 2-process LocalCluster
+def test_embedded_workers_run_without_the_profiler(cluster):
+    from distributed import Client
+
+    def profiler(dask_worker) -> tuple[bool, bool]:  # client.run passes the worker by name
+        import dask
+
+        # The configuration as the worker read it, and its sampling callback not running.
+        callbacks = dask_worker.periodic_callbacks
+        running = "profile" in callbacks and callbacks["profile"].is_running()
+        return dask.config.get("distributed.worker.profile.enabled"), running
+
+    with Client(cluster.scheduler_address) as client:
+        states = client.run(profiler)
+    assert len(states) == 2 and all(s == (False, False) for s in states.values()), states
+
+
 def _threadpools() -> list[dict]:
     import numpy  # noqa: F401  (loads OpenBLAS)
     from threadpoolctl import threadpool_info

@@ -874,15 +874,23 @@ are set here too so that a user's Dask configuration cannot undo them. Open3D ig
 limited in the process (:func:`_one_thread_peers`)."""
 
 
+WORKER_CONFIG: dict[str, Any] = {"distributed.worker.profile.enabled": False}
+"""Dask configuration of the embedded cluster's workers: no statistical profiler (it samples
+every thread's stack every 10 ms for a dashboard this cluster does not have)."""
+
+
 def _local_cluster(n_workers: int) -> Any:
     """The embedded cluster: ``n_workers`` single-thread worker processes (solvers hold the
-    GIL) with :data:`WORKER_ENV`; no dashboard, since other users' clusters may hold its port."""
+    GIL) with :data:`WORKER_ENV` and :data:`WORKER_CONFIG`; no dashboard, since other users'
+    clusters may hold its port."""
     distributed = _bench_extra("distributed", "certpose bench on Dask")
+    import dask
 
-    return distributed.LocalCluster(
-        n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None,
-        silence_logs=logging.ERROR, env=dict(WORKER_ENV),
-    )
+    with dask.config.set(WORKER_CONFIG):  # the nannies hand this configuration to the workers
+        return distributed.LocalCluster(
+            n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None,
+            silence_logs=logging.ERROR, env=dict(WORKER_ENV),
+        )
 
 
 def _ignore_sigint() -> None:
