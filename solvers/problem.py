@@ -113,7 +113,7 @@ class WeightedTLSProblem:
     @property
     def scalar_noise_bound(self) -> bool:
         """True when every correspondence has the same noise bound."""
-        return bool(np.all(self.noise_bound == self.noise_bound[0]))
+        return self._uniform_noise
 
     def residuals_sq(self, rotation: ArrayLike, translation: ArrayLike) -> NDArray[np.float64]:
         """Normalised squared residuals ``||b_k - R a_k - t||^2 / beta_k^2``, shape (N,)."""
@@ -181,6 +181,16 @@ class WeightedTLSProblem:
             beta_min = float(self.noise_bound.min())
             self.__dict__["_min_beta_cache"] = beta_min
         return beta_min
+
+    @property
+    def _uniform_noise(self) -> bool:
+        """True when every correspondence has the same noise bound (cached)."""
+        uniform = self.__dict__.get("_uniform_noise_cache")
+        if uniform is None:
+            beta = self.noise_bound
+            uniform = bool((beta == beta[0]).all())
+            self.__dict__["_uniform_noise_cache"] = uniform
+        return uniform
 
     @property
     def _uniform_weights(self) -> bool:

@@ -96,8 +96,8 @@ def test_warm_up_compiles_each_kernel_once_across_two_processes(tmp_path):
         adj = np.ones((5, 5), dtype=np.uint8); np.fill_diagonal(adj, 0)
         deg = k.row_degrees(adj)
         core = k.k_core(adj, deg, 4)
-        x, found = k.scalar_tls_rows(np.zeros((3, 4)), np.ones(4), np.ones(4), 1.0,
-                                     np.zeros((3, 8)), np.zeros((3, 8), dtype=np.int64))
+        order = np.zeros((3, 4), dtype=np.int64)
+        x, found = k.scalar_tls_rows(np.zeros((3, 4)), np.ones(4), np.ones(4), 1.0, order, order)
         print(json.dumps({"cold_before": cold_before, "started": started, "pending": pending,
                           "here": here, "after": compiles[len(here):],
                           "cached": [jit.is_cached(s) for s in specs],

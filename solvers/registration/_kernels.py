@@ -207,15 +207,45 @@ def multistart_greedy_clique(adj, deg, order, max_starts):  # pragma: no cover -
     return best[:best_size].copy()
 
 
-@kernel(F2, F1, F1, f8, F2, I2)
-def scalar_tls_rows(vals, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
-    """:func:`scalar_tls` of each row of ``vals`` (d, N), ``ends``/``order`` (d, 2N); returns
-    ``(x (d,), found (d,))``: one call for the three axes of a translation vote."""
-    d = vals.shape[0]
+@kernel(F2, F1, F1, f8, I2, I2)
+def scalar_tls_rows(vals, beta, w, cbar2, order_lo, order_hi):  # pragma: no cover - compiled
+    """:func:`scalar_tls` of each row of ``vals`` (d, N); returns ``(x (d,), found (d,))``: one
+    call for the three axes of a translation vote.
+
+    ``order_lo[r]`` sorts the lower ends ``vals[r] - beta cbar`` and ``order_hi[r]`` the upper
+    ends ``vals[r] + beta cbar`` (both ``argsort(vals[r])`` when ``beta`` is uniform); the two
+    sorted lists are merged here (sorting N values twice, or once, costs less than 2N).
+    """
+    d, n = vals.shape
+    cbar = np.sqrt(cbar2)
     x = np.empty(d)
     found = np.zeros(d, dtype=np.bool_)
+    ids = np.empty(2 * n, dtype=np.int64)
+    ends = np.empty(2 * n)
     for r in range(d):
-        x[r], _, found[r] = scalar_tls(vals[r], beta, w, cbar2, ends[r], order[r])
+        v = vals[r]
+        lo = order_lo[r]
+        hi = order_hi[r]
+        i = 0
+        j = 0
+        for m in range(2 * n):
+            if j >= n:
+                take_lo = True
+            elif i >= n:
+                take_lo = False
+            else:
+                take_lo = v[lo[i]] - beta[lo[i]] * cbar <= v[hi[j]] + beta[hi[j]] * cbar
+            if take_lo:
+                k = lo[i]
+                ids[m] = k
+                ends[m] = v[k] - beta[k] * cbar
+                i += 1
+            else:
+                k = hi[j]
+                ids[m] = k + n
+                ends[m] = v[k] + beta[k] * cbar
+                j += 1
+        x[r], _, found[r] = _sweep(v, beta, w, cbar2, ids, ends)
     return x, found
 
 
@@ -227,6 +257,17 @@ def scalar_tls(v, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
     any order: the cost is continuous at every endpoint, so either side of a tie is exact).
     ``found`` is False when no piece beats "all outliers" (then any x is optimal).
     """
+    m = order.shape[0]
+    sorted_ends = np.empty(m)
+    for i in range(m):
+        sorted_ends[i] = ends[order[i]]
+    return _sweep(v, beta, w, cbar2, order, sorted_ends)
+
+
+@njit(cache=True)
+def _sweep(v, beta, w, cbar2, ids, ends):  # pragma: no cover - compiled
+    """The sweep of :func:`scalar_tls` over the endpoints in sorted order: ``ends`` (2N,) their
+    values, ``ids`` which they are (``k``: the lower end of ``v[k]``, ``k + N``: its upper end)."""
     n = v.shape[0]
     total_w = 0.0
     for k in range(n):
@@ -239,7 +280,7 @@ def scalar_tls(v, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
     best_cost = total_w * cbar2
     found = False
     for m in range(2 * n - 1):
-        e = order[m]
+        e = ids[m]
         k = e if e < n else e - n
         sign = 1.0 if e < n else -1.0
         p = w[k] / (beta[k] * beta[k])
@@ -247,8 +288,8 @@ def scalar_tls(v, beta, w, cbar2, ends, order):  # pragma: no cover - compiled
         s1 += sign * p * v[k]
         s2 += sign * p * v[k] * v[k]
         aw += sign * w[k]
-        lo = ends[e]
-        hi = ends[order[m + 1]]
+        lo = ends[m]
+        hi = ends[m + 1]
         if s0 <= 1e-300 or hi < lo:
             continue
         x = min(max(s1 / s0, lo), hi)

@@ -295,23 +295,27 @@ def vote_translation(
     if resid.shape[0] == 0:
         raise ValueError("`indices` must not be empty.")
     arr = _kernels.as_kernel_array
-    return _vote_rows(np.ascontiguousarray(resid.T), arr(beta), arr(w), float(problem.cbar2))
+    beta = arr(beta)
+    return _vote_rows(np.ascontiguousarray(resid.T), beta, arr(w), float(problem.cbar2),
+                      uniform=bool((beta == beta[0]).all()))
 
 
 def _vote_rows(
-    vals: NDArray[np.float64], beta: NDArray[np.float64], w: NDArray[np.float64], cbar2: float
+    vals: NDArray[np.float64], beta: NDArray[np.float64], w: NDArray[np.float64], cbar2: float,
+    *, uniform: bool,
 ) -> NDArray[np.float64]:
     """:func:`vote_translation` on the residuals ``vals`` (3, n), C-contiguous and writable, with
-    kernel-ready ``beta`` and ``w`` (n,): one scalar TLS per row, their setup shared (this runs
-    once per pruned solve: small-N overhead)."""
+    kernel-ready ``beta`` and ``w`` (n,), ``uniform`` when every ``beta`` is the same: one scalar
+    TLS per row, their setup shared (this runs once per pruned solve: small-N overhead)."""
     _kernels = compiled("solvers.registration._kernels")
-    n = vals.shape[1]
-    half = beta if cbar2 == 1.0 else beta * math.sqrt(cbar2)
-    ends = np.empty((3, 2 * n))
-    np.subtract(vals, half, out=ends[:, :n])
-    np.add(vals, half, out=ends[:, n:])
-    order = np.argsort(ends, axis=1)  # ties in any order (see scalar_tls): quicksort is faster
-    t, found = _kernels.scalar_tls_rows(vals, beta, w, cbar2, ends, order)
+    # Ties in any order (see scalar_tls): quicksort is faster.
+    if uniform:  # every interval's ends in the order of the values
+        order_lo = order_hi = np.argsort(vals, axis=1)
+    else:
+        half = beta if cbar2 == 1.0 else beta * math.sqrt(cbar2)
+        order_lo = np.argsort(vals - half, axis=1)
+        order_hi = np.argsort(vals + half, axis=1)
+    t, found = _kernels.scalar_tls_rows(vals, beta, w, cbar2, order_lo, order_hi)
     if not found.all():
         for d in np.flatnonzero(~found):
             t[d] = np.median(vals[d])  # no piece beats all-outliers: any x is optimal

@@ -284,10 +284,13 @@ def _solve_pruned(
             continue
         # The rotated points, once, for the vote and for both translations' residuals.
         moved = bt - R @ at  # (3, N): b_k - R a_k
+        uniform = problem._uniform_noise
         if sel is None:
-            t_vote = _vote_rows(moved, beta, w, cbar2)
+            t_vote = _vote_rows(moved, beta, w, cbar2, uniform=uniform)
         else:
-            t_vote = _vote_rows(moved[:, sel], beta[sel], w[sel], cbar2)
+            # take: C-contiguous (moved[:, sel] is laid out in Fortran order)
+            t_vote = _vote_rows(moved.take(sel, axis=1), beta[sel], w[sel], cbar2,
+                                uniform=uniform)
         r2, r2_vote, cost, cost_vote = problem._residuals_sq_pair_t(moved, t, t_vote)
         if cost_vote < cost:  # keep whichever translation the full TLS cost prefers
             t, cost, r2 = t_vote, cost_vote, r2_vote
@@ -366,8 +369,9 @@ def to_unit_scale(problem: WeightedTLSProblem) -> tuple[WeightedTLSProblem, floa
     beta = np.maximum(beta / scale, _MIN_RELATIVE_NOISE_BOUND)
     # Division by a power of two is exact (and keeps the data valid): no second validation.
     unit = WeightedTLSProblem._from_checked(src / scale, dst / scale, beta, w, problem.cbar2)
-    if "_uniform_cache" in problem.__dict__:
-        unit.__dict__["_uniform_cache"] = problem.__dict__["_uniform_cache"]
+    for key in ("_uniform_cache", "_uniform_noise_cache"):
+        if key in problem.__dict__:
+            unit.__dict__[key] = problem.__dict__[key]
     unit.__dict__["_at_unit_scale"] = True
     return unit, scale
 
@@ -398,6 +402,8 @@ def unit_scale_problem(
     if beta_min * inv < _MIN_RELATIVE_NOISE_BOUND:
         np.maximum(beta, _MIN_RELATIVE_NOISE_BOUND, out=beta)
     unit = WeightedTLSProblem._from_checked(src, dst, beta, w, c2)
+    if type(noise_bound) is float:
+        unit.__dict__["_uniform_noise_cache"] = True
     if weights is None:
         unit.__dict__["_uniform_cache"] = True  # all ones
     unit.__dict__["_at_unit_scale"] = True
