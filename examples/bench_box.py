@@ -69,7 +69,7 @@ def scenes_of(root: Path) -> dict[str, list[str]]:
 
 
 def appearance_model(root: Path, scene: str, name: str, holders: dict[str, list[str]],
-                     cache: dict, voxel_size: float, backbone=None):
+                     cache: dict, voxel_size: float, backbone=None, unseen: str | None = None):
     """The appearance model of ``name`` from every frame of the other scenes holding it."""
     from certpose.estimation.pipeline import build_ycbv_object_model
 
@@ -79,8 +79,9 @@ def appearance_model(root: Path, scene: str, name: str, holders: dict[str, list[
     key = (name, tuple(others))
     if key not in cache:
         views = [f"{s}/{m.name[:6]}" for s in others for m in sorted((root / s).glob("*-meta.mat"))]
+        kw = {} if unseen is None else {"unseen": unseen}
         cache[key] = build_ycbv_object_model(root, views, name, voxel_size=voxel_size,
-                                             backbone=backbone)
+                                             backbone=backbone, **kw)
     return cache[key]
 
 
@@ -88,12 +89,17 @@ def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: i
              classifier: str = "best_buddies") -> dict:
     """One pair; errors against the ground truth, eq. (1) gap, the classifier against the label."""
     from certpose.estimation.mle import refine_pose
-    from certpose.estimation.pipeline import YCBV_SYMMETRY_AXES, pose_errors, run_ycbv
+    from certpose.estimation.pipeline import (
+        YCBV_SYMMETRY_AXES,
+        likelihood_params_for,
+        pose_errors,
+        run_ycbv,
+    )
     from certpose.geometry.features import FPFHBackbone
     from certpose.geometry.objects import object_from_points
     from certpose.io.ycbv import load_model_points, load_ycbv_frame
     from certpose.model.classifier import classify_from_mask
-    from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
+    from certpose.model.likelihood import PoseLikelihood
 
     t0 = time.perf_counter()
     res = run_ycbv(root, frame, name, params=params, rng=seed, object_model=object_model,
@@ -106,7 +112,7 @@ def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: i
     obj = object_model.model if object_model is not None else object_from_points(
         pts, FPFHBackbone(), voxel_size=params.voxel_size, name=name)
     lik = PoseLikelihood(res.scene, res.classification, obj,
-                         params=params.likelihood or LikelihoodParams())
+                         params=likelihood_params_for(params.likelihood, res.scene.backbone))
     T_wc = res.T_world_camera
     T_ref, ll_ref, _ = refine_pose(lik, T_wc @ res.T_camera_object_gt, scale=obj.radius)
     ll_ret = float(lik.log_likelihood(T_wc @ res.T_camera_object))
@@ -150,8 +156,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--color-weight", type=float, default=None, metavar="W",
                     help="AppearanceBackbone.color_weight of the appearance models")
-    ap.add_argument("--beta", type=float, default=None,
-                    help="eq. (1)'s beta (default: PoseParams' or the model's)")
+    ap.add_argument("--similarity-scale", type=float, default=None, metavar="S",
+                    help="AppearanceBackbone.similarity_scale (eq. (1)'s beta is multiplied by it)")
+    ap.add_argument("--beta", type=float, default=None, help="eq. (1)'s beta (before the scale)")
+    ap.add_argument("--unseen", choices=("palette", "prior", "shape", "zero"), default=None,
+                    help="descriptor of model points no view saw (default: the builder's)")
     args = ap.parse_args(argv)
     if not args.ycbv.is_dir():
         ap.error(f"--ycbv {args.ycbv} is not a directory")
@@ -162,17 +171,21 @@ def main(argv: list[str] | None = None) -> int:
     if args.beta is not None:
         params = replace(params, likelihood=replace(params.likelihood or LikelihoodParams(),
                                                     beta=args.beta))
-    backbone = None
+    backbone = AppearanceBackbone()
     if args.color_weight is not None:
-        backbone = AppearanceBackbone(color_weight=args.color_weight)
+        backbone = replace(backbone, color_weight=args.color_weight)
+    if args.similarity_scale is not None:
+        backbone = replace(backbone, similarity_scale=args.similarity_scale)
     holders = scenes_of(args.ycbv) if args.models == "appearance" else {}
     cache: dict = {}
     rows = []
     c = params.classifier
     print(f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; {args.models} models, "
           f"{args.classifier} classifier, seed {args.seed}, beta "
-          f"{(params.likelihood or LikelihoodParams()).beta:g}, colour weight "
-          f"{args.color_weight if args.color_weight is not None else 'default'}, "
+          f"{(params.likelihood or LikelihoodParams()).beta:g}"
+          + (f" x similarity scale {backbone.similarity_scale:g}, colour weight "
+             f"{backbone.color_weight:g}, unseen {args.unseen or 'default'}"
+             if args.models == "appearance" else "") + ", "
           f"k={c.scene_neighbors}, min similarity {c.min_similarity:g}, box margin "
           f"{c.box_margin:g} px, log p_O in the box {c.log_p_box}")
     for frame, name in pairs(args.ycbv, args.scenes.split(","), args.frames, args.objects,
@@ -180,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         model = None
         if args.models == "appearance":
             model = appearance_model(args.ycbv, frame.split("/")[0], name, holders, cache,
-                                     params.voxel_size, backbone)
+                                     params.voxel_size, backbone, args.unseen)
             if model is None:
                 continue  # seen in one scene only: no independent appearance model
         row = run_pair(args.ycbv, frame, name, params, model, seed=args.seed,

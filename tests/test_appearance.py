@@ -224,3 +224,48 @@ def test_a_search_that_ends_hidden_in_unobserved_space_searches_again(root):
     res = run_ycbv(root, "0050/000020", obj, object_model=built, rng=0)
     assert res.log_likelihood > len(built.model) * np.log(0.1) + 1.0
     assert res.errors.add_s < 0.01
+
+
+def test_similarity_scale_multiplies_beta_for_appearance_descriptors_only():
+    from certpose.estimation.pipeline import likelihood_params_for
+    from certpose.geometry.features import FPFHBackbone
+    from certpose.model.likelihood import LikelihoodParams
+
+    base = LikelihoodParams(beta=2.0, c_empty=-20.0)
+    assert likelihood_params_for(base, FPFHBackbone()) is base
+    assert likelihood_params_for(base, None) is base
+    scaled = likelihood_params_for(base, AppearanceBackbone(similarity_scale=3.0))
+    assert scaled.beta == 6.0 and scaled.c_empty == -20.0
+    assert likelihood_params_for(None, AppearanceBackbone(similarity_scale=2.5)).beta == 2.5
+    with pytest.raises(ValueError, match="similarity_scale"):
+        AppearanceBackbone(similarity_scale=0.0)
+
+
+def test_backbone_json_keeps_the_scale_and_old_models_load_with_scale_one():
+    from certpose.geometry.appearance import backbone_from_json, backbone_to_json
+
+    bb = AppearanceBackbone(color_weight=0.7, similarity_scale=2.0)
+    assert backbone_from_json(backbone_to_json(bb)) == bb
+    spec = json.loads(backbone_to_json(bb))
+    del spec["params"]["similarity_scale"]  # a model saved before the scale existed
+    old = backbone_from_json(json.dumps(spec))
+    assert old.similarity_scale == 1.0 and old.color_weight == 0.7
+
+
+def test_unseen_points_take_the_seen_palette(root):
+    # unseen="palette": the colour block of every unseen point is the colour descriptor of the
+    # whole seen palette (a unit vector times sqrt(w)), the same for all of them, and it is
+    # what color_histograms gives a point whose neighbourhood holds every seen point.
+    built = build_ycbv_object_model(root, ["0000/000001"], OBJ, unseen="palette")
+    m, seen, bb = built.model, built.observed, built.backbone
+    nc = bb.hue_bins + 2
+    block = m.descriptors[~seen, -nc:]
+    assert (~seen).sum() > 10
+    np.testing.assert_allclose(block, block[:1].repeat(len(block), axis=0), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(block[0]), np.sqrt(bb.color_weight), atol=1e-9)
+    far = color_histograms(m.points[seen], m.colors[seen], radius=10.0, hue_bins=bb.hue_bins)
+    np.testing.assert_allclose(block[0], np.sqrt(bb.color_weight) * far[0], atol=1e-9)
+    # The seen points keep their own local colour statistics (they differ from the palette).
+    assert np.median(np.abs(m.descriptors[seen, -nc:] - block[0]).sum(axis=1)) > 0.1
+    with pytest.raises(ValueError, match="unseen"):
+        build_ycbv_object_model(root, ["0000/000001"], OBJ, unseen="mean")

@@ -13,7 +13,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -39,6 +39,7 @@ __all__ = [
     "run_ycbv",
     "run_demo",
     "build_ycbv_object_model",
+    "likelihood_params_for",
     "YCBV_SYMMETRY_AXES",
     "eq2_problem_data",
     "build_eq2_demo",
@@ -415,6 +416,31 @@ def _finite_or_none(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
+def likelihood_params_for(likelihood: Any, backbone: Any) -> Any:
+    """Eq. (1)'s constants for descriptors of ``backbone``: ``beta`` times the backbone's
+    ``similarity_scale`` (1 for backbones without one, e.g. FPFH; see
+    :class:`~certpose.geometry.appearance.AppearanceBackbone`).
+
+    Parameters
+    ----------
+    likelihood : LikelihoodParams or None
+        ``None``: the defaults.
+    backbone : FeatureBackbone or None
+        E.g. ``SceneField.backbone``.
+
+    Returns
+    -------
+    LikelihoodParams
+    """
+    from certpose.model.likelihood import LikelihoodParams
+
+    likelihood = likelihood or LikelihoodParams()
+    scale = float(getattr(backbone, "similarity_scale", 1.0))
+    if scale == 1.0:
+        return likelihood
+    return replace(likelihood, beta=likelihood.beta * scale)
+
+
 def estimate_pose(
     scene: Any,
     object_model: ObjectModel,
@@ -473,6 +499,9 @@ def estimate_pose(
     )
 
     params = params or PoseParams()
+    # Descriptors that carry appearance weigh more in eq. (1) (their backbone's scale).
+    params = replace(params, likelihood=likelihood_params_for(params.likelihood,
+                                                              getattr(scene, "backbone", None)))
     gen = resolve_rng(rng)
     timings: dict[str, float] = {}
     t = time.perf_counter()
