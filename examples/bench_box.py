@@ -130,6 +130,7 @@ def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: i
         "wall_s": wall, "positives": int(pos.sum()),
         "precision": float((pos & truth).sum() / max(int(pos.sum()), 1)),
         "flip": name not in SYMMETRIC and e.rotation_deg > 150.0,
+        "log_likelihood": float(res.log_likelihood),
         "eq1_returned": ll_ret, "eq1_truth_refined": float(ll_ref), "gap": ll_ret - float(ll_ref),
         "refined_truth_adds_cm": 100 * e_ref.add_s, "refined_truth_rot_deg": e_ref.rotation_deg,
         "classifier": classifier, "seed": seed, "success": bool(res.success),

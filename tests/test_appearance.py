@@ -269,3 +269,16 @@ def test_unseen_points_take_the_seen_palette(root):
     assert np.median(np.abs(m.descriptors[seen, -nc:] - block[0]).sum(axis=1)) > 0.1
     with pytest.raises(ValueError, match="unseen"):
         build_ycbv_object_model(root, ["0000/000001"], OBJ, unseen="mean")
+
+
+def test_cli_object_build_defaults_are_the_backbones(tmp_path, capsys):
+    bb = AppearanceBackbone()
+    with pytest.raises(SystemExit):
+        main(["object", "build", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"(default: {bb.color_weight:g})" in text and f"(default: {bb.similarity_scale:g})" in text
+    out = str(tmp_path / "m.npz")
+    for opt, bad in (("--similarity-scale", "0"), ("--color-weight", "1.5")):
+        assert main(["object", "build", "--ycbv", str(tmp_path), "--object", OBJ, "--views",
+                     "0000/000001", opt, bad, "-o", out]) == 2
+        assert opt in capsys.readouterr().err

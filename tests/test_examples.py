@@ -100,6 +100,18 @@ def test_bench_box_on_a_real_frame(tmp_path: Path) -> None:
     assert row["adds_cm"] <= row["add_cm"] and 0 <= row["rot_deg"] <= 180
     assert row["positives"] > 0 and 0 <= row["precision"] <= 1
     assert "pairs 1 |" in proc.stdout and "load average" in proc.stdout
+    # Item 1's setting: the mask classifier; eq. (1) of the bench's gap is the MLE's own
+    # (appearance similarities scaled as in the estimate), and the refined truth is no worse
+    # than the ground truth it started from.
+    proc = _run("bench_box.py", "--ycbv", str(YCBV), "--models", "appearance", "--scenes", "0050",
+                "--frames", "000020", "--objects", "011_banana", "--classifier", "mask",
+                "--json", str(out))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    row = json.loads(out.read_text().splitlines()[1])
+    assert row["classifier"] == "mask" and row["precision"] == 1.0
+    assert row["eq1_returned"] == pytest.approx(row["log_likelihood"], abs=1e-3)
+    assert row["gap"] == pytest.approx(row["eq1_returned"] - row["eq1_truth_refined"])
+    assert isinstance(row["flip"], bool) and "flips" in proc.stdout
 
 
 @pytest.mark.slow

@@ -42,8 +42,11 @@ def add_parser(subparsers: Any) -> None:
                    help="object model points, metres (default: DIR/models/NAME/points.xyz)")
     b.add_argument("--voxel-size", type=float, default=0.005, metavar="M",
                    help="voxel size in metres; use the one given to `certpose pose` (default: 0.005)")
-    b.add_argument("--color-weight", type=float, default=0.5, metavar="W",
-                   help="share of colour in the descriptor similarity, in [0, 1] (default: 0.5)")
+    # Defaults: AppearanceBackbone's (one place; imported only when the command runs).
+    b.add_argument("--color-weight", type=float, default=None, metavar="W",
+                   help="share of colour in the descriptor similarity, in [0, 1] (default: 0.8)")
+    b.add_argument("--similarity-scale", type=float, default=None, metavar="S",
+                   help="eq. (1)'s beta is multiplied by S for scenes and this model (default: 3)")
     b.add_argument("--sampling", choices=("voxel", "surface"), default="voxel",
                    help="model points averaged per voxel (default), or spread evenly over a surface "
                         "reconstructed from them, weighted by area in eq. (1)")
@@ -57,6 +60,7 @@ def add_parser(subparsers: Any) -> None:
 
 def run_build(args: argparse.Namespace) -> int:
     import math
+    from dataclasses import replace
 
     from certpose.cli import CLIError, busy, check_json_output, emit_json, say
     from certpose.estimation.pipeline import build_ycbv_object_model
@@ -70,8 +74,15 @@ def run_build(args: argparse.Namespace) -> int:
         raise CLIError(f"--model {args.model} does not exist")
     if not (math.isfinite(args.voxel_size) and args.voxel_size > 0):
         raise CLIError(f"--voxel-size must be positive, got {args.voxel_size}")
-    if not 0.0 <= args.color_weight <= 1.0:
-        raise CLIError(f"--color-weight must be in [0, 1], got {args.color_weight}")
+    backbone = AppearanceBackbone()
+    if args.color_weight is not None:
+        if not 0.0 <= args.color_weight <= 1.0:
+            raise CLIError(f"--color-weight must be in [0, 1], got {args.color_weight}")
+        backbone = replace(backbone, color_weight=args.color_weight)
+    if args.similarity_scale is not None:
+        if not (math.isfinite(args.similarity_scale) and args.similarity_scale > 0):
+            raise CLIError(f"--similarity-scale must be positive, got {args.similarity_scale}")
+        backbone = replace(backbone, similarity_scale=args.similarity_scale)
     out = Path(args.output)
     if out.suffix != ".npz":
         raise CLIError(f"-o {out} must end in .npz")
@@ -80,7 +91,7 @@ def run_build(args: argparse.Namespace) -> int:
     with busy(args, "certpose object build"):
         built = build_ycbv_object_model(
             root, args.views, args.object, args.model,
-            backbone=AppearanceBackbone(color_weight=args.color_weight),
+            backbone=backbone,
             voxel_size=args.voxel_size, sampling=args.sampling)
     built.save(out)
     n, seen = len(built.model), int(built.observed.sum())
@@ -91,6 +102,7 @@ def run_build(args: argparse.Namespace) -> int:
     say(args, f"wrote {out}")
     emit_json(args, {"object": args.object, "output": str(out), "points": n, "observed": seen,
                      "views": list(built.views), "scenes": list(built.scenes),
-                     "voxel_size": args.voxel_size, "color_weight": args.color_weight})
+                     "voxel_size": args.voxel_size, "color_weight": backbone.color_weight,
+                     "similarity_scale": backbone.similarity_scale})
     sys.stdout.flush()
     return 0
