@@ -44,9 +44,9 @@ def add_parser(subparsers: Any) -> None:
                    help="voxel size in metres; use the one given to `certpose pose` (default: 0.005)")
     # Defaults: AppearanceBackbone's (one place; imported only when the command runs).
     b.add_argument("--color-weight", type=float, default=None, metavar="W",
-                   help="share of colour in the descriptor similarity, in [0, 1] (default: 0.8)")
+                   help="share of colour in the descriptor similarity, in [0, 1] (default: 0.9)")
     b.add_argument("--similarity-scale", type=float, default=None, metavar="S",
-                   help="eq. (1)'s beta is multiplied by S for scenes and this model (default: 3)")
+                   help="eq. (1)'s beta is multiplied by S for scenes and this model (default: 4)")
     b.add_argument("--sampling", choices=("voxel", "surface"), default="voxel",
                    help="model points averaged per voxel (default), or spread evenly over a surface "
                         "reconstructed from them, weighted by area in eq. (1)")
