@@ -767,7 +767,7 @@ def build_ycbv_object_model(
         Default :class:`~certpose.geometry.appearance.AppearanceBackbone`.
     voxel_size : float, optional
         Metres (use the scene's).
-    unseen : {"prior", "shape", "zero"}, optional
+    unseen : {"prior", "palette", "shape", "zero"}, optional
         See :func:`~certpose.geometry.appearance.object_from_posed_views`.
     sampling : {"voxel", "surface"}, optional
         See :func:`~certpose.geometry.appearance.object_from_posed_views`.
