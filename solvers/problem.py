@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -65,7 +66,7 @@ class WeightedTLSProblem:
         )
         self._set(src, dst, beta, w, c2)
         if weights is None:
-            self.__dict__["_uniform_cache"] = True  # all ones
+            self.__dict__["_uniform_weights"] = True  # all ones
 
     @classmethod
     def _from_checked(
@@ -148,60 +149,38 @@ class WeightedTLSProblem:
         costs = np.minimum(r2, self.cbar2) @ self.weights
         return r2[0], r2[1], float(costs[0]), float(costs[1])
 
-    @property
+    # Derived arrays, computed once per problem (functools.cached_property stores them in the
+    # instance dict, which a frozen dataclass allows; a problem's arrays never change).
+    @cached_property
     def _beta2(self) -> NDArray[np.float64]:
-        beta2 = self.__dict__.get("_beta2_cache")
-        if beta2 is None:
-            beta2 = self.noise_bound**2
-            self.__dict__["_beta2_cache"] = beta2
-        return beta2
+        return self.noise_bound**2
 
-    @property
+    @cached_property
     def _inv_beta2(self) -> NDArray[np.float64]:
         """``1 / beta^2`` (N,), writable and C-contiguous (a kernel input)."""
-        inv = self.__dict__.get("_inv_beta2_cache")
-        if inv is None:
-            inv = 1.0 / self._beta2
-            self.__dict__["_inv_beta2_cache"] = inv
-        return inv
+        return 1.0 / self._beta2
 
-    @property
+    @cached_property
     def _points_t(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """``source.T`` and ``target.T`` (3, N), C-contiguous and writable (kernel inputs)."""
-        pts = self.__dict__.get("_points_t_cache")
-        if pts is None:
-            pts = (np.ascontiguousarray(self.source.T), np.ascontiguousarray(self.target.T))
-            self.__dict__["_points_t_cache"] = pts
-        return pts
+        return np.ascontiguousarray(self.source.T), np.ascontiguousarray(self.target.T)
 
-    @property
+    @cached_property
     def _min_noise_bound(self) -> float:
-        beta_min = self.__dict__.get("_min_beta_cache")
-        if beta_min is None:
-            beta_min = float(self.noise_bound.min())
-            self.__dict__["_min_beta_cache"] = beta_min
-        return beta_min
+        return float(self.noise_bound.min())
 
-    @property
+    @cached_property
     def _uniform_noise(self) -> bool:
-        """True when every correspondence has the same noise bound (cached)."""
-        uniform = self.__dict__.get("_uniform_noise_cache")
-        if uniform is None:
-            beta = self.noise_bound
-            uniform = bool((beta == beta[0]).all())
-            self.__dict__["_uniform_noise_cache"] = uniform
-        return uniform
+        """True when every correspondence has the same noise bound."""
+        beta = self.noise_bound
+        return bool((beta == beta[0]).all())
 
-    @property
+    @cached_property
     def _uniform_weights(self) -> bool:
         """True when every weight is the same positive value."""
-        uniform = self.__dict__.get("_uniform_cache")
-        if uniform is None:
-            w = self.weights
-            wmin, wmax = float(w.min()), float(w.max())
-            uniform = wmin > 0.0 and not wmax - wmin > 1e-12 * wmax
-            self.__dict__["_uniform_cache"] = uniform
-        return uniform
+        w = self.weights
+        wmin, wmax = float(w.min()), float(w.max())
+        return wmin > 0.0 and not wmax - wmin > 1e-12 * wmax
 
     def cost(self, rotation: ArrayLike, translation: ArrayLike) -> float:
         """TLS cost of the pose ``(R, t)``."""

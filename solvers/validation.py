@@ -158,18 +158,11 @@ def check_correspondences(
     ``noise_bound`` is a positive scalar or (N,) array, ``weights`` None (all ones), a
     non-negative scalar or (N,) array, and ``cbar2`` a positive finite scalar.
     """
-    return _check_correspondences(source, target, noise_bound=noise_bound, weights=weights,
-                                  cbar2=cbar2, min_n=min_n)[:5]
+    return _check_correspondences(source, target, noise_bound, weights, cbar2, min_n)[:5]
 
 
 def _check_correspondences(
-    source: Any,
-    target: Any,
-    *,
-    noise_bound: Any,
-    weights: Any,
-    cbar2: Any,
-    min_n: int,
+    source: Any, target: Any, noise_bound: Any, weights: Any, cbar2: Any, min_n: int
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
            float, float]:
     """:func:`check_correspondences` and the largest absolute coordinate of the points."""

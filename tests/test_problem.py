@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from solvers import WeightedTLSProblem
@@ -62,14 +64,25 @@ def test_subset_keeps_per_item_data():
         ({"weights": np.full(10, np.inf)}, r"`weights` contains NaN or inf"),
         ({"cbar2": 0.0}, r"`cbar2` must be a positive"),
         ({"cbar2": [1.0, 2.0]}, r"`cbar2` must be a positive"),
+        ({"cbar2": float("inf")}, r"`cbar2` must be a positive finite"),
+        ({"cbar2": float("nan")}, r"`cbar2` must be a positive finite"),
+        ({"weights": -1.0}, r"`weights` must be non-negative"),
+        ({"noise_bound": float("inf")}, r"`noise_bound` contains NaN"),
+        ({"source": np.vstack([np.full((1, 3), np.nan), np.zeros((9, 3))])},
+         r"`source` contains NaN or inf values in 1 row"),
+        ({"target": np.vstack([np.full((2, 3), -np.inf), np.zeros((8, 3))])},
+         r"`target` contains NaN or inf values in 2 row"),
     ],
 )
-def test_bad_input_raises_value_error(kwargs, match):
+@pytest.mark.parametrize("make", ["problem", "unit_scale_problem"])
+def test_bad_input_raises_value_error(kwargs, match, make):
+    from solvers.registration import unit_scale_problem
+
     args = {"source": _pts(), "target": _pts(seed=1), "noise_bound": 0.1}
     args.update(kwargs)
     src, dst = args.pop("source"), args.pop("target")
     with pytest.raises(ValueError, match=match):
-        WeightedTLSProblem(src, dst, **args)
+        (WeightedTLSProblem if make == "problem" else unit_scale_problem)(src, dst, **args)
 
 
 def test_nan_points_raise():
@@ -115,3 +128,41 @@ def test_residuals_of_two_translations_match_one_at_a_time(rng):
     np.testing.assert_allclose(r1, problem.residuals_sq(R, t1), rtol=1e-12)
     np.testing.assert_allclose(r2, problem.residuals_sq(R, t2), rtol=1e-12)
     assert not np.allclose(r1, r2)
+
+
+@settings(max_examples=60, deadline=None)
+@given(exponent=st.integers(-200, 200), n=st.integers(3, 40), seed=st.integers(0, 2**16),
+       scalar_noise=st.booleans(), with_weights=st.booleans())
+def test_unit_scale_problem_is_scaling_a_validated_problem(exponent, n, seed, scalar_noise,
+                                                           with_weights):
+    # register's one-pass path (validate, then scale the copies in place) against the two
+    # steps it replaces: the same arrays bit for bit, the same scale, the same cached flags.
+    from solvers.registration import to_unit_scale, unit_scale_problem
+
+    rng = np.random.default_rng(seed)
+    s = 10.0**exponent
+    a, b = rng.normal(size=(n, 3)) * s, rng.normal(size=(n, 3)) * s
+    beta = 0.05 * s if scalar_noise else rng.uniform(0.01, 0.1, n) * s
+    w = rng.uniform(0.0, 2.0, n) if with_weights else None
+    ref, ref_scale = to_unit_scale(WeightedTLSProblem(a, b, noise_bound=beta, weights=w))
+    unit, scale = unit_scale_problem(a, b, noise_bound=beta, weights=w)
+    assert scale == ref_scale
+    for name in ("source", "target", "noise_bound", "weights"):
+        got, want = getattr(unit, name), getattr(ref, name)
+        assert np.array_equal(got, want) and not got.flags.writeable, name
+    fresh = WeightedTLSProblem(unit.source, unit.target, noise_bound=unit.noise_bound,
+                               weights=unit.weights)
+    assert unit._uniform_weights == fresh._uniform_weights == (w is None)
+    assert unit._uniform_noise == fresh._uniform_noise
+    assert to_unit_scale(unit) == (unit, 1.0)
+
+
+def test_problem_fields_are_read_only_views_the_caller_cannot_reach():
+    src = np.random.default_rng(0).normal(size=(5, 3))
+    p = WeightedTLSProblem(src, src + 1.0, noise_bound=0.1)
+    src[0, 0] = 99.0  # the problem holds its own copy
+    assert p.source[0, 0] != 99.0
+    with pytest.raises(ValueError, match="read-only"):
+        p.source[0, 0] = 1.0
+    with pytest.raises(ValueError, match="read-only"):
+        p.weights[0] = 2.0

@@ -369,7 +369,7 @@ def to_unit_scale(problem: WeightedTLSProblem) -> tuple[WeightedTLSProblem, floa
     beta = np.maximum(beta / scale, _MIN_RELATIVE_NOISE_BOUND)
     # Division by a power of two is exact (and keeps the data valid): no second validation.
     unit = WeightedTLSProblem._from_checked(src / scale, dst / scale, beta, w, problem.cbar2)
-    for key in ("_uniform_cache", "_uniform_noise_cache"):
+    for key in ("_uniform_weights", "_uniform_noise"):  # cached properties already known
         if key in problem.__dict__:
             unit.__dict__[key] = problem.__dict__[key]
     unit.__dict__["_at_unit_scale"] = True
@@ -390,8 +390,7 @@ def unit_scale_problem(
     in place (one problem, no second set of arrays: a small solve's overhead).
     """
     src, dst, beta, w, c2, extent = _check_correspondences(
-        source, target, noise_bound=noise_bound, weights=weights, cbar2=cbar2, min_n=3
-    )
+        source, target, noise_bound, weights, cbar2, 3)
     scale = math.ldexp(1.0, math.frexp(extent)[1]) if extent > 0 else 1.0
     inv = 1.0 / scale  # a power of two: multiplying by it is the exact division
     if scale != 1.0:
@@ -403,9 +402,9 @@ def unit_scale_problem(
         np.maximum(beta, _MIN_RELATIVE_NOISE_BOUND, out=beta)
     unit = WeightedTLSProblem._from_checked(src, dst, beta, w, c2)
     if type(noise_bound) is float:
-        unit.__dict__["_uniform_noise_cache"] = True
+        unit.__dict__["_uniform_noise"] = True
     if weights is None:
-        unit.__dict__["_uniform_cache"] = True  # all ones
+        unit.__dict__["_uniform_weights"] = True  # all ones
     unit.__dict__["_at_unit_scale"] = True
     return unit, scale
 
