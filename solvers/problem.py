@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -12,6 +11,24 @@ from numpy.typing import ArrayLike, NDArray
 from solvers.validation import check_correspondences
 
 __all__ = ["WeightedTLSProblem"]
+
+
+class _derived:
+    """A value computed from an instance on first access and then read from its ``__dict__``
+    (``functools.cached_property`` without its lock, which Python 3.11 takes on every first
+    access: a small solve makes a problem and reads each of these once)."""
+
+    def __init__(self, fn: Any) -> None:
+        self.fn = fn
+        self.name = fn.__name__
+        self.__doc__ = fn.__doc__
+
+    def __get__(self, obj: Any, cls: Any = None) -> Any:
+        if obj is None:
+            return self
+        value = self.fn(obj)
+        obj.__dict__[self.name] = value
+        return value
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,33 +166,33 @@ class WeightedTLSProblem:
         costs = np.minimum(r2, self.cbar2) @ self.weights
         return r2[0], r2[1], float(costs[0]), float(costs[1])
 
-    # Derived arrays, computed once per problem (functools.cached_property stores them in the
-    # instance dict, which a frozen dataclass allows; a problem's arrays never change).
-    @cached_property
+    # Derived arrays, computed once per problem and kept in the instance dict (a frozen
+    # dataclass allows it; a problem's arrays never change).
+    @_derived
     def _beta2(self) -> NDArray[np.float64]:
         return self.noise_bound**2
 
-    @cached_property
+    @_derived
     def _inv_beta2(self) -> NDArray[np.float64]:
         """``1 / beta^2`` (N,), writable and C-contiguous (a kernel input)."""
         return 1.0 / self._beta2
 
-    @cached_property
+    @_derived
     def _points_t(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """``source.T`` and ``target.T`` (3, N), C-contiguous and writable (kernel inputs)."""
         return np.ascontiguousarray(self.source.T), np.ascontiguousarray(self.target.T)
 
-    @cached_property
+    @_derived
     def _min_noise_bound(self) -> float:
         return float(self.noise_bound.min())
 
-    @cached_property
+    @_derived
     def _uniform_noise(self) -> bool:
         """True when every correspondence has the same noise bound."""
         beta = self.noise_bound
         return bool((beta == beta[0]).all())
 
-    @cached_property
+    @_derived
     def _uniform_weights(self) -> bool:
         """True when every weight is the same positive value."""
         w = self.weights
