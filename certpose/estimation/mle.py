@@ -375,6 +375,12 @@ class MLEParams:
     num_centres : int
         Clusters of the classifier's positives (:func:`evidence_centres`) the coarse search may
         start from: the largest first, the others when every pose found hides the object.
+    search_points : int or None
+        Object points (farthest-point sample, area-weighted like the whole model) of the eq. (1)
+        that the refinement, the basin hops and the turns climb on; the few best poses are then
+        refined and polished on the whole object (``None``: the whole object throughout).
+        Surface-sampled models have 1,500-7,000 points; the search's cost grows with them, its
+        outcome hardly (measured on YCB-Video, see the module docstring).
     """
 
     eq2: Eq2Params = field(default_factory=Eq2Params)
@@ -396,6 +402,7 @@ class MLEParams:
     hop_translation: float = 0.08
     hop_rotation_deg: float = 8.0
     num_centres: int = 3
+    search_points: int | None = 768
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.mode_window) and self.mode_window >= 0):
@@ -416,6 +423,8 @@ class MLEParams:
                              f"{self.hop_translation} and {self.hop_rotation_deg}.")
         if int(self.num_centres) < 1:
             raise ValueError(f"`num_centres` must be >= 1, got {self.num_centres}.")
+        if self.search_points is not None and int(self.search_points) < 3:
+            raise ValueError(f"`search_points` must be >= 3 or None, got {self.search_points}.")
 
 
 @dataclass(frozen=True, eq=False)
@@ -588,8 +597,11 @@ class _Certifier:
 
 @dataclass
 class _Search:
-    """State shared by the steps of :func:`estimate_mle`."""
+    """State shared by the steps of :func:`estimate_mle`: ``exact`` is eq. (1) of the whole
+    object, ``full`` the one the search climbs on (the whole object, or a subsample of
+    ``MLEParams.search_points``), ``small`` the coarse one."""
 
+    exact: PoseLikelihood
     full: PoseLikelihood
     small: PoseLikelihood
     small_model: ObjectModel
@@ -623,11 +635,14 @@ def _build_likelihoods(scene: Any, classification: ObjectClassification, object_
     from certpose.model.likelihood import PoseLikelihood
 
     t = time.perf_counter()
-    full = PoseLikelihood(scene, classification, object_model, params=lparams)
+    exact = PoseLikelihood(scene, classification, object_model, params=lparams)
+    full = exact
+    if params.search_points is not None and len(object_model) > int(params.search_points):
+        full = exact.with_object(object_model.subsample(int(params.search_points), rng=gen))
     small_model = object_model.subsample(int(params.coarse_points), rng=gen)
     small = PoseLikelihood(scene, classification, small_model,
                            params=replace(lparams, free_space_erosion=int(params.coarse_erosion)))
-    search = _Search(full, small, small_model, object_model.radius, params)
+    search = _Search(exact, full, small, small_model, object_model.radius, params)
     search.timings["compile"] = time.perf_counter() - t
     return search
 
@@ -725,10 +740,51 @@ def _polish(search: _Search, best: Hypothesis) -> Hypothesis:
     """Step 5: derivative-free polish of the winner (the finite-difference gradient stalls on
     the piecewise-linear objective near the optimum)."""
     t = time.perf_counter()
-    T, v = search.refine(search.full, best.pose, max_step=0.05, method="Powell",
+    T, v = search.refine(search.exact, best.pose, max_step=0.05, method="Powell",
                          maxiter=search.params.refine_maxiter)
-    search.timings["polish"] = time.perf_counter() - t
+    search.timings["polish"] = search.timings.get("polish", 0.0) + time.perf_counter() - t
     return Hypothesis(T, v, best.source)
+
+
+def _finish(search: _Search, best: Hypothesis,
+            modes: tuple[PoseMode, ...]) -> tuple[Hypothesis, tuple[PoseMode, ...]]:
+    """Step 7: the winner and the competing modes refined on the exact eq. (1) (all together,
+    when the search climbed on a subsample), the best of them polished; the modes within
+    ``mode_window`` of it are reported, the returned pose first."""
+    from certpose.estimation.batch import refine_poses
+    from certpose.estimation.modes import PoseMode, _angle_deg
+
+    params = search.params
+
+    def distinct(T: NDArray[np.float64], kept: list[NDArray[np.float64]]) -> bool:
+        return not any(_angle_deg(T[:3, :3], K[:3, :3]) < 10.0
+                       and np.linalg.norm(T[:3, 3] - K[:3, 3]) < 0.5 * search.scale for K in kept)
+
+    others: list[PoseMode] = []
+    for m in modes:
+        if distinct(m.T_scene_object, [best.pose] + [o.T_scene_object for o in others]):
+            others.append(m)
+    if search.full is not search.exact:
+        t = time.perf_counter()
+        T, v = refine_poses(search.counted(search.exact),
+                            np.stack([best.pose] + [m.T_scene_object for m in others]),
+                            scale=search.scale, max_iter=params.refine_maxiter, max_step=0.1)
+        search.timings["refine_exact"] = time.perf_counter() - t
+        cands = [Hypothesis(T[0], float(v[0]), best.source)] + [
+            Hypothesis(T[k + 1], float(v[k + 1]), m.origin) for k, m in enumerate(others)]
+        cands.sort(key=lambda h: -h.score)
+        best, others_h = cands[0], []
+        for h in cands[1:]:  # two modes may have climbed to one
+            if distinct(h.pose, [best.pose] + [o.pose for o in others_h]):
+                others_h.append(h)
+    else:
+        others_h = [Hypothesis(m.T_scene_object, float(m.log_likelihood), m.origin)
+                    for m in others]
+    best = _polish(search, best)
+    kept = [PoseMode(best.pose, best.score, best.source)] + [
+        PoseMode(h.pose, h.score, h.source, _angle_deg(h.pose[:3, :3], best.pose[:3, :3]))
+        for h in others_h if h.score >= best.score - params.mode_window]
+    return best, tuple(kept)
 
 
 def _modes(search: _Search, best: Hypothesis, object_model: ObjectModel) -> tuple[Hypothesis, tuple[PoseMode, ...]]:
@@ -749,7 +805,9 @@ def _modes(search: _Search, best: Hypothesis, object_model: ObjectModel) -> tupl
         log.info("a near-symmetric turn (%s) beats the search's winner by %.1f nats",
                  top.origin, top.log_likelihood - best.score)
         best = Hypothesis(top.T_scene_object, float(top.log_likelihood), top.origin)
-    kept = tuple(m for m in modes if m.log_likelihood >= top.log_likelihood - params.mode_window)
+    # On a subsample, modes a few nats outside the window may be inside it on the whole object.
+    window = params.mode_window * (1 if search.full is search.exact else 3)
+    kept = tuple(m for m in modes if m.log_likelihood >= top.log_likelihood - window)
     search.timings["modes"] = time.perf_counter() - t
     return best, kept
 
@@ -807,21 +865,20 @@ def estimate_mle(
     with _Certifier() as certifier:
         eq2, eq2_result, h_eq2 = _eq2_hypothesis(search, scene, classification, object_model,
                                                  lparams, gen, certifier)
-        eq2_ll = float("nan") if h_eq2 is None else h_eq2.score
+        eq2_ll = float("nan") if h_eq2 is None else float(search.exact(h_eq2.pose))
         hyps = ([] if h_eq2 is None else [h_eq2]) + _coarse_hypotheses(search, centre, view, gen)
         finals = _refine_hypotheses(search, hyps)
         # Every point in unobserved space scores N log p_unobserved: a plateau that a failed
         # search ends on (measured: the mustard bottle in 0050/000020, ADD-S 9 cm). Search again.
         # Search again from the other centres of the classifier's evidence, then from the
         # first one with new rotations.
-        hidden = len(object_model) * lparams.log_p_unobserved + 1.0
+        hidden = search.full.total_weight * lparams.log_p_unobserved + 1.0
         for attempt, c in enumerate([*centres[1:], centre, centre][:2]):
             if max((h.score for h in finals), default=-math.inf) > hidden:
                 break
             log.warning("the search ended with the object hidden in unobserved space; "
                         "searching again (%d)", attempt + 1)
             finals += _refine_hypotheses(search, _coarse_hypotheses(search, c, view_from(c), gen))
-        eq2_refined_ll = max((h.score for h in finals if h.source == "eq2"), default=float("nan"))
         if certifier.running:
             # Step 4: the certificate; a better eq. (2) pose from the certifier is one more
             # hypothesis.
@@ -832,10 +889,9 @@ def estimate_mle(
             if not np.allclose(certified.T_target_source, eq2_result.T_target_source, atol=1e-9):
                 T2, v2 = search.refine(search.full, certified.T_target_source,
                                        maxiter=params.refine_maxiter)
-                eq2_ll = float(search.full(certified.T_target_source))
+                eq2_ll = float(search.exact(certified.T_target_source))
                 search.n_eval += 1
                 finals.append(Hypothesis(T2, v2, "eq2"))
-                eq2_refined_ll = v2 if not math.isfinite(eq2_refined_ll) else max(v2, eq2_refined_ll)
             eq2_result = certified
     if not finals:  # no hypothesis at all (eq. (2) failed and the coarse search is disabled)
         T0 = np.eye(4)
@@ -843,15 +899,17 @@ def estimate_mle(
         T2, v2 = search.refine(search.full, T0, maxiter=params.refine_maxiter)
         finals.append(Hypothesis(T2, v2, "centroid"))
     best = _hop(search, finals, gen)
-    best = _polish(search, best)
-    if best.source == "eq2":
-        eq2_refined_ll = best.score
     best, modes = _modes(search, best, object_model)
     if best.source.startswith("turn:"):
-        from certpose.estimation.modes import PoseMode
-
-        best = _polish(search, _hop(search, [best], gen))
-        modes = (PoseMode(best.pose, best.score, best.source),) + modes[1:]
+        best = _hop(search, [best], gen)
+    best, modes = _finish(search, best, modes)
+    # The hypotheses as they ended on the search's eq. (1), scored on the exact one.
+    if search.full is not search.exact and finals:
+        scores = np.atleast_1d(search.counted(search.exact)(np.stack([h.pose for h in finals])))
+        finals = [Hypothesis(h.pose, float(v), h.source) for h, v in zip(finals, scores, strict=True)]
+    eq2_refined_ll = max((h.score for h in finals if h.source == "eq2"), default=float("nan"))
+    if best.source == "eq2":
+        eq2_refined_ll = best.score
     timings["total"] = time.perf_counter() - t_start
     cert = None if eq2_result is None else eq2_result.certificate
     msg = (f"best of {len(finals)} refined hypotheses on eq. (1): {best.source}; "

@@ -315,6 +315,21 @@ class PoseLikelihood:
         self._cells = _cell_codes(self._index, self._background, self.params.c_empty)
         self._desc = np.ascontiguousarray(occ_desc, dtype=np.float32)
         self._logp = np.ascontiguousarray(occ_logp, dtype=np.float64)
+        self._set_object(object_model)
+
+    def with_object(self, object_model: ObjectModel) -> PoseLikelihood:
+        """The same eq. (1) for another object model (e.g. a subsample of this one), sharing
+        this one's scene arrays instead of building them again."""
+        import copy
+
+        if object_model.descriptors.shape[1] != self._desc.shape[1]:
+            raise ValueError(f"Descriptor dimensions differ: object "
+                             f"{object_model.descriptors.shape[1]}, scene {self._desc.shape[1]}.")
+        other = copy.copy(self)
+        other._set_object(object_model)
+        return other
+
+    def _set_object(self, object_model: ObjectModel) -> None:
         # Points in Morton (Z-curve) order: neighbours in memory stay neighbours in the grid
         # under any pose, which keeps the voxel look-ups cache-friendly.
         self._order = _morton_order(object_model.points, self.grid.voxel_size)
