@@ -636,12 +636,14 @@ def _build_likelihoods(scene: Any, classification: ObjectClassification, object_
 
     t = time.perf_counter()
     exact = PoseLikelihood(scene, classification, object_model, params=lparams)
-    full = exact
+    full, search_model = exact, object_model
     if params.search_points is not None and len(object_model) > int(params.search_points):
-        full = exact.with_object(object_model.subsample(int(params.search_points), rng=gen))
-    small_model = object_model.subsample(int(params.coarse_points), rng=gen)
-    small = PoseLikelihood(scene, classification, small_model,
-                           params=replace(lparams, free_space_erosion=int(params.coarse_erosion)))
+        search_model = object_model.subsample(int(params.search_points), rng=gen)
+        full = exact.with_object(search_model)
+    # Farthest points of the search's subsample: as even, and cheaper to draw.
+    small_model = search_model.subsample(int(params.coarse_points), rng=gen)
+    small = exact.with_object(small_model,
+                              params=replace(lparams, free_space_erosion=int(params.coarse_erosion)))
     search = _Search(exact, full, small, small_model, object_model.radius, params)
     search.timings["compile"] = time.perf_counter() - t
     return search
@@ -879,29 +881,41 @@ def estimate_mle(
             log.warning("the search ended with the object hidden in unobserved space; "
                         "searching again (%d)", attempt + 1)
             finals += _refine_hypotheses(search, _coarse_hypotheses(search, c, view_from(c), gen))
+        if not finals:  # no hypothesis at all (eq. (2) failed and the coarse search is disabled)
+            T0 = np.eye(4)
+            T0[:3, 3] = centre - object_model.centroid
+            T2, v2 = search.refine(search.full, T0, maxiter=params.refine_maxiter)
+            finals.append(Hypothesis(T2, v2, "centroid"))
+        best = _hop(search, finals, gen)
+        best, modes = _modes(search, best, object_model)
+        if best.source.startswith("turn:"):
+            best = _hop(search, [best], gen)
         if certifier.running:
-            # Step 4: the certificate; a better eq. (2) pose from the certifier is one more
-            # hypothesis.
+            # Step 4: the certificate, waited for only now (it ran beside the whole search); a
+            # better eq. (2) pose from the certifier is one more hypothesis, which hops when it
+            # beats the winner and is a candidate mode when near it.
             t = time.perf_counter()
             certified = certifier.result()
             timings["eq2_certify_wait"] = time.perf_counter() - t
             timings["eq2_certify"] = float(certified.info.get("certify_time", 0.0))
             if not np.allclose(certified.T_target_source, eq2_result.T_target_source, atol=1e-9):
-                T2, v2 = search.refine(search.full, certified.T_target_source,
-                                       maxiter=params.refine_maxiter)
+                from certpose.estimation.batch import refine_poses
+                from certpose.estimation.modes import PoseMode
+
+                t = time.perf_counter()
                 eq2_ll = float(search.exact(certified.T_target_source))
-                search.n_eval += 1
-                finals.append(Hypothesis(T2, v2, "eq2"))
+                T2, v2 = refine_poses(search.counted(search.full), certified.T_target_source[None],
+                                      scale=search.scale, max_iter=params.refine_maxiter)
+                h = Hypothesis(T2[0], float(v2[0]), "eq2")
+                finals.append(h)
+                if h.score > best.score:
+                    h = _hop(search, [h], gen)
+                    if h.score > best.score:
+                        best = h
+                if h.score >= best.score - 3 * params.mode_window:
+                    modes = (*modes, PoseMode(h.pose, h.score, h.source))
+                timings["eq2_certified_pose"] = time.perf_counter() - t
             eq2_result = certified
-    if not finals:  # no hypothesis at all (eq. (2) failed and the coarse search is disabled)
-        T0 = np.eye(4)
-        T0[:3, 3] = centre - object_model.centroid
-        T2, v2 = search.refine(search.full, T0, maxiter=params.refine_maxiter)
-        finals.append(Hypothesis(T2, v2, "centroid"))
-    best = _hop(search, finals, gen)
-    best, modes = _modes(search, best, object_model)
-    if best.source.startswith("turn:"):
-        best = _hop(search, [best], gen)
     best, modes = _finish(search, best, modes)
     # The hypotheses as they ended on the search's eq. (1), scored on the exact one.
     if search.full is not search.exact and finals:

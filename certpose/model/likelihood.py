@@ -207,11 +207,12 @@ def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodPar
     occupied = state == OCCUPIED
     empty = state == EMPTY
     if params.free_space_erosion > 0:
-        from scipy.ndimage import binary_dilation
+        from scipy.ndimage import maximum_filter
 
-        near = binary_dilation(occupied, np.ones((3, 3, 3), bool),
-                               iterations=int(params.free_space_erosion))
-        empty &= ~near
+        # k dilations by the 3x3x3 cube are one by a (2k+1)-cube: separable, 2-3x faster.
+        near = maximum_filter(occupied.view(np.uint8), size=2 * int(params.free_space_erosion) + 1,
+                              mode="constant", cval=0)
+        empty &= near == 0
     out = np.full(state.shape, params.log_p_unobserved, dtype=np.float64)
     out[occupied] = 0.0
     tol, ramp = params.free_space_tolerance, params.free_space_ramp
@@ -315,17 +316,26 @@ class PoseLikelihood:
         self._cells = _cell_codes(self._index, self._background, self.params.c_empty)
         self._desc = np.ascontiguousarray(occ_desc, dtype=np.float32)
         self._logp = np.ascontiguousarray(occ_logp, dtype=np.float64)
+        self._state = state
         self._set_object(object_model)
 
-    def with_object(self, object_model: ObjectModel) -> PoseLikelihood:
-        """The same eq. (1) for another object model (e.g. a subsample of this one), sharing
-        this one's scene arrays instead of building them again."""
+    def with_object(self, object_model: ObjectModel, *,
+                    params: LikelihoodParams | None = None) -> PoseLikelihood:
+        """Eq. (1) of the same scene and classifier for another object model (e.g. a subsample
+        of this one) and optionally other ``params``, sharing this one's scene arrays instead of
+        gathering and checking them again (only the free-space values are recomputed for new
+        ``params``)."""
         import copy
 
         if object_model.descriptors.shape[1] != self._desc.shape[1]:
             raise ValueError(f"Descriptor dimensions differ: object "
                              f"{object_model.descriptors.shape[1]}, scene {self._desc.shape[1]}.")
         other = copy.copy(self)
+        if params is not None and params != self.params:
+            other.params = params
+            background = free_space_values(self._state, self.grid.voxel_size, params)
+            other._background = np.pad(background, 1, constant_values=params.log_p_unobserved)
+            other._cells = _cell_codes(self._index, other._background, params.c_empty)
         other._set_object(object_model)
         return other
 
