@@ -145,6 +145,37 @@ def test_free_space_erosion_only_removes_penalties():
     assert np.any(eroded > exact + 1e-6)
 
 
+def test_free_space_erosion_is_repeated_dilation_by_the_cube():
+    from scipy.ndimage import binary_dilation
+
+    rng = np.random.default_rng(11)
+    state = rng.choice([UNOBSERVED, EMPTY, OCCUPIED], size=(30, 26, 24), p=[0.2, 0.797, 0.003])
+    for k in (1, 2, 3):
+        params = LikelihoodParams(free_space_erosion=k)
+        near = binary_dilation(state == OCCUPIED, np.ones((3, 3, 3), bool), iterations=k)
+        eroded = (state == EMPTY) & near  # empty voxels that turn unobserved
+        v = free_space_values(state, 0.01, params)
+        assert np.all(v[eroded] == params.log_p_unobserved)
+        assert np.all(v[(state == EMPTY) & ~near] == params.c_empty)
+        assert eroded.any() and ((state == EMPTY) & ~near).any()
+
+
+def test_with_object_equals_a_likelihood_built_from_scratch():
+    rng, scene, cls, obj = _world(12)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    poses = _random_poses(rng, 30, centre, 0.03)
+    lik = PoseLikelihood(scene, cls, obj)
+    sub = ObjectModel(obj.points[::3], obj.descriptors[::3], areas=np.full(20, 3e-4))
+    for params in (None, LikelihoodParams(free_space_erosion=1), LikelihoodParams(c_empty=-3.0)):
+        shared = lik.with_object(sub, params=params)
+        fresh = PoseLikelihood(scene, cls, sub, params=params)
+        np.testing.assert_array_equal(shared(poses), fresh(poses))
+        assert shared.total_weight == pytest.approx(fresh.total_weight)
+    np.testing.assert_array_equal(lik(poses), PoseLikelihood(scene, cls, obj)(poses))  # unchanged
+    with pytest.raises(ValueError, match="Descriptor dimensions"):
+        lik.with_object(ObjectModel(obj.points, np.ones((60, 3)) / np.sqrt(3)))
+
+
 def test_function_form_and_shapes():
     rng, scene, cls, obj = _world(5)
     centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2

@@ -189,6 +189,8 @@ def test_mle_params_validation():
         MLEParams(hop_translation=-0.1)
     with pytest.raises(ValueError, match="num_centres"):
         MLEParams(num_centres=0)
+    with pytest.raises(ValueError, match="search_points"):
+        MLEParams(search_points=2)
 
 
 def test_an_exception_inside_estimate_mle_leaves_no_certifier_thread(monkeypatch):
@@ -236,6 +238,33 @@ def test_estimate_mle_records_its_hypotheses():
         assert h.score == pytest.approx(float(lik(h.pose)), abs=1e-6)
     # The polished winner is at least as good as every refined hypothesis.
     assert res.log_likelihood >= max(h.score for h in res.hypotheses) - 1e-9
+
+
+def test_search_on_a_subsample_reports_the_exact_likelihood():
+    # The search climbs on 60 of the 240 points; everything reported is eq. (1) of all 240.
+    rng = np.random.default_rng(3)
+    obj = _box_object(rng)
+    T = make_transform(Rotation.from_rotvec([1.0, -0.5, 2.0]).as_matrix(), [0.01, 0.02, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    lik = PoseLikelihood(scene, cls, obj)
+    res = estimate_mle(scene, cls, obj, params=MLEParams(certify=False, num_rotations=128,
+                                                          search_points=60), rng=0)
+    assert len(obj) == 240 and res.success
+    assert res.log_likelihood == pytest.approx(float(lik(res.T_scene_object)), abs=1e-6)
+    assert res.log_likelihood >= lik(T) - 1.0
+    assert rotation_error_deg(res.T_scene_object[:3, :3], T[:3, :3]) < 5.0
+    assert np.linalg.norm(res.T_scene_object[:3, 3] - T[:3, 3]) < 0.005
+    for h in res.hypotheses:
+        assert h.score == pytest.approx(float(lik(h.pose)), abs=1e-6)
+    for m in res.modes:
+        assert m.log_likelihood == pytest.approx(float(lik(m.T_scene_object)), abs=1e-6)
+    assert res.modes[0].log_likelihood == pytest.approx(res.log_likelihood)
+    assert res.eq2_log_likelihood == pytest.approx(float(lik(res.eq2_result.T_target_source)))
+    assert "refine_exact" in res.timings
+    whole = estimate_mle(scene, cls, obj, params=MLEParams(certify=False, num_rotations=128,
+                                                            search_points=None), rng=0)
+    assert "refine_exact" not in whole.timings
+    assert whole.log_likelihood == pytest.approx(float(lik(whole.T_scene_object)), abs=1e-6)
 
 
 @pytest.mark.slow
