@@ -30,10 +30,16 @@ refinement and the evidence centres; with voxel-averaged models 58/60, was 49/60
 is random and the eq. (2) certifier's better pose, a hypothesis, depends on its time limit, so
 a pair near the threshold can change from one run to the next.
 
-The pose with the highest eq. (1) wins. The eq. (2) certificate is computed in a thread beside
-steps 1-2; if the certifier returns a better eq. (2) pose, that pose is refined as one more
-hypothesis. :class:`MLEResult` records where the winner came from and how the eq. (2) pose
-scored on eq. (1). :func:`global_search` is the long Nevergrad search used to judge both.
+The pose with the highest eq. (1) wins. Steps 2-3 climb on a farthest-point subsample of
+``MLEParams.search_points`` object points (area-weighted like the whole model; surface-sampled
+models have 1,500-7,000 points, and the cost of every step grows with them); at the end the
+winner and its competing modes are refined together on the exact eq. (1) of the whole object
+and the best is polished there, so every value reported is the exact eq. (1). The eq. (2)
+certificate is computed in a thread beside the whole search and waited for only at its end; if
+the certifier returns a better eq. (2) pose, that pose is refined as one more hypothesis (and
+hops when it beats the winner). :class:`MLEResult` records where the winner came from and how
+the eq. (2) pose scored on eq. (1). :func:`global_search` is the long Nevergrad search used to
+judge both.
 """
 
 from __future__ import annotations
@@ -402,7 +408,7 @@ class MLEParams:
     hop_translation: float = 0.08
     hop_rotation_deg: float = 8.0
     num_centres: int = 3
-    search_points: int | None = 768
+    search_points: int | None = 1024
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.mode_window) and self.mode_window >= 0):
@@ -451,12 +457,15 @@ class MLEResult:
     num_evaluations : int
         Eq. (1) evaluations spent.
     timings : dict of str to float
-        Seconds per stage; the certifier (``eq2_certify``) runs in a thread beside the coarse
-        search and refinement, ``eq2_certify_wait`` is the time spent waiting for it after.
+        Seconds per stage; the certifier (``eq2_certify``) runs in a thread beside the whole
+        search, ``eq2_certify_wait`` is the time spent waiting for it at the search's end
+        (``refine_exact``: the final refinement on the whole object, when the search climbed on
+        a subsample).
     status : MLEStatus
     message : str
     hypotheses : tuple of Hypothesis
-        The hypotheses refined on the exact eq. (1), before the winner's polish.
+        The hypotheses as refined by the search (before the hops and the winner's polish), each
+        scored on the exact eq. (1).
     modes : tuple of PoseMode
         Local maxima of eq. (1) within ``mode_window`` nats of the best, best first (the
         returned pose first); more than one means eq. (1) barely tells them apart (e.g. a box's
