@@ -235,3 +235,35 @@ def test_certifier_options_are_checked(kwargs: dict, match: str) -> None:
         certify_pose(p, res.rotation, res.translation, **kwargs)
     with pytest.raises((TypeError, ValueError), match=match):
         certify_result(p, res, **kwargs)
+
+
+def test_certify_result_time_limit_covers_the_recertification(monkeypatch) -> None:
+    """A better pose found while certifying is certified in what is left of ``time_limit``
+    (the MLE's certifier thread took twice its limit: each certification had the whole of it)."""
+    import dataclasses
+
+    from solvers.certify import front
+    from solvers.lie import make_transform
+
+    limits = []
+    real = front._certify
+
+    def recording(*args, **kwargs):  # the real certification, its time limit recorded
+        limits.append(kwargs["time_limit"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(front, "_certify", recording)
+    rng = np.random.default_rng(11)
+    src, dst, *_ = make_instance(rng, 40, 0.5)
+    p = WeightedTLSProblem(src, dst, noise_bound=BETA)
+    res = solve_registration(p)
+    # A candidate off the optimum (2 deg): certifying finds the better pose and certifies it.
+    R = _rotated(res.rotation, 2.0, rng)
+    worse = dataclasses.replace(res, T_target_source=make_transform(R, res.translation))
+    out = certify_result(p, worse, time_limit=5.0)
+    assert out.info.get("replaced_candidate") and out.cost < p.cost(R, res.translation)
+    assert len(limits) == 2 and limits[0] == 5.0
+    assert 0.0 <= limits[1] < 5.0
+    bp = rebuild_bounded_problem(p, out.certificate)
+    assert out.certificate.upper_bound == pytest.approx(
+        _cost(bp, out.rotation, out.translation), rel=1e-9, abs=1e-12)

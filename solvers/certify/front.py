@@ -984,7 +984,8 @@ def certify_result(
         The problem ``result`` was computed for.
     result : RegistrationResult
     tol, scope, method, survivors, max_iter, time_limit, dense_max, eps
-        As in :func:`certify_pose` (``scope="auto"`` is the full problem).
+        As in :func:`certify_pose` (``scope="auto"`` is the full problem). ``time_limit``
+        covers the whole call: a better pose is certified in what is left of it.
     """
     t0 = time.perf_counter()
     tol = _check_tol(tol)
@@ -1013,6 +1014,8 @@ def certify_result(
                f"whose cost on the full problem is higher ({new:.6g} > {old:.6g}): kept the "
                f"candidate")
         return dataclasses.replace(result, certificate=cert, info=info, message=msg)
+    if time_limit is not None:  # the limit covers both certifications, not each
+        kw["time_limit"] = max(float(time_limit) - (time.perf_counter() - t0), 0.0)
     cert_new, _ = _certify(problem, Rb, tb, **kw)
     from solvers.lie import make_transform
 
