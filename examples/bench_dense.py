@@ -41,10 +41,11 @@ Measured (2-core machine shared with other sessions, load average 2.8 -> 2.6 ove
   0.183-0.294 ms. 3DMatch pair 6.7-9.4 ms; worst dense / median sparse 6.3-7.1x.
 * After the second round (fewer numpy calls per solve: 1.21 M -> 0.81 M instructions per N = 100
   solve, counted with callgrind; 23 November 21:05, quiet, load 0.6-0.7, five runs within a
-  minute): bunny N = 100 medians per outlier ratio 0.117-0.131 ms in three runs, 0.176-0.206
-  and 0.203-0.244 ms in two (the VM's slow phases); the median over the five runs 0.118-0.131
-  ms at every ratio. Interleaved with the session's start (quiet, three rounds): 0.117-0.214
-  against 0.164-0.303 ms. 3DMatch pair 5.6-10.1 ms; worst dense / median sparse 6.7-8.9x.
+  minute, and five more at 21:55, load 0.6-1.1): bunny N = 100 medians per outlier ratio
+  0.117-0.131 ms in five runs, 0.176-0.244 ms in the other five (the VM's slow phases); the
+  median over the ten runs 0.150-0.162 ms at every ratio. Interleaved with the session's start
+  (quiet, three rounds): 0.117-0.214 against 0.164-0.303 ms. 3DMatch pair 5.3-10.1 ms; worst
+  dense / median sparse 6.7-8.9x.
 """
 
 from __future__ import annotations
