@@ -144,11 +144,17 @@ def _wait_for_rows(path: Path, count: int, proc: subprocess.Popen, timeout: floa
     raise AssertionError(f"fewer than {count} rows after {timeout} s")
 
 
-GRID = ["bench", "--n", "40", "--outlier-ratios", "0", "0.6", "0.9", "--trials", "40",
+GRID = ["bench", "--n", "40", "--outlier-ratios", "0", "0.6", "0.9", "--trials", "400",
         "--seed", "11", "--solvers", "gnc", "gnc-only", "--no-progress"]
+GRID_ROWS = 3 * 400 * 2
 
 
-@pytest.mark.slow  # two runs of 240 solves in subprocesses
+def _with_trials(grid: list[str], trials: int) -> list[str]:
+    k = grid.index("--trials") + 1
+    return [*grid[:k], str(trials), *grid[k + 1:]]
+
+
+@pytest.mark.slow  # two runs of 2,400 solves in subprocesses (a few seconds each)
 def test_sigkill_then_resume_gives_the_rows_of_an_uninterrupted_run(tmp_path):
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     subprocess.run(_cli(*GRID, "--workers", "0", "--out", str(whole)), env=_env(), check=True,
@@ -160,20 +166,21 @@ def test_sigkill_then_resume_gives_the_rows_of_an_uninterrupted_run(tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     n_cut = len(read_rows(cut / "trials.csv", TRIAL_COLUMNS))
-    assert 50 <= n_cut < 240
+    assert 50 <= n_cut < GRID_ROWS
 
     done = subprocess.run(_cli(*GRID, "--workers", "0", "--out", str(cut), "--resume"),
                           env=_env(), capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     a, b = _rows(whole / "trials.csv"), _rows(cut / "trials.csv")
-    assert len(a) == 240 and a.equals(b)
+    assert len(a) == GRID_ROWS and a.equals(b)
 
 
 @pytest.mark.slow  # a subprocess run interrupted with Ctrl-C
 def test_ctrl_c_keeps_the_finished_rows_and_says_so_in_one_line(tmp_path):
     out = tmp_path / "res"
-    # A grid long enough (12,000 solves) that the run cannot finish before the signal lands.
-    grid = [a if a != "40" or i != GRID.index("--trials") + 1 else "2000" for i, a in enumerate(GRID)]
+    # A grid far too long (120,000 solves, minutes) to finish before the signal lands, even if
+    # this process is descheduled for seconds on a loaded machine (12,000 solves once did).
+    grid = _with_trials(GRID, 20000)
     # SIGINT back to its default in the child: a test run started in the background (SIGINT
     # ignored) would otherwise pass the ignore on, and Python would never see the Ctrl-C.
     proc = subprocess.Popen(_cli(*grid, "--workers", "0", "--out", str(out)), env=_env(),
@@ -307,7 +314,9 @@ def test_a_killed_worker_loses_no_row(tmp_path, cluster):
 
     from distributed import Client
 
-    config = BenchConfig(n_values=(40,), outlier_ratios=(0.0, 0.6, 0.9), trials=150, seed=3,
+    # Long enough (3,000 solves) that the kill lands mid-run; the pids are known beforehand so
+    # that it follows the 60th row at once.
+    config = BenchConfig(n_values=(40,), outlier_ratios=(0.0, 0.6, 0.9), trials=1000, seed=3,
                          solvers=("gnc-only",))
     out = tmp_path / "res"
     errors: list[BaseException] = []
@@ -319,6 +328,9 @@ def test_a_killed_worker_loses_no_row(tmp_path, cluster):
         except BaseException as exc:  # re-raised in the test's thread
             errors.append(exc)
 
+    with Client(cluster.scheduler_address) as client:
+        pids = client.run(os.getpid)
+    victim = sorted(pids.values())[0]
     thread = threading.Thread(target=bench)
     thread.start()
     path = out / "trials.csv"
@@ -326,15 +338,14 @@ def test_a_killed_worker_loses_no_row(tmp_path, cluster):
     while not (path.exists() and path.read_text().count("\n") > 60):
         assert thread.is_alive() and time.monotonic() < deadline, errors
         time.sleep(0.02)
-    with Client(cluster.scheduler_address) as client:
-        pids = client.run(os.getpid)
-    victim = sorted(pids.values())[0]
     os.kill(victim, signal.SIGKILL)
+    at_kill = path.read_text().count("\n") - 1
     thread.join(timeout=180)
     assert not thread.is_alive() and not errors, errors
+    assert at_kill < 3000  # the kill did land mid-run
     with Client(cluster.scheduler_address) as client:
         assert victim not in client.run(os.getpid).values()  # it did die (and was replaced)
 
     expected = run_benchmark(config, progress=False, workers=0)
     rows = _rows(path)
-    assert len(rows) == 450 and rows.equals(_rows_of(expected.trials, tmp_path))
+    assert len(rows) == 3000 and rows.equals(_rows_of(expected.trials, tmp_path))
