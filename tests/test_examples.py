@@ -195,6 +195,29 @@ def test_bench_basins_on_a_real_frame(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_bench_calibration_on_a_real_pair(tmp_path: Path) -> None:
+    require_data("ycbv", "0000")
+    args = ["--data", str(YCBV), "--scenes", "0000", "--frames", "000003", "--objects", "025_mug",
+            "--cache", str(tmp_path / "cache"), "--draws", "1000"]
+    proc = _run("bench_calibration.py", *args, "--out", str(tmp_path / "is.jsonl"))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    row = json.loads((tmp_path / "is.jsonl").read_text().splitlines()[0])
+    assert row["case"] == "0000/000003 025_mug" and row["model"] == "geometry"
+    assert 0.0 <= row["levels"]["x1"] <= 1.0 and 0.0 <= row["kde_levels"]["x1"] <= 1.0
+    assert row["ess"]["x1"] > 50
+    # The truth refined on eq. (1) is at least as good as the truth.
+    assert row["eq1_truth_refined"] >= row["eq1_truth"] - 1e-6
+    assert len(list((tmp_path / "cache").glob("*.pkl"))) == 1
+    # The calibrated distribution on the cached MLE (no second MLE: the cached row comes back).
+    proc = _run("bench_calibration.py", *args, "--calibrated", "--out", str(tmp_path / "cal.jsonl"))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    cal = json.loads((tmp_path / "cal.jsonl").read_text().splitlines()[0])
+    assert cal["mle_s"] == row["mle_s"] and cal["num_basins"] >= 1
+    assert 0.0 <= cal["levels"]["default"] <= 1.0
+    assert "calibrated distribution (defaults)" in proc.stdout
+
+
+@pytest.mark.slow
 def test_bench_eq2_on_a_real_frame(tmp_path: Path) -> None:
     require_data("ycbv", "0002")
     out = tmp_path / "eq2.jsonl"
