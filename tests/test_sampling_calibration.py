@@ -58,7 +58,7 @@ def _basins(values, offsets=((0, 0, 0, 0, 0, 0),)) -> Basins:
 
 @pytest.mark.parametrize("level", [0.3, 0.9])
 def test_calibrated_level_of_one_basin(level):
-    p = CalibrationParams(rotation_sigma=0.04, translation_sigma=0.003)
+    p = CalibrationParams(rotation_sigma=0.04, translation_sigma=0.003, dof=math.inf)
     d = calibrated_distribution(None, basins=_basins([0.0]), params=p)
     sd = np.sqrt(SD**2 + np.array([0.04**2] * 3 + [0.003**2] * 3))
     x = np.sqrt(chi2.ppf(level, 6)) * sd * np.array([0, 0, 0, 0, 1, 0])
@@ -74,7 +74,8 @@ def test_calibrated_level_of_one_basin(level):
 def test_basin_weights_follow_the_basin_temperature():
     flip = (math.pi, 0, 0, 0, 0, 0)
     b = _basins([0.0, -100.0, -5000.0], [(0, 0, 0, 0, 0, 0), flip, (0, 0, 0, 0.05, 0, 0)])
-    d = calibrated_distribution(None, basins=b, params=CalibrationParams(basin_temperature=100.0))
+    d = calibrated_distribution(None, basins=b, params=CalibrationParams(basin_temperature=100.0,
+                                                                        dof=math.inf))
     # The third basin is e^-50 down: dropped; the first two in the ratio 1 : e^-1.
     assert len(d.mixture.weights) == 2
     assert d.mixture.weights[1] / d.mixture.weights[0] == pytest.approx(math.exp(-1.0))
