@@ -93,7 +93,8 @@ def symmetrised_body(obj, C: np.ndarray, copies: int, handle_x: float = 0.045): 
 
 
 def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine: bool,  # noqa: ANN201
-            symmetrise: int = 0, sampling: dict | None = None, arc_tolerance: float | None = None):
+            symmetrise: int = 0, sampling: dict | None = None, arc_tolerance: float | None = None,
+            arc_options: dict | None = None):
     from scipy.optimize import minimize
     from scipy.spatial.transform import Rotation
 
@@ -118,7 +119,7 @@ def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine:
     lp = replace(params.likelihood or LikelihoodParams(), **overrides)
     G = yf.poses["025_mug"]
     C = body_axis_offset(pts)
-    arc = free_space_arc(scene, pts, G, centre=C, tolerance=arc_tolerance)
+    arc = free_space_arc(scene, pts, G, centre=C, tolerance=arc_tolerance, **(arc_options or {}))
     weights = None
     if symmetrise:
         obj, weights = symmetrised_body(obj, C, symmetrise)
@@ -198,6 +199,20 @@ def main() -> None:
                     help="LikelihoodParams.free_space_ramp (metres)")
     ap.add_argument("--free-space-from", choices=("surface", "boundary"), default=None,
                     help="LikelihoodParams.free_space_from (what --tolerance is measured from)")
+    ap.add_argument("--free-space", choices=("voxels", "pixels"), default=None,
+                    help="LikelihoodParams.free_space (eq. (1)'s free space from voxels or pixels)")
+    ap.add_argument("--depth-tolerance", type=float, default=None, metavar="M",
+                    help="LikelihoodParams.depth_tolerance (metres; pixels)")
+    ap.add_argument("--depth-ramp", type=float, default=None, metavar="M",
+                    help="LikelihoodParams.depth_ramp (metres; pixels)")
+    ap.add_argument("--depth-window", type=int, default=None, metavar="PX",
+                    help="LikelihoodParams.depth_window (pixels)")
+    ap.add_argument("--arc-free-space", choices=("voxels", "pixels"), default="voxels",
+                    help="free_space_arc's test: EMPTY voxels or the per-pixel depth test")
+    ap.add_argument("--arc-window", type=int, default=15, metavar="PX",
+                    help="free_space_arc's depth min-filter half-width (pixels)")
+    ap.add_argument("--arc-max-violations", type=int, default=0, metavar="K",
+                    help="free_space_arc: an angle is free with at most K points beyond tolerance")
     ap.add_argument("--log-p-unobserved", type=float, default=None, metavar="V",
                     help="LikelihoodParams.log_p_unobserved")
     ap.add_argument("--symmetrise-body", type=int, default=0, metavar="M",
@@ -225,9 +240,15 @@ def main() -> None:
         overrides["free_space_ramp"] = args.ramp
     if args.free_space_from is not None:
         overrides["free_space_from"] = args.free_space_from
+    for opt in ("free_space", "depth_tolerance", "depth_ramp", "depth_window"):
+        if getattr(args, opt) is not None:
+            overrides[opt] = getattr(args, opt)
+    arc_options = {"free_space": args.arc_free_space, "window": args.arc_window,
+                   "max_violations": args.arc_max_violations}
     sampling = {k: v for k, v in (("sampling", args.sampling), ("density", args.density)) if v is not None}
     angles = np.arange(-180.0, 180.0 - 1e-9, args.step)
     print(f"load average {os.getloadavg()[0]:.2f}; stated arc {ARC} deg, guard {args.guard} deg, "
+          f"arc test {arc_options}, "
           f"likelihood overrides {overrides or 'none'}, {'raw' if args.no_refine else 'refined'}"
           + (f", body symmetrised x{args.symmetrise_body}" if args.symmetrise_body else "")
           + (f", object {sampling}" if sampling else ""))
@@ -237,7 +258,8 @@ def main() -> None:
     dump = []
     for f in args.frames.split(","):
         full, geo, body, hand, arc = profile(args.data, f"0000/{f}", angles, overrides, not args.no_refine,
-                                             args.symmetrise_body, sampling, args.arc_tolerance)
+                                             args.symmetrise_body, sampling, args.arc_tolerance,
+                                             arc_options)
         reg = regions(angles, arc, args.guard)
         others = [r for r in arc.arcs if r != arc.arc]
         in_mean = float(full[reg["computed"][0]].mean()) if arc.arc else float("nan")
