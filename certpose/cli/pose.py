@@ -64,6 +64,10 @@ def add_parser(subparsers: Any) -> None:
                         "(default: 0)")
     p.add_argument("--voxel-size", type=float, default=0.005, metavar="M",
                    help="scene/object voxel size in metres (default: 0.005)")
+    p.add_argument("--free-space", choices=("voxels", "pixels"), default=None,
+                   help="where eq. (1) reads observed free space: the scene grid's EMPTY voxels or "
+                        "each pixel of the depth image (LikelihoodParams.free_space; default: "
+                        "the library's)")
     p.add_argument("--no-certify", action="store_true", help="skip the eq. (2) certificate")
     p.add_argument("--require-certificate", action="store_true",
                    help="exit with code 1 unless the eq. (2) solution is certified")
@@ -145,6 +149,8 @@ def run(args: argparse.Namespace) -> int:
     params = PoseParams(voxel_size=args.voxel_size)
     if args.box_margin is not None:
         params = replace(params, classifier=replace(params.classifier, box_margin=args.box_margin))
+    if args.free_space is not None:
+        params = replace(params, likelihood=replace(params.likelihood, free_space=args.free_space))
     if args.no_certify:
         params = replace(params, mle=replace(MLEParams(), certify=False))
     if args.samples:

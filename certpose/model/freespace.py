@@ -79,7 +79,7 @@ class PixelFreeSpace:
     """
 
     def __init__(self, frames: Sequence[Any], *, tolerance: float = 0.01, ramp: float = 0.0,
-                 window: int = 2) -> None:
+                 window: int = 15) -> None:
         from scipy.ndimage import minimum_filter
 
         frames = tuple(frames)

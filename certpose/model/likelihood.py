@@ -137,7 +137,7 @@ class LikelihoodParams:
     free_space: str = "voxels"
     depth_tolerance: float = 0.01
     depth_ramp: float = 0.0
-    depth_window: int = 2
+    depth_window: int = 15
 
     def __post_init__(self) -> None:
         for name in ("beta", "c_empty", "log_p_unobserved", "free_space_tolerance",
