@@ -45,6 +45,7 @@ usage::
     python examples/bench_arc.py --tolerance 0.0075 --ramp 0.005 --c-empty -20
     python examples/bench_arc.py --sampling surface --density 4
     python examples/bench_arc.py --json arc.json                  # the profiles, for plotting
+    python examples/bench_arc.py --free-space pixels --arc-free-space pixels --arc-max-violations 10
 """
 
 from __future__ import annotations
