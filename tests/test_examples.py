@@ -260,3 +260,21 @@ def test_bench_arc_reports_the_ratio_per_frame_and_part() -> None:
     assert drop > 2 * rng_in, proc.stdout
     rng_in, drop = (float(x) for x in parts[("stated", "eq1")][-4:-2])
     assert drop > 2 * rng_in, proc.stdout
+
+
+@pytest.mark.slow
+def test_bench_arc_with_the_per_pixel_free_space() -> None:
+    require_data("ycbv", "0000")
+    proc = _run("bench_arc.py", "--frames", "000001", "--step", "10", "--no-refine",
+                "--free-space", "pixels", "--arc-free-space", "pixels", "--arc-max-violations", "10")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "'free_space': 'pixels'" in proc.stdout
+    # The per-pixel arc holds the ground truth, about the stated -15..80 deg.
+    line = next(x for x in proc.stdout.splitlines() if x.startswith("000001: free-space arc"))
+    lo, hi = (float(v) for v in line.split("grid) ")[1].split(" deg")[0].split(".."))
+    assert -40 < lo < -10 and 60 < hi < 110, line
+    rows = [x.split() for x in proc.stdout.splitlines() if x.startswith("000001 ")]
+    parts = {(r[1], r[2] if r[2] != "eq." else "eq1"): r for r in rows}
+    # Unrefined, the handle's share is charged outside the arc and (nearly) flat inside it.
+    rng_in, drop = (float(x) for x in parts[("computed", "handle")][-4:-2])
+    assert drop > rng_in > 0, proc.stdout
