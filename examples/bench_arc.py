@@ -28,6 +28,17 @@ foam brick, or over pixels without depth) where eq. (1) is as good as inside: gr
 free-space penalty by depth into free space (``--tolerance 0.0075 --free-space-from boundary``)
 flattens the inside to 23-32 nats but the refinement then escapes the outside too.
 
+With eq. (1)'s free space read per pixel of the depth image (``--free-space pixels``,
+``LikelihoodParams.free_space="pixels"``) and the arc computed with the same test
+(``--arc-free-space pixels --arc-max-violations 10``; arcs -25..86, -23.5..86, -21..85, -26..94,
+-27.5..85 deg), 2026-11-23, ``--step 5``: the handle's share is flat inside (exactly its
+unobserved value over -25..70 deg unrefined on frame 1) and eq. (1)'s range inside falls to 34-38 nats on
+four frames (59 on frame 5; the body's own roughness, 24-38 nats, is now most of it), but the
+refined drop to the best angle outside falls too, to 31-39 nats (voxels: 73-109): the best
+outside angles lie 10 deg beyond the other free runs, where the handle is barely in free space.
+Ratio on these arcs 0.98 / 1.12 / 1.16 / 0.96 / 1.66 (mean 1.18) against 1.40 / 0.56 / 1.27 /
+1.60 / 1.13 (mean 1.19) with the voxel default; the mean |step| falls from 9.3-13.0 to 4.6-6.8.
+
 The axis is the body's: a circle fitted to the model points of the body (handle excluded) in
 the model's xy plane; it sits about 3.3 mm from the model origin along -x, so turning about the
 model's own z axis through the origin would move the body and roughen the profile by itself.
