@@ -160,7 +160,7 @@ def test_save_and_load_keep_the_depth_images(tmp_path) -> None:  # noqa: ANN001
 
 
 @pytest.mark.parametrize(("kwargs", "match"), [
-    ({"free_space": "grid"}, "`free_space` must be 'voxels' or 'pixels'"),
+    ({"free_space": "grid"}, "`free_space` must be 'voxels', 'pixels' or 'auto'"),
     ({"free_space": "pixels", "free_space_tolerance": 0.01}, "with free_space='pixels' use"),
     ({"free_space": "pixels", "free_space_from": "boundary"}, "with free_space='pixels' use"),
     ({"depth_tolerance": -0.01}, "`depth_tolerance` must be >= 0"),
@@ -232,3 +232,20 @@ def test_real_frame_charges_the_turned_mugs_handle() -> None:
     assert charged(0.0).sum() <= 5
     turned = charged(-60.0)
     assert turned[handle].sum() >= 20 and turned[handle].sum() > 0.5 * turned.sum()
+
+
+def test_auto_reads_pixels_when_the_scene_keeps_its_depth_images() -> None:
+    scene = box_scene(wall())
+    bare = SceneField(scene.voxel_size, scene.origin, scene.shape, scene.descriptors, scene.state)
+    pts = np.array([at_pixel(10, 10, 0.95), at_pixel(5, 7, 0.9)])
+    T = np.eye(4)
+
+    def terms(s: SceneField, **kw: object) -> np.ndarray:
+        return PoseLikelihood(s, _Cls(s), _Obj(pts), params=LikelihoodParams(**kw)).point_terms(T)
+
+    np.testing.assert_array_equal(terms(scene, free_space="auto"), terms(scene, free_space="pixels"))
+    np.testing.assert_array_equal(terms(bare, free_space="auto"), terms(bare))
+    # Voxel grading options ask for voxels.
+    graded = {"free_space_tolerance": 0.01}
+    np.testing.assert_array_equal(terms(scene, free_space="auto", **graded), terms(scene, **graded))
+    assert not np.array_equal(terms(scene, free_space="pixels"), terms(scene))

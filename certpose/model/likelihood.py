@@ -42,7 +42,7 @@ import logging
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -56,7 +56,8 @@ if TYPE_CHECKING:
     from certpose.geometry.objects import ObjectModel
     from certpose.model.classifier import ObjectClassification
 
-__all__ = ["LikelihoodParams", "PoseLikelihood", "free_space_values", "log_likelihood"]
+__all__ = ["LikelihoodParams", "PoseLikelihood", "free_space_values", "log_likelihood",
+           "resolve_free_space"]
 
 log = logging.getLogger(__name__)
 
@@ -102,8 +103,9 @@ class LikelihoodParams:
         observed free space (an observed surface or unobserved space: the edge of a shadow or
         of the grid too), i.e. how deep the voxel lies in free space, the measure of
         :func:`certpose.model.arc.free_space_arc`.
-    free_space : {"voxels", "pixels"}
-        Where observed free space is read from. ``"voxels"`` (default): the scene grid's EMPTY
+    free_space : {"voxels", "pixels", "auto"}
+        Where observed free space is read from (``"auto"``: pixels when the scene keeps its depth
+        images and no voxel grading option is set, voxels otherwise; :func:`resolve_free_space`). ``"voxels"`` (default): the scene grid's EMPTY
         voxels, blended trilinearly like the other voxel states (the ``free_space_*`` options
         above grade it). ``"pixels"``: the depth images the scene was built from
         (:mod:`certpose.model.freespace`; the scene must keep them, ``SceneField.frames``). A
@@ -159,8 +161,9 @@ class LikelihoodParams:
             raise ValueError(
                 f"`free_space_from` must be 'surface' or 'boundary', got {self.free_space_from!r}."
             )
-        if self.free_space not in ("voxels", "pixels"):
-            raise ValueError(f"`free_space` must be 'voxels' or 'pixels', got {self.free_space!r}.")
+        if self.free_space not in ("voxels", "pixels", "auto"):
+            raise ValueError(
+                f"`free_space` must be 'voxels', 'pixels' or 'auto', got {self.free_space!r}.")
         if self.free_space == "pixels" and (self.free_space_tolerance or self.free_space_ramp
                                             or self.free_space_from != "surface"):
             raise ValueError(
@@ -347,7 +350,7 @@ class PoseLikelihood:
             raise ValueError("`scene.descriptors` contains NaN or inf values at occupied voxels.")
         if not np.all(np.isfinite(occ_logp)):
             raise ValueError("`classification.log_p` contains NaN or inf values at occupied voxels.")
-        background = free_space_values(state, self.grid.voxel_size, self.params)
+        background = free_space_values(state, self.grid.voxel_size, resolve_free_space(self.params, scene))
         index = np.full(state.size, UNOBSERVED_CODE, dtype=np.int32)
         index[(state == EMPTY).reshape(-1)] = EMPTY_CODE
         index[occ] = np.arange(occ.size, dtype=np.int32)
@@ -376,7 +379,8 @@ class PoseLikelihood:
         other = copy.copy(self)
         if params is not None and params != self.params:
             other.params = params
-            background = free_space_values(self._state, self.grid.voxel_size, params)
+            background = free_space_values(self._state, self.grid.voxel_size,
+                                           resolve_free_space(params, self._scene))
             other._background = np.pad(background, 1, constant_values=params.log_p_unobserved)
             other._cells = _cell_codes(self._index, other._background, params.c_empty)
             other._pixels = _pixel_free_space(self._scene, params, self.grid.voxel_size)
@@ -461,8 +465,21 @@ class PoseLikelihood:
         return self.params.c_empty - self.params.log_p_unobserved
 
 
+def resolve_free_space(params: LikelihoodParams, scene: Any) -> LikelihoodParams:
+    """``params`` with ``free_space="auto"`` resolved for ``scene``: ``"pixels"`` when the scene
+    keeps its depth images (``SceneField.frames``) and no voxel grading option
+    (``free_space_tolerance``, ``free_space_ramp``, ``free_space_from``) is set, ``"voxels"``
+    otherwise. Other values are returned unchanged."""
+    if params.free_space != "auto":
+        return params
+    graded = params.free_space_tolerance or params.free_space_ramp or params.free_space_from != "surface"
+    pixels = bool(getattr(scene, "frames", ())) and not graded
+    return replace(params, free_space="pixels" if pixels else "voxels")
+
+
 def _pixel_free_space(scene: Any, params: LikelihoodParams, voxel_size: float) -> Any:
     """The per-pixel free-space test of ``free_space="pixels"`` (None for voxels)."""
+    params = resolve_free_space(params, scene)
     if params.free_space != "pixels":
         return None
     from certpose.model.freespace import PixelFreeSpace
