@@ -5,7 +5,9 @@ For every visible (frame, object) pair of the given scenes (the pairs
 ``../shared/tools/ycbv_eval.py`` scores: more than ``--min-px`` labelled pixels), with the
 geometry-only model (``points.xyz``) and the mask classifier, exactly as ``certpose pose``
 builds them, the MLE (:func:`certpose.estimation.mle.estimate_mle`) runs with the eq. (2)
-settings given (default: :class:`certpose.model.eq2.Eq2Params`'s). Per pair:
+settings given (default: :class:`certpose.model.eq2.Eq2Params`'s: the pairs near the coarse
+search's leading hypotheses; ``--num-seeds 0``: the descriptors' top-k, ``--num-object-points``
+x ``--top-k``, as the MLE built eq. (2) before; ``--no-mle`` always builds that one). Per pair:
 
 * ``N``: correspondences of eq. (2); ``inliers``: those within the noise bound at the true pose
   (``points``: object points with at least one), i.e. how often the right voxel is among a
@@ -26,7 +28,7 @@ Usage::
 
     python examples/bench_eq2.py [--ycbv DIR] [--scenes 0000,0002,0049,0050] [--frames 000001 ...]
         [--objects 025_mug ...] [--num-object-points N] [--top-k K] [--noise-bound M]
-        [--no-mle] [--json OUT]
+        [--num-seeds S] [--no-mle] [--json OUT]
 """
 
 from __future__ import annotations
@@ -124,6 +126,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--num-object-points", type=int, default=None)
     ap.add_argument("--top-k", type=int, default=None)
     ap.add_argument("--noise-bound", type=float, default=None, help="metres (default one voxel)")
+    ap.add_argument("--num-seeds", type=int, default=None,
+                    help="seed poses of the MLE's eq. (2) (0: the descriptors' top-k, "
+                         "--num-object-points x --top-k; default Eq2Params')")
     ap.add_argument("--no-mle", action="store_true", help="only build, solve and certify eq. (2)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
@@ -133,12 +138,16 @@ def main(argv: list[str] | None = None) -> int:
 
     params = PoseParams()
     over = {k: v for k, v in (("num_object_points", args.num_object_points),
-                              ("top_k", args.top_k), ("noise_bound", args.noise_bound))
+                              ("top_k", args.top_k), ("noise_bound", args.noise_bound),
+                              ("num_seeds", args.num_seeds))
             if v is not None}
     eq2p = replace(params.mle.eq2, **over)
     params = replace(params, mle=replace(params.mle, eq2=eq2p))
+    how = (f"{eq2p.num_object_points} object points x top-{eq2p.top_k}"
+           if eq2p.num_seeds == 0 or args.no_mle else
+           f"{eq2p.seed_object_points} object points near {eq2p.num_seeds} seed poses")
     print(f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} | eq. (2): "
-          f"{eq2p.num_object_points} object points x top-{eq2p.top_k}, noise bound "
+          f"{how}, noise bound "
           f"{'one voxel' if eq2p.noise_bound is None else f'{eq2p.noise_bound:g} m'}", flush=True)
     rows = []
     for frame, name in pairs(args.ycbv, args.scenes.split(","), args.frames, args.objects,

@@ -1,11 +1,11 @@
 r"""Maximum-likelihood pose: eq. (2) (see :mod:`certpose.model.eq2`) as one hypothesis, then eq. (1).
 
-**Refinement on eq. (1).** Eq. (2) is only an approximation of eq. (1), and with geometry-only
-descriptors (FPFH of ``points.xyz``) the descriptor-driven top-k candidates rarely contain the
-right voxel (measured on YCB-Video with the default 40 object points x top-4: 1-9 of 160
-correspondences are inliers at the true pose; with 100 x top-40, 5-42 of 4000, for 3-25 object
-points; see :class:`~certpose.model.eq2.Eq2Params`). So the eq. (2) pose is one hypothesis among others
-(coarse-to-fine):
+**Refinement on eq. (1).** Eq. (2) is only an approximation of eq. (1), and the descriptors
+(FPFH of ``points.xyz``, or FPFH and colour of an appearance model) rarely rank the right voxel
+among an object point's top-k candidates (see :mod:`certpose.model.eq2`). So eq. (2) keeps the
+pairs near the coarse search's ``Eq2Params.num_seeds`` leading distinct hypotheses
+(:func:`~certpose.model.eq2.estimate_eq2`): its minimiser chooses among their basins by eq. (2)'s
+own support and is certified; it is one hypothesis among others (coarse-to-fine):
 
 1. a batched coarse search of eq. (1) on a farthest-point subsample of the object: random
    rotations, each with a 3x3x3 grid of translations around the one that puts the
@@ -14,7 +14,8 @@ points; see :class:`~certpose.model.eq2.Eq2Params`). So the eq. (2) pose is one 
    background drags away; the other clusters are searched when every pose hides the object in
    unobserved space); this stage uses a coarser eq. (1) whose free space is eroded next to
    surfaces (``coarse_erosion``) so that poses a voxel or two off still rank high;
-2. the best distinct hypotheses (and the eq. (2) pose) are refined on that coarse model, ranked
+2. eq. (2) on the candidates near the best distinct hypotheses, solved (its certificate starts
+   in a thread); these hypotheses and the eq. (2) pose are refined on the coarse model, ranked
    on the exact eq. (1) of the whole object, and the best few refined on it (all together:
    :func:`~certpose.estimation.batch.refine_poses`);
 3. local refinement stops at the first local maximum of a rough objective, often tens of nats
@@ -53,7 +54,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from certpose.model.eq2 import Eq2Params, build_eq2_problem, certify_eq2, solve_eq2
+from certpose.model.eq2 import Eq2Params, build_eq2_problem, certify_eq2, estimate_eq2, solve_eq2
 from solvers.lie import project_to_so3, se3_exp
 from solvers.validation import check_transform, resolve_rng
 
@@ -661,20 +662,25 @@ def _build_likelihoods(scene: Any, classification: ObjectClassification, object_
 
 def _eq2_hypothesis(search: _Search, scene: Any, classification: ObjectClassification,
                     object_model: ObjectModel, lparams: LikelihoodParams, gen: np.random.Generator,
-                    certifier: _Certifier) -> tuple[Any, RegistrationResult | None, Hypothesis | None]:
-    """Step 1: eq. (2), the certifiable approximation, solved; its certifier started."""
+                    certifier: _Certifier, seeds: list[Hypothesis]
+                    ) -> tuple[Any, RegistrationResult | None, Hypothesis | None]:
+    """Step 2: eq. (2), the certifiable approximation, on the candidates near the coarse search's
+    leading hypotheses (by descriptor without them), solved; its certifier started."""
     params = search.params
     t = time.perf_counter()
     try:
-        eq2 = build_eq2_problem(scene, classification, object_model, params=params.eq2,
-                                likelihood_params=lparams, rng=gen)
+        if seeds and params.eq2.num_seeds > 0:
+            eq2, result = estimate_eq2(scene, classification, object_model,
+                                       np.stack([h.pose for h in seeds]), params=params.eq2,
+                                       likelihood_params=lparams, rng=gen)
+        else:
+            eq2 = build_eq2_problem(scene, classification, object_model, params=params.eq2,
+                                    likelihood_params=lparams, rng=gen)
+            result = solve_eq2(eq2, certify=False)
     except ValueError as exc:
         log.warning("eq. (2) skipped: %s", exc)
-        search.timings["eq2_build"] = time.perf_counter() - t
+        search.timings["eq2_solve"] = time.perf_counter() - t
         return None, None, None
-    search.timings["eq2_build"] = time.perf_counter() - t
-    t = time.perf_counter()
-    result = solve_eq2(eq2, certify=False)
     search.timings["eq2_solve"] = time.perf_counter() - t
     if params.certify:
         certifier.submit(eq2, result, params.certify_time_limit)
@@ -685,7 +691,7 @@ def _eq2_hypothesis(search: _Search, scene: Any, classification: ObjectClassific
 
 def _coarse_hypotheses(search: _Search, centre: NDArray[np.float64],
                        view: NDArray[np.float64] | None, gen: np.random.Generator) -> list[Hypothesis]:
-    """Step 2: the batched coarse search of eq. (1) around the classifier's positives."""
+    """Step 1: the batched coarse search of eq. (1) around the classifier's positives."""
     params = search.params
     if params.num_rotations <= 0:
         return []
@@ -875,10 +881,11 @@ def estimate_mle(
     view = view_from(centre)
     eq2_refined_ll = float("nan")
     with _Certifier() as certifier:
+        coarse = _coarse_hypotheses(search, centre, view, gen)
         eq2, eq2_result, h_eq2 = _eq2_hypothesis(search, scene, classification, object_model,
-                                                 lparams, gen, certifier)
+                                                 lparams, gen, certifier, coarse)
         eq2_ll = float("nan") if h_eq2 is None else float(search.exact(h_eq2.pose))
-        hyps = ([] if h_eq2 is None else [h_eq2]) + _coarse_hypotheses(search, centre, view, gen)
+        hyps = ([] if h_eq2 is None else [h_eq2]) + coarse
         finals = _refine_hypotheses(search, hyps)
         # Every point in unobserved space scores N log p_unobserved: a plateau that a failed
         # search ends on (measured: the mustard bottle in 0050/000020, ADD-S 9 cm). Search again.

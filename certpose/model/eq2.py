@@ -15,11 +15,27 @@ with the least similar unit descriptors, ``f^T z = -1``), so every weight is ``>
 clipping. Minimising eq. (2) then maximises ``sum_ij w_ij (eps^2 - r_ij^2)_+``, an Epanechnikov
 kernel smoothing of eq. (1) restricted to occupied voxels (up to the constant ``N c_floor``).
 
-**Sparsification (NOTES.md 1.3).** Each of ``num_object_points`` object points (farthest-point
-sample) keeps its ``top_k`` grid points of highest weight: ``K = N k`` weighted
-correspondences, at least ``(k-1)/k`` of them outliers. The problem is solved by
-:func:`solvers.solve_registration` (max-clique pruning + GNC-TLS) and certified by
-:func:`solvers.certify.certify_result`.
+**Sparsification (NOTES.md 1.3).** Which pairs ``(i, j)`` the problem keeps is ours to choose
+(the weights are ``c_ij - c_floor`` either way):
+
+* *by descriptor* (no seeds): each of ``num_object_points`` object points (farthest-point
+  sample) keeps its ``top_k`` grid points of highest weight: ``K = N k`` weighted
+  correspondences, at least ``(k-1)/k`` of them outliers;
+* *by proximity to seed poses* (:func:`estimate_eq2`, what :func:`~certpose.estimation.mle.estimate_mle`
+  does, with the coarse eq. (1) search's leading distinct hypotheses as seeds): each of
+  ``seed_object_points`` object points keeps, under every seed pose, its ``seed_neighbors``
+  nearest occupied voxels within ``seed_radius`` (the union over the seeds); the minimiser then
+  picks among the seeds' basins by eq. (2)'s own support, and ``local_rounds`` rounds rebuild
+  the candidates around it (the voxels within two noise bounds).
+
+Why seeds: on the 18 cross-scene YCB-Video pairs of ``examples/bench_box.py`` (appearance
+models, mask classifier) the descriptors barely rank the right voxel among the classifier's
+positives, colour or shape alike: at the true pose its median rank is 0.16-0.49 of the
+positives (0.5 is chance; a banana or a bottle is one colour, and local shape on a cylinder is
+the same everywhere), so no ``k`` puts it among the candidates of enough object points.
+
+The problem is solved by :func:`solvers.solve_registration` (max-clique pruning + GNC-TLS) and
+certified by :func:`solvers.certify.certify_result`.
 """
 
 from __future__ import annotations
@@ -31,7 +47,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 if TYPE_CHECKING:
     from certpose.geometry.objects import ObjectModel
@@ -39,7 +55,8 @@ if TYPE_CHECKING:
     from certpose.model.likelihood import LikelihoodParams
     from solvers import RegistrationResult, WeightedTLSProblem
 
-__all__ = ["Eq2Params", "Eq2Problem", "WIDE_EQ2", "build_eq2_problem", "solve_eq2", "certify_eq2"]
+__all__ = ["Eq2Params", "Eq2Problem", "WIDE_EQ2", "build_eq2_problem", "estimate_eq2", "solve_eq2",
+           "certify_eq2"]
 
 log = logging.getLogger(__name__)
 
@@ -59,10 +76,48 @@ class Eq2Params:
         TLS inlier bound ``eps`` in metres; default one scene voxel (the grid's resolution).
         Larger bounds make the consistency graph of the pruning step denser and its exact
         max-clique search much slower.
+    num_seeds : int
+        Seed poses used by :func:`estimate_eq2` (the first ones given; 0: candidates by
+        descriptor even when seeds are given).
+    seed_object_points : int
+        Object points (farthest-point sample) of the seeded problem.
+    seed_neighbors : int
+        Occupied voxels kept per object point and seed: the nearest ones within ``seed_radius``.
+    seed_radius : float
+        Metres.
+    local_rounds : int
+        Rounds of :func:`estimate_eq2` on the candidates within two noise bounds of the last
+        minimiser (its 8 nearest voxels per object point).
+    seed_mode : {"each", "union"}
+        ``"each"``: one problem per seed, solved; the minimisers compete on eq. (2)'s support
+        (``sum_ij w_ij (1 - r_ij^2 / eps^2)_+`` over every voxel near them), the best one
+        goes on to the local rounds. ``"union"``: one problem over all the seeds' candidates.
 
     Notes
     -----
-    Measured on the 60 YCB-Video pairs of the shared scenes (geometry-only FPFH models, mask
+    The seeded problem (what :func:`~certpose.estimation.mle.estimate_mle` builds), measured
+    with ``examples/bench_box.py --models appearance`` (18 cross-scene pairs, appearance
+    models, load average 12-19; main's descriptor top-4 of 40 points before -> seeds, 8 seeds,
+    100 object points, 3 voxels within 2 cm per seed, 2 local rounds):
+
+    ========================  ==========================  ===========================
+    classifier, seed          raw eq. (2) ADD-S <= 1 cm    refined eq. (2) the winner
+                                                            or within 0.5 cm / 2 deg
+    ========================  ==========================  ===========================
+    mask, 0                   3/18 -> 15/18                3/18 -> 4/18
+    mask, 1                   5/18 -> 18/18                4/18 -> 6/18
+    ========================  ==========================  ===========================
+
+    Inliers at the true pose of the seeded problem: 1-45 of 1000-1900 pairs (1-27 object
+    points of 100); of main's 160: 0-3. The eq. (2) stage takes 0.34 s median (0.18 s
+    before, interleaved, load about 14). None of the seeded problems is certified within
+    the 1 s limit (``iteration_limit``; main's certified 2 of 18 with appearance models).
+    Eq. (2) has no free-space term: it often prefers a can's or a banana's 180-degree turn
+    that eq. (1) with appearance rejects, so its refined pose ends in another basin than the
+    winner's in most pairs. ``seed_mode="union"`` gave 17/18 and 7/18 (mask, seed 0);
+    local rounds with the clique search 18/18 on both seeds but 2.5 s a frame.
+
+    The descriptor problem (no seeds), measured on the 60 YCB-Video pairs of the shared scenes (geometry-only FPFH models, mask
     classifier; ``examples/bench_eq2.py``). FPFH barely ranks the right voxel above the others:
     at the true pose its median rank among a point's candidates is about a third of the
     classifier's positives (150-250 of 300-1500). With the defaults (40 x top-4, N = 160) the
@@ -83,12 +138,30 @@ class Eq2Params:
     num_object_points: int = 40
     top_k: int = 4
     noise_bound: float | None = None
+    num_seeds: int = 8
+    seed_object_points: int = 100
+    seed_neighbors: int = 3
+    seed_radius: float = 0.02
+    local_rounds: int = 2
+    seed_mode: str = "each"
 
     def __post_init__(self) -> None:
         if int(self.num_object_points) < 3:
             raise ValueError(f"`num_object_points` must be >= 3, got {self.num_object_points}.")
         if int(self.top_k) < 1:
             raise ValueError(f"`top_k` must be >= 1, got {self.top_k}.")
+        if int(self.num_seeds) < 0:
+            raise ValueError(f"`num_seeds` must be >= 0, got {self.num_seeds}.")
+        if int(self.seed_object_points) < 3:
+            raise ValueError(f"`seed_object_points` must be >= 3, got {self.seed_object_points}.")
+        if int(self.seed_neighbors) < 1:
+            raise ValueError(f"`seed_neighbors` must be >= 1, got {self.seed_neighbors}.")
+        if not (math.isfinite(self.seed_radius) and self.seed_radius > 0):
+            raise ValueError(f"`seed_radius` must be positive, got {self.seed_radius}.")
+        if int(self.local_rounds) < 0:
+            raise ValueError(f"`local_rounds` must be >= 0, got {self.local_rounds}.")
+        if self.seed_mode not in ("each", "union"):
+            raise ValueError(f"`seed_mode` must be 'each' or 'union', got {self.seed_mode!r}.")
         if self.noise_bound is not None and not (
             math.isfinite(self.noise_bound) and self.noise_bound > 0
         ):
@@ -137,6 +210,9 @@ def build_eq2_problem(
     params: Eq2Params | None = None,
     likelihood_params: LikelihoodParams | None = None,
     rng: np.random.Generator | int | None = None,
+    seeds: ArrayLike | None = None,
+    seed_radius: float | None = None,
+    seed_neighbors: int | None = None,
 ) -> Eq2Problem:
     """Build the sparsified eq. (2) problem (see the module docstring for the weights).
 
@@ -151,6 +227,12 @@ def build_eq2_problem(
         Supplies ``beta``.
     rng : numpy Generator, int or None
         Seeds the farthest-point sample.
+    seeds : (S, 4, 4) array_like, optional
+        Poses ``T_scene_object``: keep the pairs near them (``seed_object_points`` object
+        points, each with its ``seed_neighbors`` nearest occupied voxels within ``seed_radius``
+        under every seed) instead of the descriptors' ``top_k``.
+    seed_radius, seed_neighbors : optional
+        Override ``params``'s (metres; count).
 
     Returns
     -------
@@ -159,13 +241,37 @@ def build_eq2_problem(
     Raises
     ------
     ValueError
-        Mismatched descriptor dimensions, NaN descriptors, fewer than 3 occupied voxels.
+        Mismatched descriptor dimensions, NaN descriptors, fewer than 3 occupied voxels, seeds
+        of the wrong shape, or seeds near fewer than 3 pairs.
     """
+    params = params or Eq2Params()
+    inputs = _prepare(scene, classification, object_model, params, likelihood_params)
+    n = int(params.num_object_points if seeds is None else params.seed_object_points)
+    sub = object_model.subsample(n, rng=rng)
+    return _problem(inputs, sub, _rows_of(object_model.points, sub.points), params, seeds,
+                    seed_radius, seed_neighbors)
+
+
+@dataclass(frozen=True, eq=False)
+class _Inputs:
+    """What every eq. (2) problem of one scene, classification and object shares."""
+
+    y: NDArray[np.float64]  # occupied voxel centres
+    s: NDArray[np.float32]  # their descriptors
+    log_p: NDArray[np.float64]
+    beta: float
+    c_floor: float
+    eps: float
+    tree: Any  # cKDTree of y
+
+
+def _prepare(scene: Any, classification: ObjectClassification, object_model: ObjectModel,
+             params: Eq2Params, likelihood_params: LikelihoodParams | None) -> _Inputs:
+    from scipy.spatial import cKDTree
+
     from certpose.model.grid import OCCUPIED, scene_grid_spec
     from certpose.model.likelihood import LikelihoodParams
-    from solvers import WeightedTLSProblem
 
-    params = params or Eq2Params()
     beta = (likelihood_params or LikelihoodParams()).beta
     grid = scene_grid_spec(scene)
     state = np.asarray(scene.state)
@@ -182,33 +288,164 @@ def build_eq2_problem(
         raise ValueError("`scene.descriptors` contains NaN or inf values at occupied voxels.")
     log_p = np.asarray(classification.log_p, dtype=np.float64)[occ[:, 0], occ[:, 1], occ[:, 2]]
     y = grid.centres(occ)
-    sub = object_model.subsample(int(params.num_object_points), rng=rng)
-    # Map the subsample back to rows of the full model (subsample keeps row order).
-    obj_rows = _rows_of(object_model.points, sub.points)
-    k = min(int(params.top_k), y.shape[0])
-    c_all = log_p[None, :] + beta * (sub.descriptors.astype(np.float32) @ s.T)
-    top = np.argpartition(-c_all, k - 1, axis=1)[:, :k]
-    c = np.take_along_axis(c_all, top, axis=1)
-    c_floor = float(classification.c_min) - beta
-    w = c - c_floor
+    eps = params.noise_bound if params.noise_bound is not None else grid.voxel_size
+    return _Inputs(y, s, log_p, float(beta), float(classification.c_min) - beta, float(eps),
+                   cKDTree(y))
+
+
+def _problem(inputs: _Inputs, sub: ObjectModel, obj_rows: NDArray[np.int64], params: Eq2Params,
+             seeds: ArrayLike | None, seed_radius: float | None,
+             seed_neighbors: int | None) -> Eq2Problem:
+    from solvers import WeightedTLSProblem
+
+    y, s, log_p, beta = inputs.y, inputs.s, inputs.log_p, inputs.beta
+    if seeds is None:
+        k = min(int(params.top_k), y.shape[0])
+        c_all = log_p[None, :] + beta * (sub.descriptors.astype(np.float32) @ s.T)
+        top = np.argpartition(-c_all, k - 1, axis=1)[:, :k]
+        rows = np.repeat(np.arange(sub.points.shape[0]), k)
+        cols = top.reshape(-1)
+        c = np.take_along_axis(c_all, top, axis=1).reshape(-1).astype(np.float64)
+        how = f"top-{k} by descriptor"
+    else:
+        T = _check_transforms(seeds, "seeds")
+        radius = float(params.seed_radius if seed_radius is None else seed_radius)
+        k = min(int(params.seed_neighbors if seed_neighbors is None else seed_neighbors), y.shape[0])
+        q = np.einsum("sij,nj->sni", T[:, :3, :3], sub.points) + T[:, None, :3, 3]
+        dist, nn = inputs.tree.query(q.reshape(-1, 3), k=k, distance_upper_bound=radius)
+        dist, nn = dist.reshape(-1, k), nn.reshape(-1, k)
+        keep = np.isfinite(dist)
+        rows = np.broadcast_to(np.tile(np.arange(sub.points.shape[0]), T.shape[0])[:, None],
+                               keep.shape)[keep]
+        # The seeds' candidate sets overlap (nearby seeds, a pair near two seeds): each pair once.
+        pairs = np.unique(np.stack([rows, nn[keep]], axis=1), axis=0)
+        if pairs.shape[0] < 3:
+            raise ValueError(f"The {T.shape[0]} seed pose(s) put only {pairs.shape[0]} object "
+                             f"point(s) within {radius:g} m of an occupied voxel; eq. (2) needs 3.")
+        rows, cols = pairs[:, 0], pairs[:, 1]
+        c = log_p[cols] + beta * np.einsum(
+            "ij,ij->i", sub.descriptors[rows].astype(np.float64), s[cols].astype(np.float64))
+        how = f"near {T.shape[0]} seed pose(s) (<= {k} voxels within {radius:g} m)"
+    w = c - inputs.c_floor
     if w.min() < -1e-6:  # only possible with descriptor norms > 1 or log_p < c_min
         raise ValueError(f"A weight c_ij - c_floor is negative ({w.min():.3g}); check the inputs.")
-    eps = params.noise_bound if params.noise_bound is not None else grid.voxel_size
-    n = sub.points.shape[0]
-    src = np.repeat(sub.points, k, axis=0)
     problem = WeightedTLSProblem(
-        src, y[top.reshape(-1)], noise_bound=eps, weights=np.maximum(w.reshape(-1), 0.0)
+        sub.points[rows], y[cols], noise_bound=inputs.eps, weights=np.maximum(w, 0.0)
     )
-    log.info("eq. (2): %d object points x top-%d of %d grid points = %d correspondences",
-             n, k, y.shape[0], problem.n)
-    return Eq2Problem(
-        problem,
-        np.repeat(obj_rows, k),
-        y,
-        top.reshape(-1).astype(np.int64),
-        c.reshape(-1).astype(np.float64),
-        c_floor,
-    )
+    log.debug("eq. (2): %d object points, %s of %d grid points: %d correspondences",
+              sub.points.shape[0], how, y.shape[0], problem.n)
+    # object_index: rows of the full model (the subsample keeps row order).
+    return Eq2Problem(problem, obj_rows[rows], y, cols.astype(np.int64),
+                      c.astype(np.float64), inputs.c_floor)
+
+
+def estimate_eq2(
+    scene: Any,
+    classification: ObjectClassification,
+    object_model: ObjectModel,
+    seeds: ArrayLike,
+    *,
+    params: Eq2Params | None = None,
+    likelihood_params: LikelihoodParams | None = None,
+    rng: np.random.Generator | int | None = None,
+) -> tuple[Eq2Problem, RegistrationResult]:
+    """Eq. (2) on the candidates near seed poses, solved; then ``local_rounds`` rounds near its
+    minimiser (see the module docstring). Not certified (see :func:`certify_eq2`).
+
+    Parameters
+    ----------
+    scene, classification, object_model, params, likelihood_params
+        As :func:`build_eq2_problem`.
+    seeds : (S, 4, 4) array_like
+        Poses ``T_scene_object``, best first (the first ``params.num_seeds`` are used).
+    rng : numpy Generator, int or None
+        Seeds the farthest-point sample (the same object points in every round).
+
+    Returns
+    -------
+    eq2 : Eq2Problem
+        The last round's problem (the one ``result`` minimises).
+    result : RegistrationResult
+    """
+    from solvers import solve_registration
+
+    params = params or Eq2Params()
+    T = _check_transforms(seeds, "seeds")[: max(int(params.num_seeds), 1)]
+    inputs = _prepare(scene, classification, object_model, params, likelihood_params)
+    sub = object_model.subsample(int(params.seed_object_points), rng=rng)
+    rows = _rows_of(object_model.points, sub.points)
+
+    def near(T_: NDArray[np.float64], radius: float | None = None,
+             k: int | None = None) -> Eq2Problem:
+        return _problem(inputs, sub, rows, params, T_, radius, k)
+
+    def local(T_: NDArray[np.float64]) -> Eq2Problem:
+        # Every voxel within two noise bounds of each object point (its 8 nearest): the support
+        # of a pose is then eq. (2)'s unsparsified objective.
+        return near(T_[None], 2.0 * inputs.eps, 8)
+
+    def rounds(eq2: Eq2Problem, result: RegistrationResult) -> tuple[Eq2Problem, RegistrationResult]:
+        for _ in range(int(params.local_rounds)):
+            try:
+                eq2_local = local(result.T_target_source)
+            except ValueError:  # the minimiser sits away from every voxel: keep it
+                break
+            # GNC alone: near a minimiser most pairs are mutually consistent, and the max-clique
+            # search of such a dense graph costs more than it tells (measured 0.3 s a round).
+            eq2, result = eq2_local, _timed(lambda p=eq2_local.problem: solve_registration(
+                p, method="gnc"))
+        return eq2, result
+
+    if params.seed_mode == "union":
+        eq2 = near(T)
+        return rounds(eq2, solve_eq2(eq2, certify=False))
+    # One solve per seed; the minimisers compete on their support; the best one's local rounds.
+    best: tuple[float, Eq2Problem, RegistrationResult] | None = None
+    for start in T:
+        try:
+            eq2 = near(start[None])
+        except ValueError:  # this seed is near no voxel
+            continue
+        result = solve_eq2(eq2, certify=False)
+        try:
+            score = _support(local(result.T_target_source), result)
+        except ValueError:
+            continue
+        if best is None or score > best[0]:
+            best = (score, eq2, result)
+    if best is None:
+        raise ValueError(f"None of the {T.shape[0]} seed poses is near an occupied voxel.")
+    return rounds(best[1], best[2])
+
+
+def _timed(solve: Any) -> RegistrationResult:
+    from dataclasses import replace
+
+    t0 = time.perf_counter()
+    result = solve()
+    return replace(result, info={**result.info, "registration_time": time.perf_counter() - t0,
+                                 "certificate_message": "not requested"})
+
+
+def _support(eq2: Eq2Problem, result: RegistrationResult) -> float:
+    """Eq. (2)'s objective as a support, ``sum_ij w_ij (1 - r_ij^2 / eps^2)_+``, at ``result``'s
+    pose: the higher the better; comparable between problems of the same object points whose
+    candidates hold every voxel near the pose (the local rounds')."""
+    p = eq2.problem
+    r2 = p.residuals_sq(result.rotation, result.translation)  # already divided by eps^2
+    return float(np.sum(p.weights * np.maximum(p.cbar2 - r2, 0.0)))
+
+
+def _check_transforms(T: ArrayLike, name: str) -> NDArray[np.float64]:
+    """``(S, 4, 4)`` rigid transforms (one ``(4, 4)`` is promoted), validated."""
+    from solvers.validation import check_transform
+
+    a = np.asarray(T, dtype=np.float64)
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3 or a.shape[1:] != (4, 4) or a.shape[0] < 1:
+        raise ValueError(f"Expected `{name}` to have shape (S, 4, 4), got {np.shape(T)}.")
+    return np.stack([check_transform(t, name, atol=1e-6) for t in a])
 
 
 def _rows_of(points: NDArray[np.float64], subset: NDArray[np.float64]) -> NDArray[np.int64]:
