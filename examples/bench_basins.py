@@ -24,6 +24,7 @@ import json
 import math
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +50,7 @@ def pairs(root: Path, scenes: list[str], frames: list[str] | None, objects: list
                     yield f"{scene}/{fr}", name
 
 
-def diagnose(root: Path, frame: str, name: str, *, seed: int = 0) -> dict:
+def diagnose(root: Path, frame: str, name: str, *, seed: int = 0, free_space: str | None = None) -> dict:
     from certpose.estimation.mle import estimate_mle, refine_pose
     from certpose.estimation.pipeline import (
         YCBV_SYMMETRY_AXES,
@@ -60,6 +61,8 @@ def diagnose(root: Path, frame: str, name: str, *, seed: int = 0) -> dict:
     from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 
     params = PoseParams()
+    if free_space is not None:
+        params = replace(params, likelihood=replace(params.likelihood, free_space=free_space))
     # The scene, model and classifier exactly as `certpose pose` builds them.
     setup = ycbv_setup(root, frame, name, params=params)
     yf, points = setup.frame, setup.model_points
@@ -100,14 +103,17 @@ def add_pair_arguments(ap: argparse.ArgumentParser) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_pair_arguments(ap)
+    ap.add_argument("--free-space", choices=("voxels", "pixels"), default=None,
+                    help="LikelihoodParams.free_space (default: the library's)")
     args = ap.parse_args(argv)
     if not args.ycbv.is_dir():
         ap.error(f"--ycbv {args.ycbv} is not a directory")
     rows = []
-    print(f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
+    print(f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}, free space "
+          f"{args.free_space or 'default'}")
     for frame, name in pairs(args.ycbv, args.scenes.split(","), args.frames, args.objects,
                              args.min_px):
-        row = diagnose(args.ycbv, frame, name)
+        row = diagnose(args.ycbv, frame, name, free_space=args.free_space)
         rows.append(row)
         print(f"{row['case']:32s} gap {row['gap']:+9.1f} nats ({row['verdict']:12s}) "
               f"ADD-S {row['adds_cm']:6.2f} cm rot {row['rot_deg']:6.1f} deg | refined truth "

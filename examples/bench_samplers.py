@@ -77,7 +77,10 @@ def demo_problem(seed: int, lparams=None):  # noqa: ANN001, ANN201
     return lik, seeds_from_mle(mle), gt, arc, np.zeros(3)
 
 
-def ycbv_problem(root: Path, frame: str, seed: int, lparams=None):  # noqa: ANN001, ANN201
+PIXEL_ARC = {"free_space": "pixels", "window": 15, "tolerance": 0.01, "max_violations": 10}
+
+
+def ycbv_problem(root: Path, frame: str, seed: int, lparams=None, arc_test: str = "voxels"):  # noqa: ANN001, ANN201
     """Scene 0000's mug: likelihood (ground-truth mask classifier), seeds, ground truth (scene
     frame), the free-space arc about the body's axis and the axis's centre (object frame)."""
     from certpose.estimation.mle import estimate_mle
@@ -110,7 +113,8 @@ def ycbv_problem(root: Path, frame: str, seed: int, lparams=None):  # noqa: ANN0
     lik = PoseLikelihood(scene, cls, obj, params=params.likelihood)
     T_gt = T_wc @ yf.poses["025_mug"]
     centre = body_axis_offset(pts)
-    return lik, seeds_from_mle(mle), T_gt, free_space_arc(scene, pts, T_gt, centre=centre), centre
+    arc = free_space_arc(scene, pts, T_gt, centre=centre, **(PIXEL_ARC if arc_test == "pixels" else {}))
+    return lik, seeds_from_mle(mle), T_gt, arc, centre
 
 
 def slice_arc(lik, T_gt: np.ndarray, temperature: float) -> np.ndarray:  # noqa: ANN001
@@ -205,6 +209,9 @@ def main() -> None:
     ap.add_argument("--likelihood", nargs="+", default=[], metavar="NAME=VALUE",
                     help="LikelihoodParams fields other than the defaults (MLE and target), e.g. "
                          "free_space_tolerance=0.0075 free_space_from=boundary")
+    ap.add_argument("--arc-test", choices=("voxels", "pixels"), default="voxels",
+                    help="the free-space arc's test: EMPTY voxels (default) or the per-pixel depth "
+                         "test (window 15 px, tolerance 1 cm, at most 10 points beyond it)")
     ap.add_argument("--arc", choices=("free", "slice"), default="free",
                     help="the demo's reference arc: the free-space arc (default) or the eq. (1) slice")
     args = ap.parse_args()
@@ -220,7 +227,7 @@ def main() -> None:
     lparams = None
     if args.likelihood:
         fields = dict(item.split("=", 1) for item in args.likelihood)
-        lparams = LikelihoodParams(**{k: (v if k == "free_space_from" else float(v))
+        lparams = LikelihoodParams(**{k: (v if k in ("free_space_from", "free_space") else float(v))
                                       for k, v in fields.items()})
         print(f"likelihood: {lparams}")
     lik, seeds, gt, arc, centre = demo_problem(args.seed, lparams)
@@ -235,7 +242,7 @@ def main() -> None:
         print(f"(YCB-Video folder {args.ycbv} not found: the demo scene only)")
     if use_ycbv:
         for frame in args.frames:
-            lik, seeds, gt, arc, centre = ycbv_problem(args.ycbv, frame, args.seed, lparams)
+            lik, seeds, gt, arc, centre = ycbv_problem(args.ycbv, frame, args.seed, lparams, args.arc_test)
             rows += run_scene(f"0000/{frame}", lik, seeds, gt, arc, centre, args.seed)
     print(f"\nsame target (eq. (1) / default temperature) and wall-clock budget (ours' sampling "
           f"time) per scene; {time.perf_counter() - t0:.0f} s in all")

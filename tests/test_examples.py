@@ -195,6 +195,29 @@ def test_bench_basins_on_a_real_frame(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_bench_calibration_on_a_real_pair(tmp_path: Path) -> None:
+    require_data("ycbv", "0000")
+    args = ["--data", str(YCBV), "--scenes", "0000", "--frames", "000003", "--objects", "025_mug",
+            "--cache", str(tmp_path / "cache"), "--draws", "1000"]
+    proc = _run("bench_calibration.py", *args, "--out", str(tmp_path / "is.jsonl"))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    row = json.loads((tmp_path / "is.jsonl").read_text().splitlines()[0])
+    assert row["case"] == "0000/000003 025_mug" and row["model"] == "geometry"
+    assert 0.0 <= row["levels"]["x1"] <= 1.0 and 0.0 <= row["kde_levels"]["x1"] <= 1.0
+    assert row["ess"]["x1"] > 50
+    # The truth refined on eq. (1) is at least as good as the truth.
+    assert row["eq1_truth_refined"] >= row["eq1_truth"] - 1e-6
+    assert len(list((tmp_path / "cache").glob("*.pkl"))) == 1
+    # The calibrated distribution on the cached MLE (no second MLE: the cached row comes back).
+    proc = _run("bench_calibration.py", *args, "--calibrated", "--out", str(tmp_path / "cal.jsonl"))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    cal = json.loads((tmp_path / "cal.jsonl").read_text().splitlines()[0])
+    assert cal["mle_s"] == row["mle_s"] and cal["num_basins"] >= 1
+    assert 0.0 <= cal["levels"]["default"] <= 1.0
+    assert "calibrated distribution (defaults)" in proc.stdout
+
+
+@pytest.mark.slow
 def test_bench_eq2_on_a_real_frame(tmp_path: Path) -> None:
     require_data("ycbv", "0002")
     out = tmp_path / "eq2.jsonl"
@@ -237,3 +260,21 @@ def test_bench_arc_reports_the_ratio_per_frame_and_part() -> None:
     assert drop > 2 * rng_in, proc.stdout
     rng_in, drop = (float(x) for x in parts[("stated", "eq1")][-4:-2])
     assert drop > 2 * rng_in, proc.stdout
+
+
+@pytest.mark.slow
+def test_bench_arc_with_the_per_pixel_free_space() -> None:
+    require_data("ycbv", "0000")
+    proc = _run("bench_arc.py", "--frames", "000001", "--step", "10", "--no-refine",
+                "--free-space", "pixels", "--arc-free-space", "pixels", "--arc-max-violations", "10")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "'free_space': 'pixels'" in proc.stdout
+    # The per-pixel arc holds the ground truth, about the stated -15..80 deg.
+    line = next(x for x in proc.stdout.splitlines() if x.startswith("000001: free-space arc"))
+    lo, hi = (float(v) for v in line.split("grid) ")[1].split(" deg")[0].split(".."))
+    assert -40 < lo < -10 and 60 < hi < 110, line
+    rows = [x.split() for x in proc.stdout.splitlines() if x.startswith("000001 ")]
+    parts = {(r[1], r[2] if r[2] != "eq." else "eq1"): r for r in rows}
+    # Unrefined, the handle's share is charged outside the arc and (nearly) flat inside it.
+    rng_in, drop = (float(x) for x in parts[("computed", "handle")][-4:-2])
+    assert drop > rng_in > 0, proc.stdout

@@ -197,6 +197,22 @@ def test_cli_pose_demo_baseline_and_plot(tmp_path, capsys, method, label):  # ty
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and struct.unpack(">II", data[16:24]) == (1200, 600)
 
 
+@pytest.mark.slow
+def test_cli_pose_demo_calibrated(tmp_path, capsys):  # type: ignore[no-untyped-def]
+    """`certpose pose --demo --samples N --method calibrated`: exact draws around the MLE's basins."""
+    from certpose.cli import main
+    from certpose.sampling import PoseDistribution
+
+    out = tmp_path / "c.npz"
+    assert main(["pose", "--demo", "--samples", "400", "--method", "calibrated",
+                 "--particles", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "pose distribution (calibrated: basins x model error): 400 particles" in text, text
+    assert "independent draws 400" in text and "basins of" in text and "mode 0: mass" in text
+    d = PoseDistribution.load(out)
+    assert len(d) == 400 and np.allclose(d.weights, 1 / 400)
+
+
 def test_cli_pose_plot_and_method_need_samples(tmp_path, capsys):  # type: ignore[no-untyped-def]
     from certpose.cli import main
 

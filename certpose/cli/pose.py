@@ -64,6 +64,10 @@ def add_parser(subparsers: Any) -> None:
                         "(default: 0)")
     p.add_argument("--voxel-size", type=float, default=0.005, metavar="M",
                    help="scene/object voxel size in metres (default: 0.005)")
+    p.add_argument("--free-space", choices=("voxels", "pixels"), default=None,
+                   help="where eq. (1) reads observed free space: the scene grid's EMPTY voxels or "
+                        "each pixel of the depth image (LikelihoodParams.free_space; default: "
+                        "the library's)")
     p.add_argument("--no-certify", action="store_true", help="skip the eq. (2) certificate")
     p.add_argument("--require-certificate", action="store_true",
                    help="exit with code 1 unless the eq. (2) solution is certified")
@@ -79,11 +83,12 @@ def add_parser(subparsers: Any) -> None:
     smp.add_argument("--plot", metavar="OUT.png", default=None,
                      help="plot the marginals (roll, pitch, yaw, x, y, z and, for a mug, the "
                           "rotation about its axis; the ground truth when known)")
-    smp.add_argument("--method", choices=("is", "de", "mcmc"), default="is",
+    smp.add_argument("--method", choices=("is", "de", "mcmc", "calibrated"), default="is",
                      help="is: the importance sampler (default); de: Nevergrad TwoPointsDE with "
                           "its population weighted (the paper's sampler); mcmc: random-walk "
                           "Metropolis on SE(3). The baselines get the same target and number of "
-                          "eq. (1) evaluations")
+                          "eq. (1) evaluations. calibrated: exact draws of the calibrated "
+                          "distribution (eq. (1)'s basins and flips, a model-error kernel; README)")
     add_common(p, seed_help="random seed (default: 0)")
     p.set_defaults(func=run)
 
@@ -145,6 +150,8 @@ def run(args: argparse.Namespace) -> int:
     params = PoseParams(voxel_size=args.voxel_size)
     if args.box_margin is not None:
         params = replace(params, classifier=replace(params.classifier, box_margin=args.box_margin))
+    if args.free_space is not None:
+        params = replace(params, likelihood=replace(params.likelihood, free_space=args.free_space))
     if args.no_certify:
         params = replace(params, mle=replace(MLEParams(), certify=False))
     if args.samples:
@@ -253,11 +260,14 @@ def _print_distribution(result: object, args: argparse.Namespace) -> None:
     dist, info = result.distribution, result.sampling  # type: ignore[attr-defined]
     k = info.get("pareto_k")
     method = {"is": "importance sampler", "de": "Nevergrad TwoPointsDE, population weighted",
-              "mcmc": "random-walk Metropolis"}[info.get("method", "is")]
-    ess_kind = "bulk ESS of the chains" if info.get("method") == "mcmc" else "ESS of the weighted draws"
+              "mcmc": "random-walk Metropolis",
+              "calibrated": "calibrated: basins x model error"}[info.get("method", "is")]
+    ess_kind = {"mcmc": "bulk ESS of the chains", "calibrated": "independent draws"}.get(
+        info.get("method"), "ESS of the weighted draws")
     say(args, f"pose distribution ({method}): {len(dist)} particles (T_camera_object), {ess_kind} "
           f"{info['ess']:.0f}, Pareto-k {_fmt(k, 1, '', 2)}, temperature {info['temperature']:.3g}, "
-          f"{info['evaluations']} eq. (1) evaluations in {info['seconds']:.2f} s; {info['message']}")
+          + (f"{info['evaluations']} eq. (1) evaluations" if info.get("evaluations") is not None
+             else "built") + f" in {info['seconds']:.2f} s; {info['message']}")
     for j, m in enumerate(dist.modes()[:5]):
         say(args, f"  mode {j}: mass {m.mass:.3f} ({m.num_particles} particles), translation "
               f"[{', '.join(f'{v:.4f}' for v in m.translation)}] m")

@@ -86,8 +86,11 @@ class PoseParams:
         (:func:`certpose.sampling.sample_pose_distribution`, seeded by the MLE, the eq. (2)
         solution, the refined hypotheses and the modes) and returned in
         ``PoseResult.distribution``.
-    sampling_method : {"is", "de", "mcmc"}
-        ``"is"``: the importance sampler. ``"de"`` / ``"mcmc"``: the baselines of
+    sampling_method : {"is", "de", "mcmc", "calibrated"}
+        ``"is"``: the importance sampler. ``"calibrated"``: exact draws of
+        :func:`certpose.sampling.calibrated_distribution` (eq. (1)'s basins, a basin temperature
+        and a model-error kernel fitted on YCB-Video; ``sampler.resample`` draws, else
+        ``sampler.draws``). ``"de"`` / ``"mcmc"``: the baselines of
         :mod:`certpose.sampling.baselines` on the same target (temperature of ``sampler``, or its
         default rule) with the evaluation budget the importance sampler would use
         (``draws + (rounds - 1) * pilot draws``); DE searches around the MLE with the seeds
@@ -103,8 +106,9 @@ class PoseParams:
     sampling_method: str = "is"
 
     def __post_init__(self) -> None:
-        if self.sampling_method not in ("is", "de", "mcmc"):
-            raise ValueError(f"`sampling_method` must be 'is', 'de' or 'mcmc', got {self.sampling_method!r}.")
+        if self.sampling_method not in ("is", "de", "mcmc", "calibrated"):
+            raise ValueError("`sampling_method` must be 'is', 'de', 'mcmc' or 'calibrated', got "
+                             f"{self.sampling_method!r}.")
         if not (math.isfinite(self.voxel_size) and self.voxel_size > 0):
             raise ValueError(f"`voxel_size` must be positive, got {self.voxel_size}.")
         if self.roi_margin is not None and not self.roi_margin >= 0:
@@ -580,6 +584,26 @@ def _sample(scene: Any, cls: Any, object_model: Any, mle: Any, T_cw: NDArray[np.
     lik = PoseLikelihood(scene, cls, object_model, params=params.likelihood or LikelihoodParams())
     seeds = seeds_from_mle(mle)
     sp = params.sampler
+    if params.sampling_method == "calibrated":
+        import time
+
+        from certpose.sampling.calibration import calibrated_distribution
+
+        t0 = time.perf_counter()
+        cal = calibrated_distribution(lik, seeds)
+        d = cal.sample(int(sp.resample) or int(sp.draws), rng=gen)
+        n_b = len(cal.mixture.weights)
+        info = {"method": "calibrated", "particles": len(d), "ess": float(len(d)),
+                "temperature": float(cal.basins.temperature), "evaluations": None,
+                "seconds": time.perf_counter() - t0, "status": "ok", "pareto_k": None,
+                "basin_temperature": float(cal.params.basin_temperature),
+                "message": (f"{n_b} basins of {len(cal.basins.poses)} (masses "
+                            + ", ".join(f"{w:.2f}" for w in cal.mixture.weights[:6])
+                            + f"), model error {math.degrees(cal.params.rotation_sigma):.1f} deg, "
+                            f"{1000 * cal.params.translation_sigma:.1f} mm, exact draws")}
+        R = np.einsum("ij,njk->nik", T_cw[:3, :3], d.rotations)
+        t = d.translations @ T_cw[:3, :3].T + T_cw[:3, 3]
+        return PoseDistribution(R, t, d.weights), info
     if params.sampling_method == "is":
         res = sample_pose_distribution(lik, seeds, params=sp, rng=gen)
         ess, weighted = float(res.weighted.ess), res.weighted

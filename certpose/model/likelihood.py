@@ -42,7 +42,7 @@ import logging
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -56,7 +56,8 @@ if TYPE_CHECKING:
     from certpose.geometry.objects import ObjectModel
     from certpose.model.classifier import ObjectClassification
 
-__all__ = ["LikelihoodParams", "PoseLikelihood", "free_space_values", "log_likelihood"]
+__all__ = ["LikelihoodParams", "PoseLikelihood", "free_space_values", "log_likelihood",
+           "resolve_free_space"]
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +103,30 @@ class LikelihoodParams:
         observed free space (an observed surface or unobserved space: the edge of a shadow or
         of the grid too), i.e. how deep the voxel lies in free space, the measure of
         :func:`certpose.model.arc.free_space_arc`.
+    free_space : {"voxels", "pixels", "auto"}
+        Where observed free space is read from (``"auto"``: pixels when the scene keeps its depth
+        images and no voxel grading option is set, voxels otherwise; :func:`resolve_free_space`). ``"voxels"`` (default): the scene grid's EMPTY
+        voxels, blended trilinearly like the other voxel states (the ``free_space_*`` options
+        above grade it). ``"pixels"``: the depth images the scene was built from
+        (:mod:`certpose.model.freespace`; the scene must keep them, ``SceneField.frames``). A
+        point standing ``g`` metres in front of the measured depth of its nearest pixel is
+        charged the fraction ``clip((g - depth_tolerance) / depth_ramp, 0, 1)`` of
+        ``c_empty - log_p_unobserved`` on top of its voxel term, in which EMPTY voxels then count
+        as unobserved; pixels without depth, points outside the image and points behind the
+        surface are not charged. ``free_space_erosion`` then widens the tolerance by that many
+        voxels (the coarse search's tolerant eq. (1)); ``free_space_tolerance``,
+        ``free_space_ramp`` and ``free_space_from`` apply to voxels only.
+    depth_tolerance : float
+        Metres (>= 0), ``free_space="pixels"`` only: depth in front of the measured surface that
+        is not charged (sensor noise, annotation error). Default 1 cm, the voxel grid's default
+        carving margin (``build_scene_field``'s ``free_space_margin``).
+    depth_ramp : float
+        Metres (>= 0), ``free_space="pixels"`` only: beyond ``depth_tolerance`` the charge rises
+        linearly to the full penalty over this distance (0: a step).
+    depth_window : int
+        Pixels (>= 0), ``free_space="pixels"`` only: half-width of the min-filter over the valid
+        depths (0: the nearest pixel), so that the mixed pixels at a silhouette do not count the
+        space beside a foreground edge as free.
     """
 
     beta: float = 1.0
@@ -111,10 +136,14 @@ class LikelihoodParams:
     free_space_tolerance: float = 0.0
     free_space_ramp: float = 0.0
     free_space_from: str = "surface"
+    free_space: str = "voxels"
+    depth_tolerance: float = 0.01
+    depth_ramp: float = 0.0
+    depth_window: int = 15
 
     def __post_init__(self) -> None:
         for name in ("beta", "c_empty", "log_p_unobserved", "free_space_tolerance",
-                     "free_space_ramp"):
+                     "free_space_ramp", "depth_tolerance", "depth_ramp"):
             v = float(getattr(self, name))
             if not math.isfinite(v):
                 raise ValueError(f"`{name}` must be finite, got {v}.")
@@ -125,13 +154,24 @@ class LikelihoodParams:
             raise ValueError(f"`c_empty` must be negative, got {self.c_empty}.")
         if self.log_p_unobserved > 0:
             raise ValueError(f"`log_p_unobserved` must be <= 0, got {self.log_p_unobserved}.")
-        for name in ("free_space_tolerance", "free_space_ramp"):
+        for name in ("free_space_tolerance", "free_space_ramp", "depth_tolerance", "depth_ramp"):
             if getattr(self, name) < 0:
                 raise ValueError(f"`{name}` must be >= 0 metres, got {getattr(self, name)}.")
         if self.free_space_from not in ("surface", "boundary"):
             raise ValueError(
                 f"`free_space_from` must be 'surface' or 'boundary', got {self.free_space_from!r}."
             )
+        if self.free_space not in ("voxels", "pixels", "auto"):
+            raise ValueError(
+                f"`free_space` must be 'voxels', 'pixels' or 'auto', got {self.free_space!r}.")
+        if self.free_space == "pixels" and (self.free_space_tolerance or self.free_space_ramp
+                                            or self.free_space_from != "surface"):
+            raise ValueError(
+                "`free_space_tolerance`, `free_space_ramp` and `free_space_from` grade the voxel "
+                "grid's free space; with free_space='pixels' use `depth_tolerance` and `depth_ramp`."
+            )
+        if int(self.depth_window) != self.depth_window or self.depth_window < 0:
+            raise ValueError(f"`depth_window` must be a non-negative integer, got {self.depth_window}.")
         if int(self.free_space_erosion) != self.free_space_erosion or self.free_space_erosion < 0:
             raise ValueError(
                 f"`free_space_erosion` must be a non-negative integer, got {self.free_space_erosion}."
@@ -185,7 +225,9 @@ def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodPar
     ``log_p_unobserved`` while ``d <= free_space_tolerance``, then falls linearly to ``c_empty``
     over ``free_space_ramp`` metres (a step when the ramp is 0): a point a sensor-noise away from
     an observed surface costs about as much as a hidden one, a point deep in free space the full
-    penalty. With both at 0 (the default) every EMPTY voxel holds ``c_empty``.
+    penalty. With both at 0 (the default) every EMPTY voxel holds ``c_empty``. With
+    ``free_space="pixels"`` EMPTY voxels hold ``log_p_unobserved`` (free space is charged per
+    pixel instead).
     ``free_space_erosion`` is applied first (eroded voxels are unobserved). Occupied voxels hold 0
     (unused: eq. (1) reads the classifier and the descriptors there).
 
@@ -205,6 +247,8 @@ def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodPar
     if state.ndim != 3:
         raise ValueError(f"Expected `state` to have shape (X, Y, Z), got {state.shape}.")
     occupied = state == OCCUPIED
+    if params.free_space == "pixels":  # free space is charged per pixel (PoseLikelihood)
+        return np.where(occupied, 0.0, params.log_p_unobserved)
     empty = state == EMPTY
     if params.free_space_erosion > 0:
         from scipy.ndimage import maximum_filter
@@ -306,7 +350,7 @@ class PoseLikelihood:
             raise ValueError("`scene.descriptors` contains NaN or inf values at occupied voxels.")
         if not np.all(np.isfinite(occ_logp)):
             raise ValueError("`classification.log_p` contains NaN or inf values at occupied voxels.")
-        background = free_space_values(state, self.grid.voxel_size, self.params)
+        background = free_space_values(state, self.grid.voxel_size, resolve_free_space(self.params, scene))
         index = np.full(state.size, UNOBSERVED_CODE, dtype=np.int32)
         index[(state == EMPTY).reshape(-1)] = EMPTY_CODE
         index[occ] = np.arange(occ.size, dtype=np.int32)
@@ -317,6 +361,8 @@ class PoseLikelihood:
         self._desc = np.ascontiguousarray(occ_desc, dtype=np.float32)
         self._logp = np.ascontiguousarray(occ_logp, dtype=np.float64)
         self._state = state
+        self._scene = scene
+        self._pixels = _pixel_free_space(scene, self.params, self.grid.voxel_size)
         self._set_object(object_model)
 
     def with_object(self, object_model: ObjectModel, *,
@@ -333,9 +379,11 @@ class PoseLikelihood:
         other = copy.copy(self)
         if params is not None and params != self.params:
             other.params = params
-            background = free_space_values(self._state, self.grid.voxel_size, params)
+            background = free_space_values(self._state, self.grid.voxel_size,
+                                           resolve_free_space(params, self._scene))
             other._background = np.pad(background, 1, constant_values=params.log_p_unobserved)
             other._cells = _cell_codes(self._index, other._background, params.c_empty)
+            other._pixels = _pixel_free_space(self._scene, params, self.grid.voxel_size)
         other._set_object(object_model)
         return other
 
@@ -382,6 +430,8 @@ class PoseLikelihood:
             Log-likelihood up to the constant ``-N log Z`` (nats).
         """
         eq1_batch = compiled("certpose.model._kernels").eq1_batch
+        if self._pixels is not None:
+            eq1_batch = functools.partial(_with_pixels, eq1_batch, self)
 
         poses, single = _as_poses(T)
         args = self._args()
@@ -405,7 +455,45 @@ class PoseLikelihood:
         poses, single = _as_poses(T)
         if not single:
             raise ValueError(f"Expected `T` to have shape (4, 4), got {poses.shape}.")
-        return eq1_points(poses[0], *self._args())[self._inverse]
+        out = eq1_points(poses[0], *self._args())
+        if self._pixels is not None:
+            out += self._free_charge() * self._weights * self._pixels.fractions(poses[0], self._points)
+        return out[self._inverse]
+
+    def _free_charge(self) -> float:
+        """What a point fully in per-pixel free space pays on top of its voxel term."""
+        return self.params.c_empty - self.params.log_p_unobserved
+
+
+def resolve_free_space(params: LikelihoodParams, scene: Any) -> LikelihoodParams:
+    """``params`` with ``free_space="auto"`` resolved for ``scene``: ``"pixels"`` when the scene
+    keeps its depth images (``SceneField.frames``) and no voxel grading option
+    (``free_space_tolerance``, ``free_space_ramp``, ``free_space_from``) is set, ``"voxels"``
+    otherwise. Other values are returned unchanged."""
+    if params.free_space != "auto":
+        return params
+    graded = params.free_space_tolerance or params.free_space_ramp or params.free_space_from != "surface"
+    pixels = bool(getattr(scene, "frames", ())) and not graded
+    return replace(params, free_space="pixels" if pixels else "voxels")
+
+
+def _pixel_free_space(scene: Any, params: LikelihoodParams, voxel_size: float) -> Any:
+    """The per-pixel free-space test of ``free_space="pixels"`` (None for voxels)."""
+    params = resolve_free_space(params, scene)
+    if params.free_space != "pixels":
+        return None
+    from certpose.model.freespace import PixelFreeSpace
+
+    return PixelFreeSpace.from_scene(
+        scene, tolerance=params.depth_tolerance + params.free_space_erosion * voxel_size,
+        ramp=params.depth_ramp, window=params.depth_window)
+
+
+def _with_pixels(eq1_batch: Any, lik: PoseLikelihood, poses: NDArray[np.float64],
+                 *args: Any) -> NDArray[np.float64]:
+    """``eq1_batch`` plus the per-pixel free-space charge (same chunking, same threads)."""
+    out = eq1_batch(poses, *args)
+    return out + lik._free_charge() * lik._pixels.weighted_sum(poses, lik._points, lik._weights)
 
 
 def log_likelihood(

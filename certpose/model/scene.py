@@ -36,6 +36,7 @@ from certpose.geometry.features import (
     resolve_backbone,
 )
 from certpose.geometry.rgbd import (
+    CameraIntrinsics,
     RGBDFrame,
     check_descriptors,
     check_mask,
@@ -79,6 +80,10 @@ class SceneField:
     backbone : FeatureBackbone, optional
         The backbone that produced the descriptors (possibly fitted to this scene, see
         :func:`build_scene_field`); object descriptors must come from the same one.
+    frames : tuple of RGBDFrame, optional
+        The posed depth images the field was fused from (:func:`build_scene_field` keeps them):
+        eq. (1)'s per-pixel free-space test (``LikelihoodParams.free_space="pixels"``,
+        :mod:`certpose.model.freespace`) reads them. Empty for a field built from arrays.
     """
 
     voxel_size: float
@@ -87,8 +92,14 @@ class SceneField:
     descriptors: NDArray[np.floating]
     state: NDArray[np.int8]
     backbone: Any = field(default=None, compare=False, repr=False)
+    frames: tuple[RGBDFrame, ...] = field(default=(), compare=False, repr=False)
 
     def __post_init__(self) -> None:
+        frames = tuple(self.frames or ())
+        for i, f in enumerate(frames):
+            if not isinstance(f, RGBDFrame):
+                raise TypeError(f"`frames[{i}]` must be an RGBDFrame, got {type(f).__name__}.")
+        object.__setattr__(self, "frames", frames)
         vs = float(self.voxel_size)
         if not (np.isfinite(vs) and vs > 0):
             raise ValueError(f"`voxel_size` must be positive and finite, got {self.voxel_size}.")
@@ -246,10 +257,17 @@ class SceneField:
         return lookup
 
     def save(self, path: str | Path) -> None:
-        """Write the field to a compressed ``.npz`` file (an FPFH backbone's settings included)."""
+        """Write the field to a compressed ``.npz`` file (an FPFH backbone's settings and the
+        frames' depth images and cameras included)."""
         extra = {}
         if isinstance(self.backbone, FPFHBackbone):
             extra["fpfh"] = np.array(json.dumps(asdict(self.backbone)))
+        # The depth images (not the colour) for the per-pixel free-space test.
+        for k, f in enumerate(self.frames):
+            K = f.intrinsics
+            extra[f"frame{k}_depth"] = f.depth
+            extra[f"frame{k}_camera"] = np.array([K.fx, K.fy, K.cx, K.cy, K.width, K.height])
+            extra[f"frame{k}_T_world_camera"] = f.T_world_camera
         np.savez_compressed(
             Path(path),
             voxel_size=self.voxel_size,
@@ -271,9 +289,16 @@ class SceneField:
                 if "fpfh" in data:
                     backbone = FPFHBackbone(**json.loads(str(data["fpfh"])))
                 state = data["state"]
+                frames = []
+                while f"frame{len(frames)}_depth" in data:
+                    k = len(frames)
+                    fx, fy, cx, cy, w, h = data[f"frame{k}_camera"]
+                    frames.append(RGBDFrame(None, data[f"frame{k}_depth"],
+                                            CameraIntrinsics(fx, fy, cx, cy, int(w), int(h)),
+                                            data[f"frame{k}_T_world_camera"]))
                 return cls(
                     float(data["voxel_size"]), data["origin"], state.shape, data["descriptors"], state,
-                    backbone=backbone,
+                    backbone=backbone, frames=tuple(frames),
                 )
         except (OSError, KeyError, ValueError) as exc:
             raise ValueError(f"Cannot read a scene field from {path}: {exc}") from exc
@@ -487,7 +512,8 @@ def build_scene_field(
         empty |= _in_front_of_surface(f, grid, free_space_margin)
     state[empty] = EMPTY
     state[uniq[:, 0], uniq[:, 1], uniq[:, 2]] = OCCUPIED  # a measured point wins over free space
-    scene = SceneField(voxel_size, grid.origin, shape, descriptors, state, backbone=backbones[0])
+    scene = SceneField(voxel_size, grid.origin, shape, descriptors, state, backbone=backbones[0],
+                       frames=tuple(frames))
     log.debug("scene field %s: %s", shape, scene.counts())
     return scene
 

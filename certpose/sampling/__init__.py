@@ -6,6 +6,11 @@ never the CLI or the bench.
 """
 
 from certpose.sampling.baselines import DEParams, MCMCParams, SamplerResult, de_sample, mcmc_sample
+from certpose.sampling.calibration import (
+    CalibratedDistribution,
+    CalibrationParams,
+    calibrated_distribution,
+)
 from certpose.sampling.distribution import PoseDistribution, PoseMode
 from certpose.sampling.sampler import (
     ISParams,
@@ -15,6 +20,6 @@ from certpose.sampling.sampler import (
     sample_pose_distribution,
 )
 
-__all__ = ["DEParams", "ISParams", "ISResult", "MCMCParams", "PoseDistribution", "PoseMode",
-           "SamplerResult", "TangentMixture", "de_sample", "importance_sample", "mcmc_sample",
+__all__ = ["CalibratedDistribution", "CalibrationParams", "DEParams", "ISParams", "ISResult", "MCMCParams", "PoseDistribution", "PoseMode",
+           "SamplerResult", "TangentMixture", "calibrated_distribution", "de_sample", "importance_sample", "mcmc_sample",
            "sample_pose_distribution"]
