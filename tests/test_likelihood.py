@@ -248,7 +248,8 @@ def _plane_scene(depth: int = 12, vs: float = 0.005) -> SceneField:
 def test_free_space_values_graded_by_distance_to_the_surface():
     scene = _plane_scene()
     lpu, c = math.log(0.1), -30.0
-    params = LikelihoodParams(c_empty=c, free_space_tolerance=0.0075, free_space_ramp=0.01)
+    params = LikelihoodParams(c_empty=c, free_space_tolerance=0.0075, free_space_ramp=0.01,
+                              free_space_from="surface")
     v = free_space_values(scene.state, scene.voxel_size, params)
     # Column (1, 1): k voxels above the plane is k * 5 mm from the surface. Tolerant up to
     # 7.5 mm, then linear to c_empty at 17.5 mm, c_empty beyond.
@@ -256,12 +257,14 @@ def test_free_space_values_graded_by_distance_to_the_surface():
     np.testing.assert_allclose(v[1, 1], expected, atol=1e-12)
     assert np.all(v[1, 1, 4:] == c)  # exactly: the kernel's fast path for deep free space
     np.testing.assert_allclose(v[2, 2, 1:], lpu)  # unobserved voxels keep the prior
-    # The default (no tolerance, no ramp) is the exact model: every free voxel pays c_empty.
-    v0 = free_space_values(scene.state, scene.voxel_size, LikelihoodParams(c_empty=c))
+    # No tolerance, no ramp: the ungraded model, every free voxel pays c_empty.
+    v0 = free_space_values(scene.state, scene.voxel_size,
+                           LikelihoodParams(c_empty=c, free_space_tolerance=0, free_space_ramp=0))
     np.testing.assert_allclose(v0[1, 1, 1:], c)
     # A ramp of 0 is a step at the tolerance.
     step = free_space_values(scene.state, scene.voxel_size,
-                             LikelihoodParams(c_empty=c, free_space_tolerance=0.012))
+                             LikelihoodParams(c_empty=c, free_space_tolerance=0.012,
+                                              free_space_ramp=0, free_space_from="surface"))
     np.testing.assert_allclose(step[1, 1, 1:4], [lpu, lpu, c])
     # No observed surface at all: free space is deep everywhere.
     none = np.where(scene.state == OCCUPIED, EMPTY, scene.state)
@@ -276,7 +279,8 @@ def test_free_space_graded_from_the_free_regions_boundary():
     # and the grid's faces (outside is unobserved) are a boundary too.
     scene = _plane_scene()
     lpu, c = math.log(0.1), -30.0
-    params = LikelihoodParams(c_empty=c, free_space_tolerance=0.0075, free_space_from="boundary")
+    params = LikelihoodParams(c_empty=c, free_space_tolerance=0.0075, free_space_ramp=0,
+                              free_space_from="boundary")
     v = free_space_values(scene.state, scene.voxel_size, params)
     surface = free_space_values(scene.state, scene.voxel_size, replace(params, free_space_from="surface"))
     # Column (1, 1) at k = 6: 30 mm from the plane, 7.1 mm (a diagonal step) from column (2, 2).
@@ -293,6 +297,24 @@ def test_free_space_graded_from_the_free_regions_boundary():
         LikelihoodParams(free_space_from="occupied")
 
 
+def test_default_free_space_spares_one_voxel_next_to_any_boundary_and_ramps_to_full():
+    # Default: depth into free space (to an observed surface, unobserved space or the grid's
+    # faces) up to 5 mm costs what a hidden point costs, then linear to c_empty at 10 mm.
+    p = LikelihoodParams()
+    assert (p.free_space_from, p.free_space_tolerance, p.free_space_ramp) == ("boundary", 0.005, 0.005)
+    lpu, c = p.log_p_unobserved, p.c_empty
+    state = np.where(np.arange(12)[None, None, :] == 0, OCCUPIED, EMPTY).astype(np.int8) * np.ones(
+        (7, 7, 1), np.int8)
+    state[3, 5, 1:] = UNOBSERVED  # a shadow: its neighbours are spared too
+    v = free_space_values(state, 0.005, p)
+    assert v[3, 3, 1] == pytest.approx(lpu)  # 5 mm above the plane
+    assert v[3, 2, 6] == c  # 15 mm or more from the plane, the shadow and the faces: full penalty
+    assert v[3, 4, 6] == pytest.approx(lpu)  # 5 mm from the shadow
+    # 7.07 mm (a diagonal step) from the shadow: 41% of the way to c_empty.
+    assert v[2, 4, 6] == pytest.approx(lpu + (np.sqrt(2) - 1) * (c - lpu))
+    assert v[0, 3, 6] == pytest.approx(lpu)  # on a face of the grid
+
+
 def test_free_space_tolerance_spares_points_near_a_surface_only():
     scene = _plane_scene()
     lpu, c = math.log(0.1), -30.0
@@ -305,8 +327,9 @@ def test_free_space_tolerance_spares_points_near_a_surface_only():
         T = make_transform(np.eye(3), (np.array([1.5, 1.5, k + 0.5])) * scene.voxel_size)
         return PoseLikelihood(scene, cls, one, params=params)(T) / 3
 
-    graded = LikelihoodParams(c_empty=c, free_space_tolerance=0.0075, free_space_ramp=0.01)
-    exact = LikelihoodParams(c_empty=c)
+    graded = LikelihoodParams(c_empty=c, free_space_tolerance=0.0075, free_space_ramp=0.01,
+                              free_space_from="surface")
+    exact = LikelihoodParams(c_empty=c, free_space_tolerance=0, free_space_ramp=0)
     # One voxel (5 mm, about the sensor noise) above the surface: the price of a hidden point
     # instead of c_empty.
     assert at(1, graded) == pytest.approx(lpu)

@@ -413,7 +413,10 @@ def test_basin_hop_climbs_out_of_a_local_maximum_and_never_worsens():
     obj = _box_object(rng)
     T = make_transform(Rotation.from_rotvec([0.4, -0.3, 0.2]).as_matrix(), [0.0, 0.01, 0.5])
     scene, cls = _scene_with_object(obj, T)
-    lik = PoseLikelihood(scene, cls, obj)
+    # The ungraded free space: every free voxel pays c_empty, so that the local maximum below
+    # lies far below the truth (the graded default forgives the first 5-10 mm of it).
+    lik = PoseLikelihood(scene, cls, obj, params=LikelihoodParams(free_space_tolerance=0,
+                                                                  free_space_ramp=0))
     # Starts 60 degrees off: local refinement stalls hundreds of nats below the truth.
     starts = np.stack([T @ make_transform(Rotation.from_rotvec(np.radians(60) * np.asarray(a)).as_matrix(),
                                           [0.004, 0, 0]) for a in ([1.0, 0, 0], [0, 1.0, 0])])
@@ -425,7 +428,7 @@ def test_basin_hop_climbs_out_of_a_local_maximum_and_never_worsens():
     assert np.all(v >= lik(T) - 5.0)  # both back in the truth's basin
     assert all(rotation_error_deg(h[:3, :3], T[:3, :3]) < 5.0 for h in hopped)
     # The coarse stage (a subsample) only preselects: values are still on the exact eq. (1).
-    coarse = PoseLikelihood(scene, cls, obj.subsample(40, rng=0))
+    coarse = PoseLikelihood(scene, cls, obj.subsample(40, rng=0), params=lik.params)
     h1, v1 = basin_hop(lik, local[0], scale=0.03, coarse_likelihood=coarse, rounds=2, rng=1)
     assert h1.shape == (1, 4, 4) and v1[0] == pytest.approx(float(lik(h1[0]))) and v1[0] >= v_local[0]
     # No rounds: the starts come back.
