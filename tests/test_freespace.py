@@ -162,7 +162,8 @@ def test_save_and_load_keep_the_depth_images(tmp_path) -> None:  # noqa: ANN001
 @pytest.mark.parametrize(("kwargs", "match"), [
     ({"free_space": "grid"}, "`free_space` must be 'voxels', 'pixels' or 'auto'"),
     ({"free_space": "pixels", "free_space_tolerance": 0.01}, "with free_space='pixels' use"),
-    ({"free_space": "pixels", "free_space_from": "boundary"}, "with free_space='pixels' use"),
+    ({"free_space": "pixels", "free_space_from": "surface"}, "with free_space='pixels' use"),
+    ({"free_space": "pixels", "free_space_ramp": 0.0}, "with free_space='pixels' use"),
     ({"depth_tolerance": -0.01}, "`depth_tolerance` must be >= 0"),
     ({"depth_ramp": float("nan")}, "`depth_ramp` must be finite"),
     ({"depth_window": 1.5}, "`depth_window` must be a non-negative integer"),

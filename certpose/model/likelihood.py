@@ -46,7 +46,7 @@ import logging
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -120,7 +120,8 @@ class LikelihoodParams:
         as unobserved; pixels without depth, points outside the image and points behind the
         surface are not charged. ``free_space_erosion`` then widens the tolerance by that many
         voxels (the coarse search's tolerant eq. (1)); ``free_space_tolerance``,
-        ``free_space_ramp`` and ``free_space_from`` apply to voxels only.
+        ``free_space_ramp`` and ``free_space_from`` apply to voxels only (with pixels they must keep
+        their defaults).
     depth_tolerance : float
         Metres (>= 0), ``free_space="pixels"`` only: depth in front of the measured surface that
         is not charged (sensor noise, annotation error). Default 1 cm, the voxel grid's default
@@ -186,8 +187,10 @@ class LikelihoodParams:
         if self.free_space not in ("voxels", "pixels", "auto"):
             raise ValueError(
                 f"`free_space` must be 'voxels', 'pixels' or 'auto', got {self.free_space!r}.")
-        if self.free_space == "pixels" and (self.free_space_tolerance or self.free_space_ramp
-                                            or self.free_space_from != "surface"):
+        defaults = {f.name: f.default for f in fields(self)}
+        if self.free_space == "pixels" and any(
+                getattr(self, f) != defaults[f]
+                for f in ("free_space_tolerance", "free_space_ramp", "free_space_from")):
             raise ValueError(
                 "`free_space_tolerance`, `free_space_ramp` and `free_space_from` grade the voxel "
                 "grid's free space; with free_space='pixels' use `depth_tolerance` and `depth_ramp`."
@@ -487,9 +490,6 @@ class PoseLikelihood:
         return self.params.c_empty - self.params.log_p_unobserved
 
 
-_DEFAULTS = LikelihoodParams()
-
-
 def resolve_free_space(params: LikelihoodParams, scene: Any) -> LikelihoodParams:
     """``params`` with ``free_space="auto"`` resolved for ``scene``: ``"pixels"`` when the scene
     keeps its depth images (``SceneField.frames``) and no voxel grading option
@@ -497,7 +497,8 @@ def resolve_free_space(params: LikelihoodParams, scene: Any) -> LikelihoodParams
     default, ``"voxels"`` otherwise. Other values are returned unchanged."""
     if params.free_space != "auto":
         return params
-    graded = any(getattr(params, f) != getattr(_DEFAULTS, f)
+    defaults = {f.name: f.default for f in fields(LikelihoodParams)}
+    graded = any(getattr(params, f) != defaults[f]
                  for f in ("free_space_tolerance", "free_space_ramp", "free_space_from"))
     pixels = bool(getattr(scene, "frames", ())) and not graded
     return replace(params, free_space="pixels" if pixels else "voxels")
