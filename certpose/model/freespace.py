@@ -118,12 +118,19 @@ class PixelFreeSpace:
                 self.ramp)
 
     def weighted_sum(self, T: NDArray[np.float64], points: NDArray[np.float64],
-                     weights: NDArray[np.float64]) -> NDArray[np.float64]:
+                     weights: NDArray[np.float64], *, kernel: Any = None) -> NDArray[np.float64]:
         """``sum_i w_i frac_i`` (B,) for the poses ``T`` (B, 4, 4) (C-contiguous float64) of the
         object points (N, 3) with weights (N,); ``frac_i`` in [0, 1] is the point's free-space
-        fraction (the numba kernel behind eq. (1); no input checks)."""
-        return compiled("certpose.model._freespace_kernels").free_batch(T, points, weights,
-                                                                         *self._views())
+        fraction (the numba kernel behind eq. (1); no input checks). ``kernel``:
+        :meth:`batch_kernel`, loaded beforehand by a caller that runs this on worker threads."""
+        return (kernel or self.batch_kernel())(T, points, weights, *self._views())
+
+    @staticmethod
+    def batch_kernel() -> Any:
+        """The compiled batch kernel. Load it on the calling thread before handing batches to
+        worker threads: loading the kernel module from several threads at once can see it
+        half-imported (``AttributeError: partially initialized module``)."""
+        return compiled("certpose.model._freespace_kernels").free_batch
 
     def fractions(self, T: ArrayLike, points: ArrayLike) -> NDArray[np.float64]:
         """Free-space fraction (N,) of each object point at one pose ``T`` (4, 4)."""

@@ -456,7 +456,8 @@ class PoseLikelihood:
         """
         eq1_batch = compiled("certpose.model._kernels").eq1_batch
         if self._pixels is not None:
-            eq1_batch = functools.partial(_with_pixels, eq1_batch, self)
+            # The pixel kernel is loaded here, on the calling thread, not by the pool's threads.
+            eq1_batch = functools.partial(_with_pixels, eq1_batch, self._pixels.batch_kernel(), self)
 
         poses, single = _as_poses(T)
         args = self._args()
@@ -516,11 +517,12 @@ def _pixel_free_space(scene: Any, params: LikelihoodParams, voxel_size: float) -
         ramp=params.depth_ramp, window=params.depth_window)
 
 
-def _with_pixels(eq1_batch: Any, lik: PoseLikelihood, poses: NDArray[np.float64],
+def _with_pixels(eq1_batch: Any, free_batch: Any, lik: PoseLikelihood, poses: NDArray[np.float64],
                  *args: Any) -> NDArray[np.float64]:
     """``eq1_batch`` plus the per-pixel free-space charge (same chunking, same threads)."""
     out = eq1_batch(poses, *args)
-    return out + lik._free_charge() * lik._pixels.weighted_sum(poses, lik._points, lik._weights)
+    return out + lik._free_charge() * lik._pixels.weighted_sum(poses, lik._points, lik._weights,
+                                                                kernel=free_batch)
 
 
 def log_likelihood(
