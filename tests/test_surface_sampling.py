@@ -190,9 +190,10 @@ def test_object_from_points_surface_model():
 def test_even_sampling_smooths_eq1_along_the_mugs_hidden_handle_arc():
     # YCB-Video 0000/000002: turning the mug about its body's axis inside the arc where its
     # handle is hidden, the body's share of eq. (1) should barely change. With the voxel
-    # average of points.xyz it jumps by about 5 nats per 2-deg step (uneven azimuthal density,
-    # walls merged in some voxels), with the even surface samples by about 2 (measured 5.3 and
-    # 2.1); eq. (1) is on the same scale (total weight 1139 and 1144).
+    # average of points.xyz it jumps by about 3.5 nats per 2-deg step (uneven azimuthal density,
+    # walls merged in some voxels), with the even surface samples by about half that (measured
+    # 3.5 and 1.7 with the graded free space; 5.3 and 2.1 with the former ungraded one); eq. (1)
+    # is on the same scale (total weight 1139 and 1144).
     import sys
     from pathlib import Path
 
@@ -221,4 +222,4 @@ def test_even_sampling_smooths_eq1_along_the_mugs_hidden_handle_arc():
             vals.append(lik.point_terms(T)[body].sum())
         steps[sampling] = float(np.abs(np.diff(vals)).mean())
         assert lik.total_weight == pytest.approx(1140, rel=0.05)
-    assert steps["surface"] < 3.0 < 4.0 < steps["voxel"], steps
+    assert steps["surface"] < 2.5 and steps["surface"] < 0.6 * steps["voxel"], steps
