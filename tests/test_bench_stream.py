@@ -349,3 +349,60 @@ def test_a_killed_worker_loses_no_row(tmp_path, cluster):
     expected = run_benchmark(config, progress=False, workers=0)
     rows = _rows(path)
     assert len(rows) == 3000 and rows.equals(_rows_of(expected.trials, tmp_path))
+
+
+def _interrupted_in_a_kernel(inst):
+    """What a numba kernel returns when Ctrl-C lands inside it: a SystemError whose cause is
+    the KeyboardInterrupt."""
+    try:
+        raise KeyboardInterrupt
+    except KeyboardInterrupt as ki:
+        raise SystemError("CPUDispatcher(gnc_tls) returned a result with an exception set") from ki
+
+
+def test_ctrl_c_inside_a_kernel_stops_the_run_and_writes_no_failed_row(tmp_path, monkeypatch,
+                                                                       capsys):
+    from certpose.bench import runner
+
+    out = tmp_path / "res"
+    calls = {"n": 0}
+    real = runner.SOLVERS["gnc-only"]
+
+    def solver(inst):
+        calls["n"] += 1
+        if calls["n"] == 3:  # the first two solves finish, the third is interrupted
+            _interrupted_in_a_kernel(inst)
+        return real(inst)
+
+    args = ["bench", "--n", "15", "--outlier-ratios", "0", "0.5", "--trials", "3", "--seed", "4",
+            "--solvers", "gnc-only", "--no-progress", "--workers", "0", "--out", str(out)]
+    runner._ensure_warm(["gnc-only"])  # the warm-up solve would count as a call
+    monkeypatch.setitem(runner.SOLVERS, "gnc-only", solver)
+    assert main(args) == 130
+    err = capsys.readouterr().err.strip()
+    assert "interrupted: 2 new row(s)" in err and "\n" not in err
+    rows = read_rows(out / "trials.csv", TRIAL_COLUMNS)
+    assert len(rows) == 2 and all(r["status"] != "exception" for r in rows)
+
+
+def test_interrupt_found_through_causes_and_contexts():
+    from solvers._interrupt import interrupt_in, reraise_interrupt
+
+    reraise_interrupt(ValueError("plain"))  # nothing to find: returns
+    assert interrupt_in(RuntimeError("x")) is None
+    with pytest.raises(KeyboardInterrupt):
+        try:
+            _interrupted_in_a_kernel(None)
+        except SystemError as exc:
+            reraise_interrupt(exc)
+    # Through __context__ (raised while handling), and a cycle does not loop.
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise ValueError("during handling")  # noqa: B904 - the implicit context is the case
+    except ValueError as exc:
+        assert isinstance(interrupt_in(exc), KeyboardInterrupt)
+        a, b = RuntimeError("a"), RuntimeError("b")
+        a.__context__, b.__context__ = b, a
+        assert interrupt_in(a) is None

@@ -102,6 +102,7 @@ from certpose.bench.suites import (
 )
 from certpose.data.instances import NOISE_BOUND_FACTOR
 from certpose.io.output import write_json
+from solvers._interrupt import reraise_interrupt
 from solvers.lie import rotation_error_deg, translation_error
 from solvers.validation import check_points
 
@@ -505,6 +506,7 @@ def _iter_tasks(
         try:
             insts.append(load_instance(t.spec, shapes, noise))
         except Exception as exc:  # one bad instance (file) must not stop the run
+            reraise_interrupt(exc)
             log.warning("cannot make %s/%s: %s", t.spec.suite, t.spec.instance, exc)
             insts.append(exc)
     with _one_thread_peers(names):
@@ -913,6 +915,7 @@ def _warm_up(solvers: Sequence[str], skipped: dict) -> None:
         except ImportError as exc:
             skipped[name] = f"cannot import its backend ({exc})"
         except Exception as exc:  # reported per trial by the timed runs
+            reraise_interrupt(exc)
             log.warning("warm-up of %s failed: %s", name, exc)
 
 
@@ -943,6 +946,7 @@ def _run_one(name: str, inst: Instance | Exception, spec: InstanceSpec) -> dict[
     try:
         out = SOLVERS[name](inst)
     except Exception as exc:  # a peer failing on one instance must not stop the run
+        reraise_interrupt(exc)
         elapsed = time.perf_counter() - t0
         log.warning("%s failed on %s/%s: %s", name, spec.suite, spec.instance, exc)
         rec.update(fail, time_ms=elapsed * 1e3, error=f"{type(exc).__name__}: {exc}")

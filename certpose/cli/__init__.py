@@ -185,7 +185,14 @@ def main(argv: Sequence[str] | None = None, *, _startup_gc_paused: bool = False)
         return EXIT_USAGE
     prefix = f"certpose {args.command}: error:"
     try:
-        return int(args.func(args) or 0)
+        try:
+            return int(args.func(args) or 0)
+        except Exception as exc:
+            # Ctrl-C inside a compiled kernel can surface as another error (SystemError).
+            from solvers._interrupt import reraise_interrupt
+
+            reraise_interrupt(exc)
+            raise
     except KeyboardInterrupt:
         print(f"certpose {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -485,6 +485,7 @@ def certify_eq2(
     """
     from dataclasses import replace
 
+    from solvers._interrupt import reraise_interrupt
     from solvers.certify import certify_result
 
     try:
@@ -492,6 +493,7 @@ def certify_eq2(
         certified = certify_result(eq2.problem, result, time_limit=time_limit)
         result = replace(result, info={**result.info, "certify_time": time.perf_counter() - t0})
     except Exception as exc:  # a failing backend must not lose the pose
+        reraise_interrupt(exc)
         msg = f"certification failed: {type(exc).__name__}: {exc}"
         log.warning("eq. (2): %s", msg)
         return replace(result, info={**result.info, "certificate_message": msg})
