@@ -187,10 +187,7 @@ class LikelihoodParams:
         if self.free_space not in ("voxels", "pixels", "auto"):
             raise ValueError(
                 f"`free_space` must be 'voxels', 'pixels' or 'auto', got {self.free_space!r}.")
-        defaults = {f.name: f.default for f in fields(self)}
-        if self.free_space == "pixels" and any(
-                getattr(self, f) != defaults[f]
-                for f in ("free_space_tolerance", "free_space_ramp", "free_space_from")):
+        if self.free_space == "pixels" and self.voxel_grading_changed:
             raise ValueError(
                 "`free_space_tolerance`, `free_space_ramp` and `free_space_from` grade the voxel "
                 "grid's free space; with free_space='pixels' use `depth_tolerance` and `depth_ramp`."
@@ -201,6 +198,14 @@ class LikelihoodParams:
             raise ValueError(
                 f"`free_space_erosion` must be a non-negative integer, got {self.free_space_erosion}."
             )
+
+    @property
+    def voxel_grading_changed(self) -> bool:
+        """Whether an option grading the voxel grid's free space (``free_space_tolerance``,
+        ``free_space_ramp``, ``free_space_from``) differs from its default."""
+        defaults = {f.name: f.default for f in fields(self)}
+        return any(getattr(self, f) != defaults[f]
+                   for f in ("free_space_tolerance", "free_space_ramp", "free_space_from"))
 
 
 def _morton_order(points: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
@@ -498,10 +503,7 @@ def resolve_free_space(params: LikelihoodParams, scene: Any) -> LikelihoodParams
     default, ``"voxels"`` otherwise. Other values are returned unchanged."""
     if params.free_space != "auto":
         return params
-    defaults = {f.name: f.default for f in fields(LikelihoodParams)}
-    graded = any(getattr(params, f) != defaults[f]
-                 for f in ("free_space_tolerance", "free_space_ramp", "free_space_from"))
-    pixels = bool(getattr(scene, "frames", ())) and not graded
+    pixels = bool(getattr(scene, "frames", ())) and not params.voxel_grading_changed
     return replace(params, free_space="pixels" if pixels else "voxels")
 
 
