@@ -12,7 +12,9 @@ the diameter), rotation error and flips (more than 150 degrees off, non-symmetri
 ``ycbv_eval.py`` reports them. Each pair also reports eq. (1) at the returned pose against the
 ground truth refined locally on the same eq. (1) (as ``bench_basins.py``): a gap below -1 nat
 is a missed basin (the search's fault); a refined truth below a wrong returned pose means the
-likelihood prefers the wrong pose (the model's fault). The raw eq. (2) pose (item 2) is scored
+likelihood prefers the wrong pose (the model's fault); the gap is split into its parts (they sum
+to it): classifier and free space, the shape block of the similarity, and the colour block on
+the model points some view saw and on those none saw (``gap_terms``). The raw eq. (2) pose (item 2) is scored
 too, and whether the eq. (2) hypothesis won.
 
 Object models (``--models``):
@@ -87,6 +89,28 @@ def appearance_model(root: Path, scene: str, name: str, holders: dict[str, list[
     return cache[key]
 
 
+def eq1_terms(lik, obj, observed, shape_dim: int, T: np.ndarray) -> dict[str, float]:
+    """Eq. (1) at pose ``T`` split into its parts (they sum to it): the classifier and free-space
+    terms (``beta = 0``), the shape block of the similarity, and the colour block on the model
+    points some view saw and on those no view saw (the builder's ``unseen`` descriptor)."""
+    from certpose.geometry.objects import ObjectModel
+
+    base = lik.with_object(obj, params=replace(lik.params, beta=0.0)).point_terms(T)
+
+    def sim(cols: slice, rows: np.ndarray) -> float:
+        z = np.zeros_like(obj.descriptors)
+        z[np.ix_(rows, np.arange(z.shape[1])[cols])] = obj.descriptors[np.ix_(
+            rows, np.arange(z.shape[1])[cols])]
+        part = ObjectModel(obj.points, z, obj.colors, obj.normals, obj.name, obj.areas)
+        return float((lik.with_object(part).point_terms(T) - base).sum())
+
+    everyone = np.ones(len(observed), dtype=bool)
+    return {"classifier_free_space": float(base.sum()),
+            "shape": sim(slice(0, shape_dim), everyone),
+            "colour_seen": sim(slice(shape_dim, None), observed),
+            "colour_unseen": sim(slice(shape_dim, None), ~observed)}
+
+
 def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: int,
              classifier: str = "best_buddies") -> dict:
     """One pair; errors against the ground truth, eq. (1) gap, the classifier against the label."""
@@ -118,6 +142,14 @@ def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: i
     T_wc = res.T_world_camera
     T_ref, ll_ref, _ = refine_pose(lik, T_wc @ res.T_camera_object_gt, scale=obj.radius)
     ll_ret = float(lik.log_likelihood(T_wc @ res.T_camera_object))
+    # Where the gap comes from (item 1: which part of the likelihood prefers a wrong pose).
+    observed = (object_model.observed if object_model is not None
+                else np.ones(len(obj.points), dtype=bool))
+    bb = res.scene.backbone
+    shape_dim = obj.descriptors.shape[1] - (int(bb.hue_bins) + 2 if hasattr(bb, "hue_bins") else 0)
+    t_ret = eq1_terms(lik, obj, observed, shape_dim, T_wc @ res.T_camera_object)
+    t_ref = eq1_terms(lik, obj, observed, shape_dim, T_ref)
+    gap_terms = {k: t_ret[k] - t_ref[k] for k in t_ret}
     e_ref = pose_errors(np.linalg.inv(T_wc) @ T_ref, res.T_camera_object_gt, pts,
                         symmetry_axis=YCBV_SYMMETRY_AXES.get(name))
     # The raw eq. (2) pose (item 2: the solver's, or the certifier's better one).
@@ -153,6 +185,7 @@ def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: i
         "flip": name not in SYMMETRIC and e.rotation_deg > 150.0,
         "log_likelihood": float(res.log_likelihood),
         "eq1_returned": ll_ret, "eq1_truth_refined": float(ll_ref), "gap": ll_ret - float(ll_ref),
+        "gap_terms": gap_terms,
         "refined_truth_adds_cm": 100 * e_ref.add_s, "refined_truth_rot_deg": e_ref.rotation_deg,
         "eq2_raw_adds_cm": math.nan if e_eq2 is None else 100 * e_eq2.add_s,
         "eq2_raw_rot_deg": math.nan if e_eq2 is None else e_eq2.rotation_deg,
@@ -229,10 +262,13 @@ def main(argv: list[str] | None = None) -> int:
         row = run_pair(args.ycbv, frame, name, params, model, seed=args.seed,
                        classifier=args.classifier.replace("-", "_"))
         rows.append(row)
+        g = row["gap_terms"]
         print(f"{row['case']:34s} ADD-S {row['adds_cm']:6.2f} cm  ADD {row['add_cm']:6.2f} cm  "
               f"rot {row['rot_deg']:6.1f} deg{' (sym)' if row['symmetric'] else '      '} | "
               f"p_O: {row['positives']:4d} buddies, precision {row['precision']:.2f} | "
-              f"gap {row['gap']:+7.1f} nats (truth ref. rot {row['refined_truth_rot_deg']:5.1f}) | "
+              f"gap {row['gap']:+7.1f} nats (truth ref. rot {row['refined_truth_rot_deg']:5.1f}; "
+              f"classifier/free {g['classifier_free_space']:+.0f}, shape {g['shape']:+.0f}, colour "
+              f"seen {g['colour_seen']:+.0f}, unseen {g['colour_unseen']:+.0f}) | "
               f"{row['hypothesis']} | eq. (2) raw ADD-S {row['eq2_raw_adds_cm']:.2f} cm, "
               f"{'near the winner' if row['eq2_near_winner'] else 'not near'}, "
               f"{row['eq2_inliers_at_truth']}/{row['eq2_n']} inliers at the truth"

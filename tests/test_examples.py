@@ -111,6 +111,11 @@ def test_bench_box_on_a_real_frame(tmp_path: Path) -> None:
     assert row["classifier"] == "mask" and row["precision"] == 1.0
     assert row["eq1_returned"] == pytest.approx(row["log_likelihood"], abs=1e-3)
     assert row["gap"] == pytest.approx(row["eq1_returned"] - row["eq1_truth_refined"])
+    # The gap's parts (classifier and free space, shape, colour on seen and unseen points) sum
+    # to it, and a model with appearance has colour on both kinds of points.
+    terms = row["gap_terms"]
+    assert set(terms) == {"classifier_free_space", "shape", "colour_seen", "colour_unseen"}
+    assert sum(terms.values()) == pytest.approx(row["gap"], abs=1e-3)
     assert isinstance(row["flip"], bool) and "flips" in proc.stdout
 
 
@@ -191,6 +196,11 @@ def test_bench_basins_on_a_real_frame(tmp_path: Path) -> None:
     assert row["eq1_truth_refined"] >= row["eq1_truth"] - 1e-6
     assert row["refined_truth_adds_cm"] < 1.0
     assert row["gap"] == pytest.approx(row["eq1_returned"] - row["eq1_truth_refined"])
+    # The gap's parts (classifier and free space, shape, colour on seen and unseen points) sum
+    # to it, and a model with appearance has colour on both kinds of points.
+    terms = row["gap_terms"]
+    assert set(terms) == {"classifier_free_space", "shape", "colour_seen", "colour_unseen"}
+    assert sum(terms.values()) == pytest.approx(row["gap"], abs=1e-3)
     assert "pairs 1 |" in proc.stdout
 
 
