@@ -187,7 +187,20 @@ class AppearanceBackbone:
     left: the mustard bottle in scene 0050 built from 0002, whose camera saw only its other side
     (2-3% of the points 0050 sees were seen), turns in 1-2 of 3 frames and eq. (1) prefers the
     turn by 12-42 nats (more with more colour); the other misses are missed basins (the refined
-    truth scores 40-900 nats better: the search, not the model).
+    truth scores 40-900 nats better: the search, not the model). Measured again on today's eq. (1)
+    (graded free space; ``bench_box.py --models appearance --classifier mask --seed 0``, whose
+    ``gap_terms`` split the gap): the mustard bottle turns in 3 of 3 frames of 0050, eq. (1)
+    preferring the turn by 140-152 nats = classifier and free space +33..+47 (the turn puts about
+    20 more points on the mask), shape +8..+9, colour +97..+104 (seen points +473..+479, unseen
+    -375..-380). The data hold little to tell the two apart (frames 1 and 10, truth and turn each
+    refined locally on the eq. (1) in question): with the colour block zeroed the
+    turn still wins by 39-55 nats, a geometry-only model returns the turn too (by 5-17 nats), and
+    a model built from 0050's own views (a diagnostic, never an evaluation) puts the truth ahead
+    by only 5-9 nats. Not fixed by: ``unseen="palette"`` (turn ahead by 105-111), colour radius
+    0.75 or 3 cm, 24 hue bins, linear instead of square-rooted histograms, visibility up to 89
+    degrees or 2 cm depth tolerance, unseen colour the log-mean-exp of the seen palette
+    (121-125), unseen colour extrapolated from seen neighbours (151-162), ``w = 0.5``, scale 1
+    (56-68).
 
     Parameters
     ----------
