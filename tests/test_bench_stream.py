@@ -386,7 +386,7 @@ def test_ctrl_c_inside_a_kernel_stops_the_run_and_writes_no_failed_row(tmp_path,
 
 
 def test_interrupt_found_through_causes_and_contexts():
-    from solvers._interrupt import interrupt_in, reraise_interrupt
+    from solvers.interrupt import interrupt_in, reraise_interrupt
 
     reraise_interrupt(ValueError("plain"))  # nothing to find: returns
     assert interrupt_in(RuntimeError("x")) is None

@@ -102,7 +102,7 @@ from certpose.bench.suites import (
 )
 from certpose.data.instances import NOISE_BOUND_FACTOR
 from certpose.io.output import write_json
-from solvers._interrupt import reraise_interrupt
+from solvers.interrupt import reraise_interrupt
 from solvers.lie import rotation_error_deg, translation_error
 from solvers.validation import check_points
 

@@ -189,7 +189,7 @@ def main(argv: Sequence[str] | None = None, *, _startup_gc_paused: bool = False)
             return int(args.func(args) or 0)
         except Exception as exc:
             # Ctrl-C inside a compiled kernel can surface as another error (SystemError).
-            from solvers._interrupt import reraise_interrupt
+            from solvers.interrupt import reraise_interrupt
 
             reraise_interrupt(exc)
             raise

@@ -485,8 +485,8 @@ def certify_eq2(
     """
     from dataclasses import replace
 
-    from solvers._interrupt import reraise_interrupt
     from solvers.certify import certify_result
+    from solvers.interrupt import reraise_interrupt
 
     try:
         t0 = time.perf_counter()
