@@ -31,6 +31,7 @@ usage::
     python examples/bench_calibration.py --appearance --cache calib-cache     # default temperature
     python examples/bench_calibration.py --appearance --cache calib-cache --fit 0000,0002
     python examples/bench_calibration.py --appearance --scales 0.5 1 2 4 --out calib.jsonl
+    python examples/bench_calibration.py --appearance --cache calib-cache --calibrated --loso
 """
 
 from __future__ import annotations
@@ -43,7 +44,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 SYMMETRIC = {"002_master_chef_can", "024_bowl", "036_wood_block", "040_large_marker",
              "051_large_clamp", "052_extra_large_clamp", "061_foam_brick"}
@@ -214,51 +214,13 @@ def calibrated_level(info: dict, basins, params, draws: int = 4000) -> float:  #
     return d.credible_level(_equivalents(info["T_truth"], info["symmetric"]), draws=draws)
 
 
-def fit_calibration(pairs: list[tuple[dict, object]], temperatures=(30, 50, 100, 150, 200, 300, 500, 1e3, np.inf),  # noqa: ANN001, ANN201
-                    dofs=(np.inf, 5.0, 3.0)):
-    """:class:`CalibrationParams` fitted on ``pairs`` (training pairs: info, basins).
+def fit_calibration(pairs: list[tuple[dict, object]]):  # noqa: ANN201
+    """:func:`certpose.sampling.calibration.fit_calibration` on training ``pairs`` (info, basins),
+    the truth taken at its equivalents (symmetric objects): (params, right-basin pairs, table)."""
+    from certpose.sampling.calibration import fit_calibration as fit
 
-    The model error's scales from the truth's offsets to its nearest basin (pairs where that basin
-    is within 30 deg: a right basin): for an isotropic 3-D error with ``nu`` degrees of freedom
-    ``|offset|^2 / sigma^2 ~ 3 F(3, nu)`` (``chi2_3`` for a Gaussian), so
-    ``sigma = sqrt(median |offset|^2 / (3 F.ppf(0.5; 3, nu)))``, separately for rotation and
-    translation. Then the basin temperature and ``nu`` from a grid: the pair whose truth levels
-    on the training pairs come closest to uniform at 0.5 and 0.9
-    (``|in 90% - 0.9| + |in 50% - 0.5|``; of those within ``TIE`` of the best, the sharpest).
-    """
-    from scipy.stats import f as f_dist
-
-    from certpose.sampling.calibration import CalibrationParams
-
-    w2, t2 = [], []
-    for info, b in pairs:
-        eqs = _equivalents(info["T_truth"], info["symmetric"])
-        best = None
-        for T in eqs:
-            for B in b.poses:
-                w = np.linalg.norm(Rotation.from_matrix(B[:3, :3].T @ T[:3, :3]).as_rotvec())
-                d = np.linalg.norm(T[:3, 3] - B[:3, 3])
-                if best is None or w + d / 0.01 * np.radians(1) < best[0] + best[1] / 0.01 * np.radians(1):
-                    best = (w, d)
-        if best[0] < np.radians(30):
-            w2.append(best[0] ** 2)
-            t2.append(best[1] ** 2)
-    fits, table = [], []
-    for nu in dofs:
-        q = 3 * f_dist.ppf(0.5, 3, nu) if np.isfinite(nu) else 3 * f_dist.ppf(0.5, 3, 1e9)
-        for tb in temperatures:
-            p = CalibrationParams(rotation_sigma=float(np.sqrt(np.median(w2) / q)),
-                                  translation_sigma=float(np.sqrt(np.median(t2) / q)),
-                                  basin_temperature=float(tb), dof=float(nu))
-            lv = np.array([calibrated_level(info, b, p, draws=1000) for info, b in pairs])
-            loss = abs(np.mean(lv <= 0.9) - 0.9) + abs(np.mean(lv <= 0.5) - 0.5)
-            table.append((nu, tb, float(np.mean(lv <= 0.9)), float(np.mean(lv <= 0.5))))
-            fits.append((loss, p))
-    # Among the fits within TIE of the best (Monte Carlo noise of the levels: 1,000 draws), the
-    # sharpest: the lowest basin temperature, then the most degrees of freedom.
-    best = min(f[0] for f in fits)
-    ties = [p for loss, p in fits if loss <= best + TIE]
-    return min(ties, key=lambda p: (p.basin_temperature, -p.dof)), len(w2), table
+    res = fit([(b, _equivalents(info["T_truth"], info["symmetric"])) for info, b in pairs], tie=TIE)
+    return res.params, res.num_right, res.table
 
 
 def _level(row: dict, name: str, key: str = "levels") -> float:
@@ -276,6 +238,7 @@ def summarise(rows: list[dict], names: list[str], title: str = "") -> None:
         "symmetric (best equivalent)": [r for r in rows if r["symmetric"]],
         "geometry-only models": [r for r in rows if r["model"] == "geometry"],
         "appearance models": [r for r in rows if r["model"] == "appearance"],
+        **{f"scene {sc}": [r for r in rows if r["scene"] == sc] for sc in sorted({r["scene"] for r in rows})},
         "all": rows,
     }
     for gname, rs in groups.items():
@@ -297,7 +260,8 @@ def summarise(rows: list[dict], names: list[str], title: str = "") -> None:
 
 def run_calibrated(args, jobs: list, infos: list[dict], fit_scenes: set[str]) -> None:  # noqa: ANN001
     """``--calibrated``: basins per pair (cached), parameters fitted on ``fit_scenes`` (or the
-    library's defaults), the other scenes' truth levels under the calibrated distribution."""
+    library's defaults; with ``--loso`` each scene in turn is scored with the parameters fitted
+    on the others), the held-out scenes' truth levels under the calibrated distribution."""
     from certpose.sampling.calibration import CalibrationParams
 
     pairs = []
@@ -305,30 +269,41 @@ def run_calibrated(args, jobs: list, infos: list[dict], fit_scenes: set[str]) ->
         b_path = args.cache / (info["case"].replace("/", "-").replace(" ", "-") + f"-{info['model']}-basins.pkl")
         lik = None if b_path.exists() else prepare_pair(args.data, frame, obj, om, args.cache)[0]
         pairs.append((info, pair_basins(lik, info, args.cache)))
-    if fit_scenes:
-        params, n_right, table = fit_calibration([pi for pi in pairs if pi[0]["scene"] in fit_scenes])
-        print(f"fitted on {sorted(fit_scenes)} ({n_right} right-basin pairs for the model error): "
-              f"rotation_sigma {np.degrees(params.rotation_sigma):.2f} deg, translation_sigma "
-              f"{1000 * params.translation_sigma:.2f} mm, basin_temperature {params.basin_temperature:g}, "
-              f"dof {params.dof:g}")
-        for nu, tb, f90, f50 in table:
-            print(f"  training pairs at dof {nu:g}, basin temperature {tb:g}: in 90% {f90:.2f}, in 50% {f50:.2f}")
-        pairs = [pi for pi in pairs if pi[0]["scene"] not in fit_scenes]
-        name = "fit"
+    scenes = sorted({info["scene"] for info, _ in pairs})
+    if args.loso:
+        folds = [(set(scenes) - {sc}, {sc}) for sc in scenes]
+    elif fit_scenes:
+        folds = [(fit_scenes, set(scenes) - fit_scenes)]
     else:
-        params, name = CalibrationParams(), "default"
+        folds = [(set(), set(scenes))]
+    name = "fit" if (fit_scenes or args.loso) else "default"
     rows = []
-    for info, b in pairs:
-        row = {k: v for k, v in info.items() if k not in ("seeds", "T_truth")}
-        row.update(levels={name: round(calibrated_level(info, b, params), 4)}, kde_levels={name: np.nan},
-                   ess={name: np.inf}, sampling_s={name: 0.0}, temperature={name: params.basin_temperature},
-                   num_basins=len(b.poses))
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-        if args.out is not None:
-            with open(args.out, "a") as fh:
-                fh.write(json.dumps(row) + "\n")
-    summarise(rows, [name], f"calibrated distribution ({'held out, fit on ' + args.fit if fit_scenes else 'defaults'})")
+    for train, test in folds:
+        if train:
+            params, n_right, table = fit_calibration([pi for pi in pairs if pi[0]["scene"] in train])
+            print(f"fitted on {sorted(train)} ({n_right} right-basin pairs for the model error): "
+                  f"rotation_sigma {np.degrees(params.rotation_sigma):.2f} deg, translation_sigma "
+                  f"{1000 * params.translation_sigma:.2f} mm, basin_temperature {params.basin_temperature:g}, "
+                  f"dof {params.dof:g}", flush=True)
+            for nu, tb, f90, f50 in table:
+                print(f"  training pairs at dof {nu:g}, basin temperature {tb:g}: in 90% {f90:.2f}, in 50% {f50:.2f}")
+        else:
+            params = CalibrationParams()
+        for info, b in pairs:
+            if info["scene"] not in test:
+                continue
+            row = {k: v for k, v in info.items() if k not in ("seeds", "T_truth")}
+            row.update(levels={name: round(calibrated_level(info, b, params), 4)}, kde_levels={name: np.nan},
+                       ess={name: np.inf}, sampling_s={name: 0.0}, temperature={name: params.basin_temperature},
+                       num_basins=len(b.poses), fitted_on=sorted(train))
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+            if args.out is not None:
+                with open(args.out, "a") as fh:
+                    fh.write(json.dumps(row) + "\n")
+    how = ("held out, each scene fitted on the others" if args.loso else
+           f"held out, fit on {args.fit}" if fit_scenes else "defaults")
+    summarise(rows, [name], f"calibrated distribution ({how})")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -342,6 +317,9 @@ def main(argv: list[str] | None = None) -> None:
                     help="multiples of the library's default temperature rule")
     ap.add_argument("--fit", default="", metavar="SCENES",
                     help="fit the rule's scale on these scenes' pairs and sample only the others")
+    ap.add_argument("--loso", action="store_true",
+                    help="with --calibrated: leave one scene out (fit on the other scenes, score it; "
+                         "every pair held out once)")
     ap.add_argument("--calibrated", action="store_true",
                     help="score certpose.sampling.calibration's distribution (basins, model error) "
                          "instead of the sampler at a temperature")

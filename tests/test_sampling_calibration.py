@@ -15,6 +15,7 @@ from certpose.sampling.calibration import (
     CalibrationParams,
     calibrated_distribution,
     find_basins,
+    fit_calibration,
 )
 from certpose.sampling.sampler import ISParams, importance_sample
 
@@ -131,3 +132,58 @@ def test_find_basins_on_the_demo_finds_the_flips():
     assert d.credible_level(gt) <= 0.9
     no_flips = find_basins(lik, seeds, flips=False)
     assert len(no_flips.poses) <= len(b.poses)
+
+
+def _cases_with_known_error(n, sr, st, rng):
+    """``n`` one-basin cases whose truths are their basins moved by a Gaussian model error of
+    ``sr`` rad and ``st`` m per axis (a tight Laplace covariance: the error dominates)."""
+    cases = []
+    C = np.diag([np.radians(0.2) ** 2] * 3 + [1e-4**2] * 3)
+    for _ in range(n):
+        B = _pose(np.hstack([rng.normal(0, 1, 3), rng.normal(0, 0.2, 3)]))
+        e = _pose(np.hstack([rng.normal(0, sr, 3), np.zeros(3)]))
+        T = B @ e
+        T[:3, 3] += rng.normal(0, st, 3)
+        cases.append((Basins(B[None], np.zeros(1), C[None], 10.0), T))
+    return cases
+
+
+def test_fit_calibration_recovers_a_known_model_error():
+    sr, st = math.radians(3.0), 0.002
+    cases = _cases_with_known_error(120, sr, st, np.random.default_rng(3))
+    fit = fit_calibration(cases, basin_temperatures=(math.inf,), dofs=(math.inf,), draws=400)
+    # Median-based scale estimates of 120 chi2_3 draws: about 5% standard error.
+    assert fit.params.rotation_sigma == pytest.approx(sr, rel=0.15)
+    assert fit.params.translation_sigma == pytest.approx(st, rel=0.15)
+    assert fit.num_right == 120 and len(fit.table) == 1
+    # The fitted distribution is calibrated on its own training cases.
+    _, _, in90, in50 = fit.table[0]
+    assert abs(in90 - 0.9) < 0.1 and abs(in50 - 0.5) < 0.12
+    # A symmetric object's equivalents: the best one counts, a far decoy changes nothing.
+    far = _pose(np.array([0, 0, 0, 1.0, 0, 0]))
+    decoyed = [(b, np.stack([T, far])) for b, T in cases[:20]]
+    assert fit_calibration(decoyed, basin_temperatures=(math.inf,), dofs=(math.inf,), draws=400).params \
+        == fit_calibration(cases[:20], basin_temperatures=(math.inf,), dofs=(math.inf,), draws=400).params
+
+
+def test_fit_calibration_prefers_the_sharpest_tied_basin_temperature():
+    rng = np.random.default_rng(4)
+    cases = _cases_with_known_error(30, math.radians(3.0), 0.002, rng)
+    # A half-turned, much worse extra basin per case: basin temperatures up to 1e3 give it no mass
+    # (1e4 nats down) and "inf" half the mass, which moves no level (the two components are
+    # congruent): every fit ties, and the sharpest (lowest) temperature wins, whatever the order.
+    flip = _pose(np.array([math.pi, 0, 0, 0, 0, 0]))
+    two = [(Basins(np.stack([b.poses[0], b.poses[0] @ flip]), np.array([0.0, -1e4]),
+                   np.repeat(b.laplace_covariances, 2, axis=0), 10.0), T) for b, T in cases]
+    fit = fit_calibration(two, basin_temperatures=(1e3, math.inf, 100.0), dofs=(math.inf,), draws=400)
+    assert fit.params.basin_temperature == 100.0
+    assert [r[1] for r in fit.table] == [1e3, math.inf, 100.0]
+
+
+def test_fit_calibration_bad_inputs():
+    with pytest.raises(ValueError, match="cases"):
+        fit_calibration([])
+    far = [(b, _pose(np.array([0, 0, 2.0, 0, 0, 0]))) for b, _ in
+           _cases_with_known_error(3, 0.05, 0.002, np.random.default_rng(0))]
+    with pytest.raises(ValueError, match="right_basin_deg"):
+        fit_calibration(far, right_basin_deg=30.0)

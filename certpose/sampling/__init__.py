@@ -8,8 +8,10 @@ never the CLI or the bench.
 from certpose.sampling.baselines import DEParams, MCMCParams, SamplerResult, de_sample, mcmc_sample
 from certpose.sampling.calibration import (
     CalibratedDistribution,
+    CalibrationFit,
     CalibrationParams,
     calibrated_distribution,
+    fit_calibration,
 )
 from certpose.sampling.distribution import PoseDistribution, PoseMode
 from certpose.sampling.sampler import (
@@ -20,6 +22,6 @@ from certpose.sampling.sampler import (
     sample_pose_distribution,
 )
 
-__all__ = ["CalibratedDistribution", "CalibrationParams", "DEParams", "ISParams", "ISResult", "MCMCParams", "PoseDistribution", "PoseMode",
-           "SamplerResult", "TangentMixture", "calibrated_distribution", "de_sample", "importance_sample", "mcmc_sample",
-           "sample_pose_distribution"]
+__all__ = ["CalibratedDistribution", "CalibrationFit", "CalibrationParams", "DEParams", "ISParams", "ISResult", "MCMCParams", "PoseDistribution", "PoseMode",
+           "SamplerResult", "TangentMixture", "calibrated_distribution", "de_sample", "fit_calibration", "importance_sample",
+           "mcmc_sample", "sample_pose_distribution"]
