@@ -30,6 +30,9 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve()
+#: BOP's symmetric YCB-V objects (as ``../shared/tools/ycbv_eval.py``): no flip to report.
+SYMMETRIC = {"002_master_chef_can", "024_bowl", "036_wood_block", "040_large_marker",
+             "051_large_clamp", "052_extra_large_clamp", "061_foam_brick"}
 
 
 def pairs(root: Path, scenes: list[str], frames: list[str] | None, objects: list[str] | None,
@@ -79,6 +82,10 @@ def diagnose(root: Path, frame: str, name: str, *, seed: int = 0, free_space: st
     err = pose_errors(mle.T_scene_object, T_gt, points, symmetry_axis=axis).to_dict()
     err_ref = pose_errors(T_ref, T_gt, points, symmetry_axis=axis).to_dict()
     gap = ll_ret - float(ll_ref)
+    # Issue 10's geometry-only target: where a flip ties, the truth is among the reported modes.
+    mode_err = [pose_errors(m.T_scene_object, T_gt, points, symmetry_axis=axis).to_dict()
+                for m in mle.modes] or [err]
+    k = int(np.argmin([e["rotation_deg"] for e in mode_err]))
     return {
         "case": f"{frame} {name}", "eq1_returned": ll_ret, "eq1_truth": float(lik.log_likelihood(T_gt)),
         "eq1_truth_refined": float(ll_ref), "gap": gap,
@@ -87,6 +94,11 @@ def diagnose(root: Path, frame: str, name: str, *, seed: int = 0, free_space: st
         "adds_cm": 100 * err["add_s"], "rot_deg": err["rotation_deg"],
         "refined_truth_adds_cm": 100 * err_ref["add_s"],
         "refined_truth_rot_deg": err_ref["rotation_deg"],
+        "symmetric": name in SYMMETRIC, "modes": len(mle.modes),
+        "mode_window": float(params.mle.mode_window),
+        "truth_mode_rot_deg": mode_err[k]["rotation_deg"],
+        "truth_mode_adds_cm": 100 * mode_err[k]["add_s"],
+        "truth_in_modes": bool(mode_err[k]["rotation_deg"] <= 10.0 and mode_err[k]["add_s"] <= 0.01),
     }
 
 
@@ -117,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         print(f"{row['case']:32s} gap {row['gap']:+9.1f} nats ({row['verdict']:12s}) "
               f"ADD-S {row['adds_cm']:6.2f} cm rot {row['rot_deg']:6.1f} deg | refined truth "
-              f"ADD-S {row['refined_truth_adds_cm']:5.2f} cm | {row['hypothesis']}", flush=True)
+              f"ADD-S {row['refined_truth_adds_cm']:5.2f} cm | {row['hypothesis']} | {row['modes']} "
+              f"mode(s), nearest the truth {row['truth_mode_rot_deg']:.0f} deg", flush=True)
         if args.json:
             with args.json.open("a") as f:
                 f.write(json.dumps(row) + "\n")
@@ -126,6 +139,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"pairs {len(rows)} | returned eq. (1) >= refined truth - 1 nat: {ok}/{len(rows)} "
               f"({ok / len(rows):.2f}; target >= 0.95) | median MLE "
               f"{float(np.median([r['mle_s'] for r in rows])):.2f} s")
+        # Non-symmetric pairs returned flipped (more than 150 deg off, as ycbv_eval counts flips)
+        # whose refined truth is within the mode window of the returned pose (a tie): is the
+        # truth among the reported modes?
+        wrong = [r for r in rows if not r["symmetric"] and r["rot_deg"] > 150.0]
+        ties = [r for r in wrong if r["gap"] <= r["mode_window"]]
+        found = sum(r["truth_in_modes"] for r in ties)
+        print(f"non-symmetric pairs flipped (> 150 deg): {len(wrong)}; of them ties (refined truth "
+              f"within the {rows[0]['mode_window']:g}-nat mode window): {len(ties)}, truth among "
+              f"the reported modes in {found}/{len(ties)}; off by more than the window: "
+              f"{len(wrong) - len(ties)}")
     return 0 if all(math.isfinite(r["gap"]) for r in rows) else 1
 
 
