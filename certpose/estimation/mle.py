@@ -200,6 +200,8 @@ def coarse_search(
     num_rotations: int = 1024,
     offsets: ArrayLike = (-0.15, 0.0, 0.15),
     viewing_direction: ArrayLike | None = None,
+    evidence: ArrayLike | None = None,
+    align_iterations: int = 3,
     rng: np.random.Generator | int | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Evaluate eq. (1) on a batch of poses around ``centre``.
@@ -207,9 +209,35 @@ def coarse_search(
     Poses: ``num_rotations`` uniformly random rotations. With a ``viewing_direction`` (camera
     to ``centre``) and model normals, each rotation's translation puts the centroid of the
     model points that would face the camera on ``centre`` (the centroid of what the camera
-    sees of the object); without them, the object's centroid goes on ``centre``. Each
-    translation is then shifted by ``radius * (a, b, c)`` for every ``a, b, c`` in ``offsets``
-    (a 3-D grid of translations per rotation).
+    sees of the object); without them, the object's centroid goes on ``centre``. With
+    ``evidence`` as well, each translation then slides so that the facing points fit the
+    evidence (:func:`_align_translations`): when an occluder hides part of the object, the
+    centroid of what is seen lies several centimetres from that of the facing side (measured:
+    the YCB-Video bowl in scene 0049, 4 cm, three times the offsets' reach, so no pose near
+    the truth was tried). Each translation is then shifted by ``radius * (a, b, c)`` for every
+    ``a, b, c`` in ``offsets`` (a 3-D grid of translations per rotation).
+
+    Parameters
+    ----------
+    likelihood : PoseLikelihood
+        The eq. (1) to evaluate (callable on ``(B, 4, 4)`` poses).
+    object_model : ObjectModel
+        The object points (and normals) placed by the poses.
+    centre : (3,) array_like
+        Where the seen part of the object is, scene frame, metres.
+    num_rotations : int
+        Random rotations.
+    offsets : array_like of float
+        Translation offsets per axis, in object radii.
+    viewing_direction : (3,) array_like, optional
+        Camera to ``centre``.
+    evidence : (M, 3) array_like, optional
+        Scene points (metres) on the seen surface of the object, e.g. a sample of the
+        classifier's positive voxels near ``centre``; used only with ``viewing_direction``
+        and model normals.
+    align_iterations : int
+        Point-to-plane steps of the alignment to ``evidence`` (0: none).
+    rng : numpy Generator, int or None
 
     Returns
     -------
@@ -233,6 +261,12 @@ def coarse_search(
         count = np.maximum(facing.sum(axis=1, keepdims=True), 1)
         anchors = (facing.astype(np.float64) @ P) / count
     base = c - np.einsum("bij,bj->bi", R, anchors)  # (B, 3)
+    if evidence is not None and viewing_direction is not None and object_model.normals is not None:
+        E = np.asarray(evidence, dtype=np.float64).reshape(-1, 3)
+        if len(E) and int(align_iterations) > 0:
+            base = _align_translations(R, base, P, object_model.normals, facing, E,
+                                       iterations=int(align_iterations),
+                                       max_distance=object_model.radius)
     o = np.asarray(offsets, dtype=np.float64).reshape(-1) * object_model.radius
     shifts = np.stack(np.meshgrid(o, o, o, indexing="ij"), axis=-1).reshape(-1, 3)
     poses = np.zeros((R.shape[0], shifts.shape[0], 4, 4))
@@ -241,6 +275,43 @@ def coarse_search(
     poses[:, :, :3, 3] = base[:, None, :] + shifts[None, :, :]
     poses = poses.reshape(-1, 4, 4)
     return poses, np.asarray(likelihood(poses))
+
+
+def _align_translations(R: NDArray[np.float64], t: NDArray[np.float64], P: NDArray[np.float64],
+                        normals: NDArray[np.float64], facing: NDArray[np.bool_],
+                        E: NDArray[np.float64], *, iterations: int,
+                        max_distance: float) -> NDArray[np.float64]:
+    """Translations ``t`` (B, 3) slid so that the facing model points ``R_b P`` fit ``E``.
+
+    Translation-only point-to-plane ICP from the evidence to its nearest facing point (evidence
+    to model: what is seen is a part of the model, not the other way round); pairs farther
+    than ``max_distance`` are dropped. Point-to-point converges slowly along curved surfaces
+    (measured: the YCB-Video bowl, 1-3 cm off after 10 steps against 0.2-0.4 cm after 3). The
+    ridge term keeps directions the normals do not constrain (a flat face slides freely) at
+    the anchor.
+    """
+    # float32 about the evidence's mean (centimetre-scale values, no cancellation): the
+    # distances are the cost here, about 4M per step.
+    o = E.mean(axis=0)
+    Ef = (E - o).astype(np.float32)
+    Rp = (P @ R.transpose(0, 2, 1)).astype(np.float32)  # (B, N, 3) model points, rotated
+    Rn = normals @ R.transpose(0, 2, 1)
+    e2 = (Ef * Ef).sum(axis=1)
+    ridge = 0.05 * len(E) * np.eye(3)
+    hidden = np.where(facing, 0.0, np.inf).astype(np.float32)[:, None, :]
+    for _ in range(iterations):
+        X = Rp + (t - o).astype(np.float32)[:, None, :]
+        # Squared distances (B, K, N) through one batched matrix product.
+        d2 = Ef @ (-2.0 * X.transpose(0, 2, 1))
+        d2 += (X * X).sum(axis=2)[:, None, :] + hidden
+        j = np.argmin(d2, axis=2)[..., None]  # (B, K, 1)
+        near = np.take_along_axis(d2, j, axis=2)[..., 0] + e2 < max_distance**2
+        q = np.take_along_axis(X, j, axis=1).astype(np.float64)  # (B, K, 3)
+        n = np.take_along_axis(Rn, j, axis=1) * near[..., None]
+        r = np.einsum("bkj,bkj->bk", (Ef - q), n)
+        A = n.transpose(0, 2, 1) @ n + ridge
+        t = t + np.linalg.solve(A, n.transpose(0, 2, 1) @ r[..., None])[..., 0]
+    return t
 
 
 def evidence_centres(
@@ -378,6 +449,15 @@ class MLEParams:
         Standard deviation of the perturbations' translation per axis, in object radii.
     hop_rotation_deg : float
         Standard deviation of the perturbations' rotation vector per axis, degrees.
+    coarse_align_iterations : int
+        Point-to-plane steps that slide each coarse translation so that the model points facing
+        the camera fit the classifier's positives near the centre (see :func:`coarse_search`;
+        0: the facing points' centroid on the centre, as before). Measured
+        (``examples/bench_basins.py``): the bowl in scene 0049, partly occluded, is found in
+        3 of 3 frames instead of 0.
+    coarse_align_points : int
+        Positives (an even sample of those within an object diameter of the centre) that the
+        alignment fits.
     num_centres : int
         Clusters of the classifier's positives (:func:`evidence_centres`) the coarse search may
         start from: the largest first, the others when every pose found hides the object.
@@ -409,6 +489,8 @@ class MLEParams:
     hop_samples: int = 32
     hop_translation: float = 0.08
     hop_rotation_deg: float = 8.0
+    coarse_align_iterations: int = 3
+    coarse_align_points: int = 32
     num_centres: int = 3
     search_points: int | None = None
 
@@ -429,6 +511,10 @@ class MLEParams:
         if not (self.hop_translation >= 0 and self.hop_rotation_deg >= 0):
             raise ValueError(f"`hop_translation` and `hop_rotation_deg` must be >= 0, got "
                              f"{self.hop_translation} and {self.hop_rotation_deg}.")
+        if int(self.coarse_align_iterations) < 0 or int(self.coarse_align_points) < 1:
+            raise ValueError(f"`coarse_align_iterations` must be >= 0 and `coarse_align_points` "
+                             f">= 1, got {self.coarse_align_iterations} and "
+                             f"{self.coarse_align_points}.")
         if int(self.num_centres) < 1:
             raise ValueError(f"`num_centres` must be >= 1, got {self.num_centres}.")
         if self.search_points is not None and int(self.search_points) < 3:
@@ -690,15 +776,25 @@ def _eq2_hypothesis(search: _Search, scene: Any, classification: ObjectClassific
 
 
 def _coarse_hypotheses(search: _Search, centre: NDArray[np.float64],
-                       view: NDArray[np.float64] | None, gen: np.random.Generator) -> list[Hypothesis]:
-    """Step 1: the batched coarse search of eq. (1) around the classifier's positives."""
+                       view: NDArray[np.float64] | None, gen: np.random.Generator,
+                       positives: NDArray[np.float64] | None = None) -> list[Hypothesis]:
+    """Step 1: the batched coarse search of eq. (1) around the classifier's positives
+    (``positives``: their voxel centres, which the translations are aligned to)."""
     params = search.params
     if params.num_rotations <= 0:
         return []
     t = time.perf_counter()
+    evidence = None
+    if positives is not None and params.coarse_align_iterations > 0:
+        # Those within an object diameter of the centre (one object, not a mask's bleed), an
+        # even sample in raster order (no draw from `gen`).
+        near = positives[np.linalg.norm(positives - centre, axis=1) < 2.0 * search.scale]
+        k = int(params.coarse_align_points)
+        evidence = near if len(near) <= k else near[np.linspace(0, len(near) - 1, k).astype(int)]
     poses, values = coarse_search(search.small, search.small_model, centre,
                                   num_rotations=params.num_rotations, offsets=params.offsets,
-                                  viewing_direction=view, rng=gen)
+                                  viewing_direction=view, evidence=evidence,
+                                  align_iterations=params.coarse_align_iterations, rng=gen)
     search.n_eval += values.size
     top = _distinct_top(poses, values, params.num_refine_coarse, 0.5 * search.scale,
                         math.radians(20))
@@ -877,8 +973,10 @@ def estimate_mle(
 
     search = _build_likelihoods(scene, classification, object_model, params, lparams, gen)
     timings = search.timings
-    centres = evidence_centres(classification.positive, scene_grid_spec(scene),
+    grid = scene_grid_spec(scene)
+    centres = evidence_centres(classification.positive, grid,
                                radius=object_model.radius, max_centres=params.num_centres)
+    positives = grid.centres(np.argwhere(classification.positive))
     centre = centres[0]
 
     def view_from(c: NDArray[np.float64]) -> NDArray[np.float64] | None:
@@ -887,7 +985,7 @@ def estimate_mle(
     view = view_from(centre)
     eq2_refined_ll = float("nan")
     with _Certifier() as certifier:
-        coarse = _coarse_hypotheses(search, centre, view, gen)
+        coarse = _coarse_hypotheses(search, centre, view, gen, positives)
         eq2, eq2_result, h_eq2 = _eq2_hypothesis(search, scene, classification, object_model,
                                                  lparams, gen, certifier, coarse)
         eq2_ll = float("nan") if h_eq2 is None else float(search.exact(h_eq2.pose))
@@ -903,7 +1001,8 @@ def estimate_mle(
                 break
             log.warning("the search ended with the object hidden in unobserved space; "
                         "searching again (%d)", attempt + 1)
-            finals += _refine_hypotheses(search, _coarse_hypotheses(search, c, view_from(c), gen))
+            finals += _refine_hypotheses(search, _coarse_hypotheses(search, c, view_from(c), gen,
+                                                                positives))
         if not finals:  # no hypothesis at all (eq. (2) failed and the coarse search is disabled)
             T0 = np.eye(4)
             T0[:3, 3] = centre - object_model.centroid
