@@ -262,7 +262,9 @@ def coarse_search(
         anchors = (facing.astype(np.float64) @ P) / count
     base = c - np.einsum("bij,bj->bi", R, anchors)  # (B, 3)
     if evidence is not None and viewing_direction is not None and object_model.normals is not None:
-        E = np.asarray(evidence, dtype=np.float64).reshape(-1, 3)
+        E = np.asarray(evidence, dtype=np.float64)
+        if E.ndim != 2 or E.shape[1] != 3:
+            raise ValueError(f"Expected `evidence` to have shape (M, 3), got {E.shape}.")
         if len(E) and int(align_iterations) > 0:
             base = _align_translations(R, base, P, object_model.normals, facing, E,
                                        iterations=int(align_iterations),
