@@ -12,7 +12,8 @@ own support and is certified; it is one hypothesis among others (coarse-to-fine)
    camera-facing model points on the centre of the classifier's positive voxels
    (:func:`evidence_centres`: the largest cluster, not the mean, which a mask bleeding onto the
    background drags away; the other clusters are searched when every pose hides the object in
-   unobserved space); this stage uses a coarser eq. (1) whose free space is eroded next to
+   unobserved space), then slides them onto the positives near that centre (a partly occluded
+   object's seen part lies centimetres from its facing side's centroid); this stage uses a coarser eq. (1) whose free space is eroded next to
    surfaces (``coarse_erosion``) so that poses a voxel or two off still rank high;
 2. eq. (2) on the candidates near the best distinct hypotheses, solved (its certificate starts
    in a thread); these hypotheses and the eq. (2) pose are refined on the coarse model, ranked
