@@ -14,6 +14,12 @@ step control better than curvature models.
 refines the perturbed poses (first on a cheap eq. (1), then the best few on the exact one, all
 batched) and keeps any that climbs higher, for a few rounds. scipy's ``basinhopping`` does the
 same one start at a time; batching is what makes it affordable here.
+
+:func:`polish_poses` is the last, derivative-free step at the top of a basin (where the
+difference gradient stalls on the piecewise-linear objective): a compass search, the 12 poses
+one step along each chart axis evaluated in one call per iteration, the best improving one
+taken, the step halved when none improves. scipy's Powell does the same job one evaluation at
+a time, with ~1 ms of Python per evaluation against ~0.15 ms of eq. (1).
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from numpy.typing import ArrayLike, NDArray
 if TYPE_CHECKING:
     from certpose.model.likelihood import PoseLikelihood
 
-__all__ = ["basin_hop", "refine_poses", "twists_to_poses"]
+__all__ = ["basin_hop", "polish_poses", "refine_poses", "twists_to_poses"]
 
 log = logging.getLogger(__name__)
 
@@ -240,3 +246,68 @@ def basin_hop(
         T[better] = P[better, i[better]]
         values[better] = v[better, i[better]]
     return T, values
+
+
+def polish_poses(
+    likelihood: PoseLikelihood,
+    T0: ArrayLike,
+    *,
+    scale: float,
+    step: float = 0.02,
+    min_step: float = 1e-3,
+    max_iter: int = 200,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], int]:
+    """Compass search of eq. (1) from each of ``T0`` (see the module docstring).
+
+    Parameters
+    ----------
+    likelihood : PoseLikelihood
+    T0 : (4, 4) or (H, 4, 4) array_like
+        Starting ``T_scene_object`` poses (local maxima of a coarser refinement, usually).
+    scale : float
+        Metres per unit of the chart's translation coordinates (e.g. the object radius).
+    step : float
+        First step along each chart axis (translation in units of ``scale``, rotation in radians).
+    min_step : float
+        A pose stops when its step falls below this.
+    max_iter : int
+        Iteration limit (one batched eq. (1) call each).
+
+    Returns
+    -------
+    T : (H, 4, 4) ndarray
+    values : (H,) ndarray
+        Eq. (1) at ``T``; never below its value at ``T0``.
+    evaluations : int
+        Poses scored.
+    """
+    T = np.array(T0, dtype=np.float64)
+    if T.ndim == 2:
+        T = T[None]
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"Expected `T0` to have shape (4, 4) or (H, 4, 4) and finite values, "
+                         f"got {T.shape}.")
+    if not (math.isfinite(scale) and scale > 0):
+        raise ValueError(f"`scale` must be positive, got {scale}.")
+    if not (step > 0 and 0 < min_step <= step):
+        raise ValueError(f"Expected 0 < `min_step` <= `step`, got {min_step} and {step}.")
+    H = T.shape[0]
+    values = np.asarray(likelihood(T), dtype=np.float64).reshape(H)
+    n_eval = H
+    steps = np.full(H, float(step))
+    axes = np.vstack([np.eye(6), -np.eye(6)])
+    for _ in range(int(max_iter)):
+        live = np.flatnonzero(steps >= min_step)
+        if live.size == 0:
+            break
+        X = steps[live, None, None] * axes[None]
+        P = twists_to_poses(T[live], X, scale)
+        v = np.asarray(likelihood(P.reshape(-1, 4, 4)), dtype=np.float64).reshape(live.size, 12)
+        n_eval += v.size
+        j = np.argmax(v, axis=1)
+        best = v[np.arange(live.size), j]
+        up = best > values[live]
+        T[live[up]] = P[np.flatnonzero(up), j[up]]
+        values[live[up]] = best[up]
+        steps[live[~up]] *= 0.5
+    return T, values, n_eval
