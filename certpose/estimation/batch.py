@@ -156,6 +156,20 @@ def refine_poses(
     return T, value
 
 
+def _check_starts(T0: ArrayLike, scale: float) -> NDArray[np.float64]:
+    """``T0`` as a float64 (H, 4, 4) copy, with the checks of :func:`basin_hop` and
+    :func:`polish_poses`."""
+    T = np.array(T0, dtype=np.float64)
+    if T.ndim == 2:
+        T = T[None]
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"Expected `T0` to have shape (4, 4) or (H, 4, 4) and finite values, "
+                         f"got {T.shape}.")
+    if not (math.isfinite(scale) and scale > 0):
+        raise ValueError(f"`scale` must be positive, got {scale}.")
+    return T
+
+
 def basin_hop(
     likelihood: PoseLikelihood,
     T0: ArrayLike,
@@ -211,14 +225,7 @@ def basin_hop(
     """
     from solvers.validation import resolve_rng
 
-    T = np.array(T0, dtype=np.float64)
-    if T.ndim == 2:
-        T = T[None]
-    if T.ndim != 3 or T.shape[1:] != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"Expected `T0` to have shape (4, 4) or (H, 4, 4) and finite values, "
-                         f"got {T.shape}.")
-    if not (math.isfinite(scale) and scale > 0):
-        raise ValueError(f"`scale` must be positive, got {scale}.")
+    T = _check_starts(T0, scale)
     if int(samples) < 1 or int(keep) < 1 or int(rounds) < 0:
         raise ValueError(f"`samples` and `keep` must be >= 1 and `rounds` >= 0, got {samples}, "
                          f"{keep} and {rounds}.")
@@ -281,14 +288,7 @@ def polish_poses(
     evaluations : int
         Poses scored.
     """
-    T = np.array(T0, dtype=np.float64)
-    if T.ndim == 2:
-        T = T[None]
-    if T.ndim != 3 or T.shape[1:] != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"Expected `T0` to have shape (4, 4) or (H, 4, 4) and finite values, "
-                         f"got {T.shape}.")
-    if not (math.isfinite(scale) and scale > 0):
-        raise ValueError(f"`scale` must be positive, got {scale}.")
+    T = _check_starts(T0, scale)
     if not (step > 0 and 0 < min_step <= step):
         raise ValueError(f"Expected 0 < `min_step` <= `step`, got {min_step} and {step}.")
     H = T.shape[0]
