@@ -23,7 +23,8 @@ own support and is certified; it is one hypothesis among others (coarse-to-fine)
    below the basin's top: the best ``hop_starts`` distinct hypotheses hop on
    (:func:`~certpose.estimation.batch.basin_hop`: random perturbations refined, kept when
    better); the winner gets a derivative-free polish (a batched compass search,
-   ``MLEParams.polish``), then its near-symmetric turns are tried (:mod:`certpose.estimation.modes`), and a better turn hops and is polished in turn.
+   ``MLEParams.polish``), then its near-symmetric turns are tried
+   (:mod:`certpose.estimation.modes`), and a better turn hops and is polished in turn.
 
 Measured on 60 YCB-Video pairs (``examples/bench_basins.py``, geometry-only models, mask
 classifier): the returned eq. (1) is within 1 nat of the locally refined ground truth, or above
