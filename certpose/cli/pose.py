@@ -46,7 +46,9 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--object", metavar="NAME", default="025_mug",
                    help="YCB-Video object name (default: 025_mug)")
     p.add_argument("--model", metavar="POINTS", default=None,
-                   help="object model points, metres (default: DIR/models/NAME/points.xyz)")
+                   help="object model points, metres (default: DIR/models/NAME/points.xyz); the "
+                        "model built from them is kept in $CERTPOSE_CACHE_DIR (default "
+                        "~/.cache/certpose; set it empty to turn the cache off)")
     p.add_argument("--object-model", metavar="MODEL.npz", default=None,
                    help="object model with appearance from `certpose object build` (default: "
                         "geometry only, from the model points); the scene is described with its "
@@ -117,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
     from certpose.cli import CLIError, busy, check_json_output, emit_json, say
     from certpose.estimation.mle import MLEParams
     from certpose.estimation.pipeline import PoseParams, run_demo, run_ycbv
+    from certpose.io.cache import default_cache_dir
     from certpose.io.output import check_output_path
 
     check_json_output(args)
@@ -189,7 +192,8 @@ def run(args: argparse.Namespace) -> int:
             with busy(args, "certpose pose"):
                 result = run_ycbv(root, args.frame, args.object, args.model, params=params,
                                   rng=args.seed, object_model=built,
-                                  classifier="best_buddies" if boxed else "mask", box=args.box)
+                                  classifier="best_buddies" if boxed else "mask", box=args.box,
+                                  cache_dir=default_cache_dir())
         except KeyError as exc:
             raise CLIError(str(exc.args[0]) if exc.args else str(exc)) from exc
     say(args, f"pose of {title}")

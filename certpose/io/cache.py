@@ -1,0 +1,162 @@
+"""An on-disk cache of object models built from model points (``certpose pose --model``).
+
+Building an object model from ``points.xyz`` (:func:`~certpose.geometry.objects.object_from_points`:
+a Poisson surface reconstruction, its sampling and the samples' descriptors) is deterministic
+for a given input and seed, and took about 1 s of every ``certpose pose`` call (2 cores,
+shared). :func:`object_from_points_cached` builds it once and reads it back afterwards. The key
+is a hash of everything the result depends on: the points, the backbone, the voxel size, the
+name, the seed, and the source of the modules that build the model (and the open3d version),
+so that editing that code or upgrading open3d builds afresh instead of reading a stale model.
+
+The program uses :func:`default_cache_dir` (``$CERTPOSE_CACHE_DIR``, else
+``$XDG_CACHE_HOME/certpose``, else ``~/.cache/certpose``; ``CERTPOSE_CACHE_DIR=""`` turns the
+cache off); the library caches only when given a directory.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from certpose.geometry.objects import ObjectModel
+
+__all__ = ["default_cache_dir", "object_from_points_cached"]
+
+log = logging.getLogger(__name__)
+
+#: Bumped when the file layout changes.
+_FORMAT = "certpose-object-cache-1"
+# Modules whose code decides the built model.
+_SOURCES = ("certpose.geometry.objects", "certpose.geometry.features", "certpose.geometry.rgbd")
+
+
+def default_cache_dir() -> Path | None:
+    """The program's cache directory (see the module docstring); ``None`` when turned off."""
+    env = os.environ.get("CERTPOSE_CACHE_DIR")
+    if env is not None:
+        return Path(env).expanduser() if env.strip() else None
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "certpose"
+
+
+def _source_digest() -> bytes:
+    import importlib.util
+
+    h = hashlib.sha256()
+    for name in _SOURCES:
+        spec = importlib.util.find_spec(name)
+        origin = None if spec is None else spec.origin
+        if origin is None or not os.path.isfile(origin):
+            raise OSError(f"no source for {name}")
+        h.update(Path(origin).read_bytes())
+    try:
+        from importlib.metadata import version
+
+        h.update(version("open3d").encode())
+    except Exception:  # open3d without metadata: its absence breaks the build anyway
+        h.update(b"open3d?")
+    return h.digest()
+
+
+def _key(points: np.ndarray, backbone: Any, voxel_size: float, name: str, rng: int) -> str:
+    h = hashlib.sha256()
+    h.update(_FORMAT.encode())
+    h.update(_source_digest())
+    h.update(repr(points.shape).encode())
+    h.update(np.ascontiguousarray(points, dtype=np.float64).tobytes())
+    # Frozen dataclasses: the repr holds every parameter.
+    h.update(f"{type(backbone).__module__}.{type(backbone).__qualname__}|{backbone!r}".encode())
+    h.update(f"|{float(voxel_size)!r}|{name}|{int(rng)}".encode())
+    return h.hexdigest()[:32]
+
+
+def _read(path: Path) -> ObjectModel | None:
+    try:
+        with np.load(path, allow_pickle=False) as d:
+            if str(d["format"]) != _FORMAT:
+                return None
+            opt = {k: (d[k] if k in d.files else None) for k in ("colors", "normals", "areas")}
+            return ObjectModel(d["points"], d["descriptors"], opt["colors"], opt["normals"],
+                               str(d["name"]), opt["areas"])
+    except Exception as exc:  # unreadable or partial: build afresh
+        log.debug("object cache %s not used: %s", path, exc)
+        return None
+
+
+def _write(path: Path, model: ObjectModel) -> None:
+    arrays = {"format": np.array(_FORMAT), "points": model.points,
+              "descriptors": model.descriptors, "name": np.array(model.name)}
+    for k in ("colors", "normals", "areas"):
+        if getattr(model, k) is not None:
+            arrays[k] = getattr(model, k)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # Written beside, then renamed: a concurrent reader sees the whole file or none.
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+    except OSError as exc:  # a read-only or full disk costs the next call a rebuild, no more
+        log.debug("object cache %s not written: %s", path, exc)
+
+
+def object_from_points_cached(
+    points: ArrayLike,
+    backbone: Any,
+    *,
+    voxel_size: float,
+    name: str = "",
+    rng: int = 0,
+    cache_dir: str | os.PathLike[str] | None = None,
+) -> ObjectModel:
+    """:func:`~certpose.geometry.objects.object_from_points` (surface sampling), read from
+    ``cache_dir`` when built there before with the same inputs and code.
+
+    Parameters
+    ----------
+    points : (N, 3) array_like
+        Model points in the object frame, metres.
+    backbone : FeatureBackbone
+        A frozen dataclass (its ``repr`` is part of the key), e.g.
+        :class:`~certpose.geometry.features.FPFHBackbone`.
+    voxel_size : float
+        Metres.
+    name : str, optional
+    rng : int, optional
+        Seed of the surface sampling (an int: a generator would make the build irreproducible).
+    cache_dir : path, optional
+        Where models are kept; ``None`` builds without caching.
+
+    Returns
+    -------
+    ObjectModel
+        The same arrays as a fresh build.
+    """
+    from certpose.geometry.objects import object_from_points
+
+    if isinstance(rng, (bool, np.bool_)) or not isinstance(rng, (int, np.integer)):
+        raise TypeError(f"`rng` must be an int seed, got {type(rng).__name__}.")
+    pts = np.asarray(points, dtype=np.float64)
+    path = None
+    if cache_dir is not None:
+        try:
+            key = _key(pts, backbone, voxel_size, name, int(rng))
+            path = Path(cache_dir) / "objects" / f"{key}.npz"
+        except OSError as exc:
+            log.debug("object cache off: %s", exc)
+    if path is not None and path.is_file():
+        model = _read(path)
+        if model is not None:
+            log.info("object model %r read from the cache (%s)", name, path)
+            return model
+    model = object_from_points(pts, backbone, voxel_size=voxel_size, name=name, rng=int(rng))
+    if path is not None:
+        _write(path, model)
+    return model

@@ -1,0 +1,53 @@
+"""The object-model cache of ``certpose pose``: the model read back is the one built."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from certpose.geometry.features import FPFHBackbone
+from certpose.geometry.objects import object_from_points
+from certpose.io.cache import _key, default_cache_dir, object_from_points_cached
+from tests.conftest import box_surface
+
+
+def _same(a, b) -> None:
+    assert a.name == b.name
+    for k in ("points", "descriptors", "normals", "areas"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+
+
+def test_cached_object_model_is_the_built_one(tmp_path) -> None:
+    pts = box_surface(np.random.default_rng(1), np.array([0.06, 0.04, 0.03]), 400)
+    fresh = object_from_points(pts, FPFHBackbone(), voxel_size=0.005, name="box")
+    first = object_from_points_cached(pts, FPFHBackbone(), voxel_size=0.005, name="box",
+                                      cache_dir=tmp_path)
+    files = sorted((tmp_path / "objects").glob("*.npz"))
+    assert len(files) == 1
+    second = object_from_points_cached(pts, FPFHBackbone(), voxel_size=0.005, name="box",
+                                       cache_dir=tmp_path)
+    _same(first, fresh)
+    _same(second, fresh)
+    # Another backbone, voxel size or point set is another key.
+    key = _key(pts, FPFHBackbone(), 0.005, "box", 0)
+    assert files[0].stem == key
+    assert len({key, _key(pts, FPFHBackbone(radius=0.02), 0.005, "box", 0),
+                _key(pts, FPFHBackbone(), 0.006, "box", 0), _key(pts[:-1], FPFHBackbone(), 0.005, "box", 0),
+                _key(pts, FPFHBackbone(), 0.005, "box", 1)}) == 5
+    # A damaged file is rebuilt, not read.
+    files[0].write_bytes(b"not an npz")
+    _same(object_from_points_cached(pts, FPFHBackbone(), voxel_size=0.005, name="box",
+                                    cache_dir=tmp_path), fresh)
+    with pytest.raises(TypeError, match="rng"):
+        object_from_points_cached(pts, FPFHBackbone(), voxel_size=0.005,
+                                  rng=np.random.default_rng(0))
+
+
+def test_default_cache_dir(monkeypatch, tmp_path) -> None:
+    monkeypatch.setenv("CERTPOSE_CACHE_DIR", str(tmp_path))
+    assert default_cache_dir() == tmp_path
+    monkeypatch.setenv("CERTPOSE_CACHE_DIR", "")
+    assert default_cache_dir() is None
+    monkeypatch.delenv("CERTPOSE_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert default_cache_dir() == tmp_path / "certpose"
