@@ -71,3 +71,16 @@ def make_instance(
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _object_cache_in_tmp(tmp_path_factory: pytest.TempPathFactory):
+    """``certpose pose`` keeps object models in $CERTPOSE_CACHE_DIR: the tests' go to a temporary
+    directory, not the user's cache (each test session builds them afresh)."""
+    old = os.environ.get("CERTPOSE_CACHE_DIR")
+    os.environ["CERTPOSE_CACHE_DIR"] = str(tmp_path_factory.mktemp("certpose-cache"))
+    yield
+    if old is None:
+        os.environ.pop("CERTPOSE_CACHE_DIR", None)
+    else:
+        os.environ["CERTPOSE_CACHE_DIR"] = old
