@@ -5,6 +5,19 @@ of a mixture of Gaussians in the tangent space of SE(3); every draw is weighted 
 against the mixture's exact density; the mixture is refitted to the weighted draws for a few
 rounds (adaptive importance sampling); the last round's draws form a :class:`PoseDistribution`.
 
+Runs the seeds did not reach. A hidden handle leaves a flat arc of rotations about the mug's
+axis, and often a second free run elsewhere on the circle (YCB-Video 0000: the handle behind the
+foam brick) that eq. (1) rates as well as the arc. Which runs the MLE's poses land in depends on
+its seed; a mixture adapted from them alone keeps to those runs (mass in the arc 0.80 with one
+seed, 0.00 with another, on the same frame), and its tail draws that stray into a missed run
+carry most of the weight (final ESS 9-250 of 10,000). So a few pilot rounds in
+(``ISParams.sweep_rounds``) the heaviest components with a wide rotational direction are turned
+the whole circle about the axis their covariance implies (:func:`_sweep`, 72 evaluations each);
+the good turns that no component covers get components, each moved onto its ridge by a Newton
+step on a finite-difference stencil and given the Laplace spread there (:func:`_newton_fit`).
+Mixture weights follow the raw (not flattened) weighted draws, damped and floored, so that a new
+component is not starved before it has been fitted.
+
 Tangent chart (the one of :mod:`certpose.sampling.distribution`): around a centre ``(R_k, t_k)``
 a 6-vector ``x = (w, d)`` is the pose ``R = R_k exp([w]_x)``, ``t = t_k + d`` (rotation vector in
 radians, object-frame perturbation; translation in metres).
@@ -133,6 +146,35 @@ class ISParams:
         in every eigendirection; directions with no downward curvature get ``laplace_max``.
     laplace_inflation : float
         Widens the clipped Laplace standard deviations (a proposal a little wider than the target).
+    weight_damping : float
+        A refit's mixture weights are this share of the old ones plus the rest of the mass its
+        (raw) weighted draws give each component (in [0, 1)).
+    min_component_weight : float
+        Every adapted component keeps at least this share / K of the adapted mass (in [0, 1)).
+    sweep_rounds : tuple of int
+        After the refit of each of these pilot rounds (0-based), every adapted component whose
+        widest rotational direction has a standard deviation of at least ``sweep_min_sd`` (a flat
+        direction: a hidden handle's arc) is turned the whole circle about that direction, about
+        the axis its covariance implies (:func:`_sweep`), and new components are placed on the
+        turns within ``sweep_window`` nats (tempered) of the best value that the mixture does not
+        cover. Without it, a run of good poses that no seed reached is found only by rare tail
+        draws that carry most of the weight (the ESS collapses) or not at all (the mass depends
+        on which runs the seeds happened to hit).
+    sweep_step : float
+        Grid step of the sweep (deg).
+    sweep_min_sd : float
+        Least standard deviation (deg) of a component's widest rotational direction to sweep it.
+    sweep_window : float
+        Turns within this many tempered nats of the best value seen get components.
+    sweep_spacing : float
+        New components sit at least this far apart along the swept circle (deg); it is also
+        their standard deviation along it.
+    sweep_components : int
+        Components swept per sweep round (the heaviest with a flat direction): one of them may
+        carry a poor estimate of the axis.
+    sweep_max_new : int
+        Components added per sweep round, at most (each costs a Newton fit and a share of every
+        later mixture density).
 
     Notes
     -----
@@ -163,6 +205,15 @@ class ISParams:
     laplace_inflation: float = 2.0
     max_rotation_noise: float = 0.6
     max_translation_noise: float = 0.01
+    weight_damping: float = 0.5
+    min_component_weight: float = 0.1
+    sweep_rounds: tuple[int, ...] = (2, 5, 8)
+    sweep_step: float = 5.0
+    sweep_min_sd: float = 4.0
+    sweep_window: float = 6.0
+    sweep_spacing: float = 15.0
+    sweep_components: int = 3
+    sweep_max_new: int = 8
 
     def __post_init__(self) -> None:
         if int(self.draws) < 2:
@@ -187,10 +238,36 @@ class ISParams:
             raise ValueError(f"Expected `max_growth` > 1, got {self.max_growth}.")
         if int(self.resample) < 0:
             raise ValueError(f"Expected `resample` >= 0, got {self.resample}.")
+        for name in ("weight_damping", "min_component_weight"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ValueError(f"Expected `{name}` in [0, 1), got {getattr(self, name)}.")
+        for name in ("sweep_step", "sweep_min_sd", "sweep_window", "sweep_spacing"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"Expected `{name}` to be positive and finite, got {v}.")
+        for name in ("sweep_components", "sweep_max_new"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"Expected `{name}` >= 1, got {getattr(self, name)}.")
+        if any(int(r) < 0 for r in self.sweep_rounds):
+            raise ValueError(f"Expected `sweep_rounds` >= 0, got {self.sweep_rounds}.")
 
 
 def _so3_log(R: NDArray[np.float64]) -> NDArray[np.float64]:
-    return Rotation.from_matrix(R).as_rotvec()
+    """Rotation vectors of rotation matrices ``R`` (..., 3, 3), vectorised: scipy's
+    ``from_matrix`` cost more than the rest of a mixture density. Scipy only within 0.1 rad of a
+    half turn, where ``theta / (2 sin theta)`` loses its precision."""
+    R = np.asarray(R, dtype=np.float64)
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                  R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    cos = np.clip((R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos)
+    small = theta < 1e-4
+    factor = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, np.sin(theta))))
+    w = v * factor[..., None]
+    near_pi = theta > np.pi - 0.1
+    if np.any(near_pi):
+        w[near_pi] = Rotation.from_matrix(R[near_pi]).as_rotvec()
+    return w
 
 
 def _so3_exp(w: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -453,6 +530,12 @@ def _laplace_precisions(log_target: LogTarget, T0: NDArray[np.float64], temp: fl
     f = np.asarray(log_target(T.reshape(-1, 4, 4)), dtype=np.float64).reshape(K, len(st)) / temp
     f = np.where(np.isfinite(f), f, np.nanmin(np.where(np.isfinite(f), f, np.nan)) - 100.0) \
         if np.any(np.isfinite(f)) else np.zeros_like(f)
+    return _stencil_hessian(f, p)
+
+
+def _stencil_hessian(f: NDArray[np.float64], p: ISParams) -> NDArray[np.float64]:
+    """(K, 6, 6) ``-Hessian`` per noise unit squared from the stencil values ``f`` (K, 73)."""
+    K = len(f)
     H = np.empty((K, 6, 6))
     for i in range(6):
         H[:, i, i] = f[:, 1 + 2 * i] - 2 * f[:, 0] + f[:, 2 + 2 * i]
@@ -480,25 +563,47 @@ def _laplace_covariances(P: NDArray[np.float64], p: ISParams) -> NDArray[np.floa
 
 
 def _refit(proposal: TangentMixture, logs: NDArray, n_adapted: int, R: NDArray, t: NDArray,
-           w: NDArray, alpha: float, p: ISParams) -> TangentMixture | None:
+           w: NDArray, alpha: float, p: ISParams, w_raw: NDArray | None = None) -> TangentMixture | None:
     """One adaptation step: the adapted components' weighted draws give their new centres and
-    covariances (responsibilities from the whole proposal); None when no component has weight."""
+    covariances (responsibilities from the whole proposal); None when no component has weight.
+
+    Centres and covariances come from the flattened weights ``w``; the mixture weights from the
+    raw ones ``w_raw`` (default ``w``), damped by ``weight_damping`` and floored at
+    ``min_component_weight`` / K: flattened weights understate exactly the components whose
+    few draws carry the most weight (a run the proposal under-covers), and a component given
+    too little weight gets too few draws to grow."""
     resp = np.exp(logs - logsumexp(logs, axis=0))
     # Draws owned by the defensive components are shared among the adapted ones.
     resp_a = resp[:n_adapted] / np.maximum(resp[:n_adapted].sum(axis=0), 1e-300)
+    w_raw = w if w_raw is None else w_raw
+    old_w = proposal.weights[:n_adapted] / proposal.weights[:n_adapted].sum()
     Rs, ts, Cs, ws = [], [], [], []
     floor = _isotropic(p.min_rotation_noise, p.min_translation_noise)
     for k in range(n_adapted):
         wk = w * resp_a[k]
         mass = wk.sum()
+        raw_mass = float(w_raw @ resp_a[k])
+        mixed = p.weight_damping * old_w[k] + (1.0 - p.weight_damping) * raw_mass
         if mass <= 1e-12:
-            continue  # no weight at all: drop the component
-        if 1.0 / np.sum((wk / mass) ** 2) < 12:
-            # Too few effective draws for a covariance: keep the centre, halve the spread.
+            if resp_a[k].sum() >= 1.0:
+                continue  # its draws have no weight at all: drop the component
+            # Hardly drawn: nothing to learn from, keep it.
             Rs.append(proposal.rotations[k])
             ts.append(proposal.translations[k])
-            Cs.append(proposal.covariances[k] / 4.0 + floor)
-            ws.append(mass)
+            Cs.append(proposal.covariances[k])
+            ws.append(mixed)
+            continue
+        if 1.0 / np.sum((wk / mass) ** 2) < 12:
+            # Too few effective draws for a covariance: keep the spread, move the centre to the
+            # weighted mean (a component half off the ridge it covers slides onto it; narrowing
+            # it there, as a too-wide one would need, starves the ridge of draws).
+            wk = wk / mass
+            Rk = proposal.rotations[k]
+            Rk = Rk @ _so3_exp(wk @ _so3_log(np.einsum("ji,njk->nik", Rk, R)))
+            Rs.append(Rk)
+            ts.append(wk @ t)
+            Cs.append(proposal.covariances[k])
+            ws.append(mixed)
             continue
         wk = wk / mass
         # A few Karcher steps from the old centre.
@@ -521,10 +626,153 @@ def _refit(proposal: TangentMixture, logs: NDArray, n_adapted: int, R: NDArray, 
         Rs.append(Rk)
         ts.append(tk)
         Cs.append(0.5 * (C + C.T))
-        ws.append(mass)
+        ws.append(mixed)
     if not ws:
         return None
-    return TangentMixture(np.stack(Rs), np.stack(ts), np.stack(Cs), np.asarray(ws) / np.sum(ws), proposal.dof)
+    ws_a = np.asarray(ws) / np.sum(ws)
+    ws_a = np.maximum(ws_a, p.min_component_weight / len(ws_a))
+    return TangentMixture(np.stack(Rs), np.stack(ts), np.stack(Cs), ws_a / ws_a.sum(), proposal.dof)
+
+
+def _sweep(log_target: LogTarget, adapted: TangentMixture, temp: float, best: float,
+           p: ISParams) -> tuple[tuple[NDArray, NDArray, NDArray, NDArray] | None, int]:
+    """New components on the good, uncovered turns of the adapted components' flat directions.
+
+    For a component ``(R_k, t_k, C_k)`` whose widest rotational direction ``u`` (object frame)
+    has a standard deviation of at least ``sweep_min_sd``, the regression of the translation on
+    the angle along ``u``, ``s = C_tr u / (u' C_rr u)`` (scene frame), is the velocity of a turn
+    about the axis ``u`` through the object point ``c``: ``s = R_k (c x u)``, so
+    ``c = u x (R_k' s)`` (the part of ``c`` across ``u``, all that a turn depends on). The turns
+    ``R = R_k exp(phi [u]_x)``, ``t = t_k + R_k (c - exp(phi [u]_x) c)`` on a grid of ``phi``
+    over the whole circle are scored on the target; those within ``sweep_window`` (tempered)
+    nats of the best value seen and outside 2 standard deviations (chart metric) of every
+    component get new components, best first: ``C_k`` with its spread along ``u`` set to
+    ``sweep_spacing`` (so the next one sits about three spacings further on).
+
+    Returns
+    -------
+    components : (R (m, 3, 3), t (m, 3), C (m, 6, 6), w (m,)) or None
+        The new components; ``w`` is their parent's weight times ``exp`` of their value's
+        shortfall from the parent's centre, at least 1/10 of it.
+    num_evaluations : int
+    """
+    phi = np.radians(np.arange(0.0, 360.0, float(p.sweep_step)))
+    spacing = math.radians(float(p.sweep_spacing))
+    Rs: list[NDArray] = []
+    ts: list[NDArray] = []
+    Cs: list[NDArray] = []
+    ws: list[float] = []
+    n_eval = 0
+    comps = list(zip(adapted.rotations, adapted.translations, adapted._chol, strict=True))  # noqa: SLF001
+
+    def near(Rj: NDArray, tj: NDArray, Lj: NDArray, T: NDArray) -> NDArray:
+        """(n,) whether the poses ``T`` lie within 2 standard deviations of a component."""
+        x = np.concatenate([_so3_log(np.einsum("ji,njk->nik", Rj, T[:, :3, :3])),
+                            T[:, :3, 3] - tj], axis=1)
+        return np.sum(np.linalg.solve(Lj, x.T) ** 2, axis=0) <= 4.0
+
+    # The heaviest components with a flat direction: one of them may carry a poor estimate of
+    # the axis (a short arc seen), and the sweep is cheap next to a round.
+    swept = 0
+    for k in np.argsort(-adapted.weights):
+        if swept == p.sweep_components or len(ws) >= p.sweep_max_new:
+            break
+        C = adapted.covariances[k]
+        lam, V = np.linalg.eigh(C[:3, :3])
+        if math.sqrt(lam[-1]) < math.radians(float(p.sweep_min_sd)):
+            continue  # no flat rotational direction
+        swept += 1
+        u = V[:, -1]
+        Rk, tk = adapted.rotations[k], adapted.translations[k]
+        c = np.cross(u, Rk.T @ (C[3:, :3] @ u / lam[-1]))
+        E = _so3_exp(phi[:, None] * u)
+        T = np.tile(np.eye(4), (len(phi), 1, 1))
+        T[:, :3, :3] = Rk @ E
+        T[:, :3, 3] = tk + (c - E @ c) @ Rk.T
+        f = np.asarray(log_target(T), dtype=np.float64).reshape(-1) / temp
+        n_eval += len(phi)
+        f = np.where(np.isfinite(f), f, -np.inf)
+        thresh = max(best, float(f.max())) - float(p.sweep_window)
+        uu = np.r_[u, np.zeros(3)]
+        # C scaled along u (a congruence: stays positive definite).
+        A = np.eye(6) + (spacing / math.sqrt(lam[-1]) - 1.0) * np.outer(uu, uu)
+        Cn = A @ C @ A
+        Cn = 0.5 * (Cn + Cn.T)
+        Ln = np.linalg.cholesky(Cn)
+        log.debug("sweep of component %d (sd %.1f deg): best %.1f, %s", k, math.degrees(math.sqrt(lam[-1])),
+                  float(f.max()) - best, " ".join(f"{x - best:.0f}" for x in f[::3]))
+        covered = np.zeros(len(phi), dtype=bool)
+        for Rj, tj, Lj in comps:
+            covered |= near(Rj, tj, Lj, T)
+        for i in np.argsort(-f):
+            if f[i] < thresh or len(ws) >= p.sweep_max_new:
+                break
+            if covered[i]:
+                continue
+            Rs.append(T[i, :3, :3])
+            ts.append(T[i, :3, 3])
+            Cs.append(Cn)
+            covered |= near(T[i, :3, :3], T[i, :3, 3], Ln, T)
+            ws.append(float(adapted.weights[k]) * max(0.1, math.exp(min(float(f[i] - f[0]), 0.0))))
+    if not ws:
+        return None, n_eval
+    R_new, t_new, C_new, n_fit = _newton_fit(log_target, np.stack(Rs), np.stack(ts), np.stack(Cs), temp, p)
+    return (R_new, t_new, C_new, np.asarray(ws)), n_eval + n_fit
+
+
+def _newton_fit(log_target: LogTarget, R: NDArray, t: NDArray, C: NDArray, temp: float,
+                p: ISParams) -> tuple[NDArray, NDArray, NDArray, int]:
+    """Swept components moved onto the ridge they sit near: one Newton step on the
+    finite-difference stencil of :func:`_laplace_precisions` (gradient and Hessian of the
+    tempered target, step ``laplace_step`` noise units), restricted to the directions of downward
+    curvature and at most 2 noise units long; the covariance across the swept direction is then
+    the Laplace one (clipped and inflated as the seeds' are), along it the swept component's own.
+    A turned pose is only as good as the axis it was turned about: off the ridge by a few
+    millimetres, its component's draws miss the ridge and the few that hit it carry the weight."""
+    st = _stencil()
+    D = np.array([p.rotation_noise] * 3 + [p.translation_noise] * 3)
+    h = float(p.laplace_step)
+    x = st * D * h
+    K = len(R)
+    T = np.tile(np.eye(4), (K, len(st), 1, 1))
+    T[:, :, :3, :3] = np.einsum("kij,njl->knil", R, _so3_exp(x[:, :3]))
+    T[:, :, :3, 3] = t[:, None, :] + x[None, :, 3:]
+    f = np.asarray(log_target(T.reshape(-1, 4, 4)), dtype=np.float64).reshape(K, len(st)) / temp
+    f = np.where(np.isfinite(f), f, np.nanmin(np.where(np.isfinite(f), f, np.nan)) - 100.0) \
+        if np.any(np.isfinite(f)) else np.zeros_like(f)
+    P = _stencil_hessian(f, p)  # per noise unit squared
+    g = (f[:, 1::2][:, :6] - f[:, 2::2][:, :6]) / (2.0 * h)  # per noise unit
+    C_lap = _laplace_covariances(P, p)
+    R_out, t_out, C_out = R.copy(), t.copy(), C.copy()
+    for k in range(K):
+        lam, V = np.linalg.eigh(0.5 * (P[k] + P[k].T))
+        down = lam > 1e-6
+        step = V[:, down] @ ((V[:, down].T @ g[k]) / lam[down])
+        nrm = np.linalg.norm(step)
+        if nrm > 2.0:
+            step *= 2.0 / nrm
+        dx = step * D
+        R_out[k] = R[k] @ _so3_exp(dx[:3])
+        t_out[k] = t[k] + dx[3:]
+        # Along the swept direction (the old component's widest), keep its spread.
+        lam_c, V_c = np.linalg.eigh(C[k][:3, :3])
+        uu = np.r_[V_c[:, -1], np.zeros(3)]
+        ratio = math.sqrt(lam_c[-1] / max(float(uu @ C_lap[k] @ uu), 1e-300))
+        A = np.eye(6) + (ratio - 1.0) * np.outer(uu, uu)
+        Ck = A @ C_lap[k] @ A
+        C_out[k] = 0.5 * (Ck + Ck.T)
+    return R_out, t_out, C_out, K * len(st)
+
+
+def _add_components(mix: TangentMixture, new: tuple[NDArray, NDArray, NDArray, NDArray],
+                    share: float) -> TangentMixture:
+    """``mix`` with the components ``new``, which get (together) at most ``share`` of the mass."""
+    R, t, C, w = new
+    w = np.asarray(w, dtype=np.float64)
+    frac = min(share, float(w.sum()) / (float(w.sum()) + 1.0))
+    return TangentMixture(np.concatenate([mix.rotations, R]), np.concatenate([mix.translations, t]),
+                          np.concatenate([mix.covariances, C]),
+                          np.concatenate([mix.weights * (1.0 - frac), frac * w / w.sum()]), mix.dof)
 
 
 def importance_sample(
@@ -574,6 +822,8 @@ def importance_sample(
     n_last = int(p.draws)
     n_pilot = int(p.pilot_draws) or max(n_last // 4, 500)
     ess_rounds: list[float] = []
+    sweep_rounds = {int(r) for r in p.sweep_rounds}
+    best, n_swept = float(np.max(ls)), 0
     bar = _progress(int(p.rounds), "importance sampling", p.progress)
     try:
         for r in range(int(p.rounds)):
@@ -599,8 +849,17 @@ def importance_sample(
             bar.update(1)
             if r + 1 < p.rounds:
                 wf, alpha = _flattened(logw, 0.2)
-                new = _refit(mix, logs, len(adapted.weights), R, t, wf, alpha, p)
+                new = _refit(mix, logs, len(adapted.weights), R, t, wf, alpha, p, w)
                 adapted = new if new is not None else initial
+                if r in sweep_rounds:
+                    best = max(best, float(np.max(lt)) / temp)
+                    found, n_sw = _sweep(log_target, adapted, temp, best, p)
+                    n_eval += n_sw
+                    if found is not None:
+                        log.debug("IS round %d: the sweep adds %d components", r, len(found[3]))
+                        n_swept += len(found[3])
+                        adapted = _add_components(adapted, found, 0.5)
+                        initial = _add_components(initial, found, 0.5)
                 mix = _with_defensive(adapted, initial, p.defensive)
     finally:
         bar.close()
@@ -610,7 +869,8 @@ def importance_sample(
     seconds = time.perf_counter() - t_start
     status = "ok" if ess_rounds[-1] >= 0.01 * n else "low_ess"
     msg = (f"{p.rounds} rounds ({n_pilot} pilot draws, {n} final) at temperature {temp:.3g}: ESS {ess_rounds[-1]:.0f} "
-           f"({', '.join(f'{e:.0f}' for e in ess_rounds)} per round), {seconds:.2f} s")
+           f"({', '.join(f'{e:.0f}' for e in ess_rounds)} per round), {n_swept} components from sweeps, "
+           f"{seconds:.2f} s")
     log.info("importance sampling: %s", msg)
     return ISResult(dist, weighted, mix, temp, tuple(ess_rounds), n_eval, seconds,
                     status, msg, lt[keep])

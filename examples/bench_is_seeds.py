@@ -1,0 +1,164 @@
+"""Robustness of the importance sampler over seeds (issue 11): ESS, status, time and the arc figures.
+
+For every seed and scene (the demo mug, and YCB-Video 0000 frames 1-5 with the mug and the
+ground-truth mask classifier, as ``examples/bench_samplers.py``) the MLE runs with that seed and
+the sampler (``ISParams(resample=10_000)``, default temperature) with the same seed; nothing else
+runs (no baselines). ``--cache DIR`` keeps each (scene, seed)'s MLE seeds in ``DIR`` so that
+sampler variants are compared on the same seeds (the MLE is then not rerun).
+
+Printed per run: final ESS (Kish, of the 10,000 weighted draws), status, seconds of sampling,
+the arc figures of ``bench_samplers.free_arc_metrics`` (arc coverage, mass in the arc, mass in
+the scene's other free runs, axis within 5 deg / 1 cm), then the least ESS and the means per scene.
+
+usage::
+
+    PYTHONPATH=. python examples/bench_is_seeds.py --seeds 0 1 2 3 4 [--no-ycbv] [--frames 000001]
+                                                   [--cache /tmp/is_cache] [--json OUT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def _demo(seed: int, cache: Path | None):  # noqa: ANN202
+    from bench_samplers import AXIS
+
+    from certpose.data.synthetic import make_mug_scene
+    from certpose.estimation.pipeline import PoseParams, _scene_for
+    from certpose.geometry.features import FPFHBackbone
+    from certpose.model.arc import free_space_arc
+
+    f = cache / f"demo_{seed}.npz" if cache else None
+    if f is not None and f.exists():
+        from certpose.geometry.objects import object_from_views
+        from certpose.model.classifier import classify_from_mask
+        from certpose.model.likelihood import PoseLikelihood
+
+        params, bb, gen = PoseParams(), FPFHBackbone(), np.random.default_rng(seed)
+        sc = make_mug_scene(rng=gen)
+        scene = _scene_for(sc.frame, sc.object_mask, params, bb)
+        obj = object_from_views(sc.render_object_views(4), bb, voxel_size=params.voxel_size, name="mug")
+        cls = classify_from_mask(scene, sc.frame.with_mask(sc.object_mask), params=params.classifier)
+        lik = PoseLikelihood(scene, cls, obj, params=params.likelihood)
+        seeds = np.load(f)["seeds"]
+        gt = sc.T_camera_object
+    else:
+        from bench_sampler import build_demo
+
+        from certpose.sampling.sampler import seeds_from_mle
+
+        lik, mle, gt = build_demo(seed)
+        seeds = seeds_from_mle(mle)
+        if f is not None:
+            np.savez(f, seeds=seeds)
+    sc = make_mug_scene(rng=np.random.default_rng(seed), n_model_points=6000)
+    scene = _scene_for(sc.frame, sc.object_mask, PoseParams(), FPFHBackbone())
+    arc = free_space_arc(scene, sc.model_points, gt, axis=AXIS)
+    return lik, seeds, gt, arc, np.zeros(3)
+
+
+def _ycbv(root: Path, frame: str, seed: int, cache: Path | None):  # noqa: ANN202
+    f = cache / f"ycbv_{frame}_{seed}.npz" if cache else None
+    if f is not None and f.exists():
+        from bench_arc import body_axis_offset
+
+        from certpose.estimation.pipeline import PoseParams
+        from certpose.geometry.features import FPFHBackbone
+        from certpose.geometry.objects import object_from_points
+        from certpose.io.ycbv import load_model_points, load_ycbv_frame
+        from certpose.model.arc import free_space_arc
+        from certpose.model.classifier import classify_from_mask
+        from certpose.model.likelihood import PoseLikelihood
+        from certpose.model.scene import build_scene_field
+
+        params, bb = PoseParams(), FPFHBackbone()
+        pts = load_model_points(root / "models" / "025_mug" / "points.xyz")
+        obj = object_from_points(pts, bb, voxel_size=params.voxel_size, name="025_mug")
+        yf = load_ycbv_frame(root, f"0000/{frame}")
+        mask = yf.object_mask("025_mug")
+        scene = build_scene_field(yf.frame, bb, voxel_size=params.voxel_size, roi_mask=mask,
+                                  margin=params.roi_margin)
+        cls = classify_from_mask(scene, yf.frame.with_mask(mask), params=params.classifier)
+        lik = PoseLikelihood(scene, cls, obj, params=params.likelihood)
+        T_gt = yf.frame.T_world_camera @ yf.poses["025_mug"]
+        centre = body_axis_offset(pts)
+        arc = free_space_arc(scene, pts, T_gt, centre=centre)
+        return lik, np.load(f)["seeds"], T_gt, arc, centre
+    from bench_samplers import ycbv_problem
+
+    lik, seeds, T_gt, arc, centre = ycbv_problem(root, frame, seed)
+    if f is not None:
+        np.savez(f, seeds=seeds)
+    return lik, seeds, T_gt, arc, centre
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--ycbv", type=Path,
+                    default=Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv")
+    ap.add_argument("--frames", nargs="+", default=["000001", "000002", "000003", "000004", "000005"])
+    ap.add_argument("--no-ycbv", action="store_true")
+    ap.add_argument("--no-demo", action="store_true")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
+    ap.add_argument("--cache", type=Path, default=None)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    if args.cache is not None:
+        args.cache.mkdir(parents=True, exist_ok=True)
+
+    from bench_samplers import free_arc_metrics
+
+    from certpose.sampling.sampler import ISParams, sample_pose_distribution
+
+    scenes = ([] if args.no_demo else ["demo"]) + ([] if args.no_ycbv else [f"0000/{f}" for f in args.frames])
+    rows, warm = [], False
+    print(f"{'scene':12s} {'seed':>4s} {'K':>3s} {'load':>5s} {'ESS':>6s} {'status':8s} {'s':>5s} "
+          f"{'arc cov':>7s} {'in arc':>6s} {'other':>6s} {'axis ok':>7s}  ESS per round")
+    for name in scenes:
+        for seed in args.seeds:
+            if name == "demo":
+                lik, seeds, gt, arc, centre = _demo(seed, args.cache)
+            else:
+                lik, seeds, gt, arc, centre = _ycbv(args.ycbv, name.split("/")[1], seed, args.cache)
+            if not warm:  # numba warm-up, not timed
+                sample_pose_distribution(lik, seeds, params=ISParams(draws=500, rounds=1), rng=0)
+                warm = True
+            load = os.getloadavg()[0]
+            res = sample_pose_distribution(lik, seeds, params=ISParams(resample=10_000), rng=seed)
+            m = free_arc_metrics(res.distribution, gt, arc, centre)
+            r = {"scene": name, "seed": seed, "num_seeds": len(seeds), "load": load,
+                 "ess": float(res.weighted.ess), "status": res.status, "seconds": res.seconds,
+                 "ess_per_round": list(res.ess_per_round), **m}
+            rows.append(r)
+            print(f"{name:12s} {seed:4d} {len(seeds):3d} {load:5.2f} {r['ess']:6.0f} {r['status']:8s} "
+                  f"{r['seconds']:5.2f} {m['arc_coverage']:7.2f} {m['mass_in_arc']:6.2f} "
+                  f"{m['mass_other_free']:6.2f} {m['axis_ok']:7.2f}  "
+                  + " ".join(f"{e:.0f}" for e in res.ess_per_round), flush=True)
+    print(f"\n{'scene':12s} {'min ESS':>7s} {'low':>3s} {'max s':>5s} {'arc cov':>7s} {'in arc':>6s} "
+          f"{'other':>6s} {'axis ok':>7s}  (means over seeds)")
+    for name in scenes + ["all"]:
+        rs = [r for r in rows if name in ("all", r["scene"])]
+        print(f"{name:12s} {min(r['ess'] for r in rs):7.0f} {sum(r['ess'] < 1000 for r in rs):3d} "
+              f"{max(r['seconds'] for r in rs):5.2f} "
+              + " ".join(f"{np.mean([r[k] for r in rs]):{w}.2f}" for k, w in
+                         (("arc_coverage", 7), ("mass_in_arc", 6), ("mass_other_free", 6), ("axis_ok", 7))))
+    if args.json is not None:
+        import json
+
+        args.json.write_text(json.dumps(rows, indent=1))
+        print(f"wrote {args.json}")
+
+
+if __name__ == "__main__":
+    t0 = time.perf_counter()
+    main()
+    print(f"{time.perf_counter() - t0:.0f} s in all")
