@@ -163,9 +163,9 @@ def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: i
     if res.mle is not None:
         from solvers.lie import rotation_error_deg
 
-        refined = [h for h in res.mle.hypotheses if h.source == "eq2"]
+        refined = [h for h in res.mle.hypotheses if h.source == "eq2" or h.source.startswith("eq2:")]
         T_win = res.mle.T_scene_object
-        eq2_near = res.hypothesis == "eq2" or any(
+        eq2_near = res.hypothesis.split(":")[0] == "eq2" or any(
             np.linalg.norm(h.pose[:3, 3] - T_win[:3, 3]) <= NEAR_TRANSLATION
             and rotation_error_deg(h.pose[:3, :3], T_win[:3, :3]) <= NEAR_ROTATION_DEG
             for h in refined)
@@ -289,7 +289,7 @@ def main(argv: list[str] | None = None) -> int:
         # Wrong and yet at least as likely as the refined truth: the likelihood's fault.
         prefers = sum(r["adds_cm"] > 1.0 and r["gap"] >= -1.0 for r in rows)
         eq2_ok = sum(r["eq2_raw_adds_cm"] <= 1.0 for r in rows)
-        eq2_wins = sum(r["hypothesis"] == "eq2" for r in rows)
+        eq2_wins = sum(r["hypothesis"].split(":")[0] == "eq2" for r in rows)
         eq2_near = sum(r["eq2_near_winner"] for r in rows)
         eq2_cert = sum(r["eq2_certified"] for r in rows)
         print(f"pairs {n} | ADD-S <= 1 cm: {ok}/{n} ({ok / n:.2f}; box-only target >= 0.80, "

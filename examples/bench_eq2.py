@@ -85,7 +85,7 @@ def diagnose(root: Path, frame: str, name: str, params, *, mle: bool = True, see
         row["certify_ms"] = 1e3 * res.timings.get("eq2_certify", math.nan)
         row["certify_wait_ms"] = 1e3 * res.timings.get("eq2_certify_wait", math.nan)
         row["hypothesis"] = res.hypothesis
-        refined = [h for h in res.hypotheses if h.source == "eq2"]
+        refined = [h for h in res.hypotheses if h.source == "eq2" or h.source.startswith("eq2:")]
         if refined:
             best = max(refined, key=lambda h: h.score)
             d_t = float(np.linalg.norm(best.pose[:3, 3] - res.T_scene_object[:3, 3]))
@@ -95,7 +95,7 @@ def diagnose(root: Path, frame: str, name: str, params, *, mle: bool = True, see
             near = d_t <= NEAR_TRANSLATION and d_r <= NEAR_ROTATION_DEG
         else:
             near = False
-        row["eq2_wins"] = res.hypothesis == "eq2" or near
+        row["eq2_wins"] = res.hypothesis.split(":")[0] == "eq2" or near
         err = pose_errors(res.T_scene_object, T_gt, points, symmetry_axis=axis)
         row.update(mle_adds_cm=100 * err.add_s, mle_rot_deg=err.rotation_deg)
     else:

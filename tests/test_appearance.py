@@ -228,6 +228,37 @@ def test_the_turn_of_an_appearance_model_is_refined_when_it_is_the_truth(root):
     assert res.errors.add_s < 0.01 and res.errors.rotation_deg < 10.0
 
 @pytest.mark.slow
+def test_the_refined_eq2_minimiser_lands_in_the_winners_basin(root):
+    """Issue 10 item 2 on a real frame: the potted-meat can in 0002/000001, model from scene
+    0049's views, mask classifier. Eq. (2)'s minimiser of the highest support is the can turned
+    by about 180 degrees (eq. (2) has no free-space term); refined on eq. (1) it ended 260 nats
+    below the winner, which came from the coarse search. Every seed's eq. (2) minimiser is now
+    refined, and the one about the right seed wins or lands next to the winner."""
+    from certpose.estimation.pipeline import pose_errors, run_ycbv
+    from solvers.lie import rotation_error_deg
+
+    obj = "010_potted_meat_can"
+    views = [f"0049/{m.name[:6]}" for m in sorted((root / "0049").glob("*-meta.mat"))]
+    built = build_ycbv_object_model(root, views, obj)
+    assert "0002" not in built.scenes
+    res = run_ycbv(root, "0002/000001", obj, object_model=built, rng=0, classifier="mask")
+    mle = res.mle
+    assert res.errors.add_s < 0.01 and res.errors.rotation_deg < 10.0
+    refined = [h for h in mle.hypotheses if h.source.split(":")[0] == "eq2"]
+    assert refined
+    W = mle.T_scene_object
+    near = [h for h in refined if np.linalg.norm(h.pose[:3, 3] - W[:3, 3]) <= 0.005
+            and rotation_error_deg(h.pose[:3, :3], W[:3, :3]) <= 2.0]
+    assert mle.hypothesis.split(":")[0] == "eq2" or near, (mle.hypothesis, [
+        (h.source, h.score) for h in refined], mle.log_likelihood)
+    assert mle.eq2_refined_log_likelihood >= mle.log_likelihood - 5.0
+    # The raw minimiser (the certified one) stays within 1 cm ADD-S.
+    raw = np.linalg.inv(res.T_world_camera) @ mle.eq2_result.T_target_source
+    points = load_model_points(root / "models" / obj / "points.xyz")
+    assert pose_errors(raw, res.T_camera_object_gt, points).add_s < 0.01
+
+
+@pytest.mark.slow
 def test_box_only_search_keeps_the_translations_not_slid_onto_the_positives(root):
     """Mustard bottle in 0002/000010, model from scene 0050's views, box only (best buddies, half
     of the positives off the bottle): sliding the coarse translations onto the positives alone

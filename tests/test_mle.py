@@ -245,8 +245,11 @@ def test_estimate_mle_records_its_hypotheses():
     T = make_transform(Rotation.from_rotvec([1.0, -0.5, 2.0]).as_matrix(), [0.01, 0.02, 0.5])
     scene, cls = _scene_with_object(obj, T)
     res = estimate_mle(scene, cls, obj, params=MLEParams(certify=False, num_rotations=128), rng=0)
+    # The coarse search's leading hypotheses go on as their own eq. (2) minimisers.
     sources = [h.source for h in res.hypotheses]
-    assert "eq2" in sources and any(s.startswith("coarse:") for s in sources)
+    assert any(s.startswith("eq2:") for s in sources), sources
+    assert all(s.split(":")[0] in ("eq2", "coarse") and s.split(":")[1].isdigit()
+               for s in sources), sources
     lik = PoseLikelihood(scene, cls, obj)
     for h in res.hypotheses:
         assert h.score == pytest.approx(float(lik(h.pose)), abs=1e-6)

@@ -2,10 +2,11 @@ r"""Maximum-likelihood pose: eq. (2) (see :mod:`certpose.model.eq2`) as one hypo
 
 **Refinement on eq. (1).** Eq. (2) is only an approximation of eq. (1), and the descriptors
 (FPFH of ``points.xyz``, or FPFH and colour of an appearance model) rarely rank the right voxel
-among an object point's top-k candidates (see :mod:`certpose.model.eq2`). So eq. (2) keeps the
-pairs near the coarse search's ``Eq2Params.num_seeds`` leading distinct hypotheses
-(:func:`~certpose.model.eq2.estimate_eq2`): its minimiser chooses among their basins by eq. (2)'s
-own support and is certified; it is one hypothesis among others (coarse-to-fine):
+among an object point's top-k candidates (see :mod:`certpose.model.eq2`). So eq. (2) is solved
+about each of the coarse search's ``Eq2Params.num_seeds`` leading distinct hypotheses
+(:func:`~certpose.model.eq2.solve_eq2_about_seeds`): each minimiser replaces its seed and is
+refined on eq. (1) as every hypothesis is, so that eq. (1) chooses among their basins; the one of
+the highest eq. (2) support is certified (coarse-to-fine):
 
 1. a batched coarse search of eq. (1) on a farthest-point subsample of the object: random
    rotations, each with a 3x3x3 grid of translations around the one that puts the
@@ -16,10 +17,16 @@ own support and is certified; it is one hypothesis among others (coarse-to-fine)
    centre (a partly occluded object's seen part lies centimetres from its facing side's
    centroid; positives half off the object slide them away, hence both); this stage uses a coarser eq. (1) whose free space is eroded next to
    surfaces (``coarse_erosion``) so that poses a voxel or two off still rank high;
-2. eq. (2) on the candidates near the best distinct hypotheses, solved (its certificate starts
-   in a thread); these hypotheses and the eq. (2) pose are refined on the coarse model, ranked
-   on the exact eq. (1) of the whole object, and the best few refined on it (all together:
-   :func:`~certpose.estimation.batch.refine_poses`);
+2. eq. (2) about each of the best distinct hypotheses, solved (a certificate starts in a
+   thread); the hypotheses, the leading ones as their eq. (2) minimisers (``"eq2:<rank>"``), are
+   refined on the coarse model, ranked on the exact eq. (1) of the whole object, and the best few
+   and the best eq. (2) minimiser refined on it (all together:
+   :func:`~certpose.estimation.batch.refine_poses`). Measured (``examples/bench_box.py
+   --models appearance``, 18 cross-scene pairs): the refined eq. (2) hypothesis is the winner or
+   within 0.5 cm / 2 deg of it in 17/18 pairs with the mask and 15/18 box only (7/18 and 5/18
+   when one minimiser, the highest support's, was refined: with the mask it lost 11, turned
+   by 150-180 degrees from the winner in 8, which eq. (2), without a free-space term, does not
+   tell apart, and stalled 4-8 degrees from the winner in its basin in 3);
 3. local refinement stops at the first local maximum of a rough objective, often tens of nats
    below the basin's top: the best ``hop_starts`` distinct hypotheses hop on
    (:func:`~certpose.estimation.batch.basin_hop`: random perturbations refined, kept when
@@ -59,7 +66,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from certpose.model.eq2 import Eq2Params, build_eq2_problem, certify_eq2, estimate_eq2, solve_eq2
+from certpose.model.eq2 import (
+    Eq2Params,
+    build_eq2_problem,
+    certify_eq2,
+    solve_eq2,
+    solve_eq2_about_seeds,
+)
 from solvers.lie import project_to_so3, se3_exp
 from solvers.validation import check_transform, resolve_rng
 
@@ -431,7 +444,7 @@ class MLEParams:
         Hypotheses refined on the subsampled object.
     num_refine_fine : int
         Of those, the best (on the exact eq. (1) of the whole object) refined again on the
-        whole object; the eq. (2) hypothesis always is.
+        whole object; the best eq. (2) minimiser always is.
     coarse_maxiter : int
         Iteration limit of each refinement on the subsampled object.
     refine_maxiter : int
@@ -554,14 +567,16 @@ class MLEResult:
     log_likelihood : float
         Eq. (1) at ``T_scene_object`` (nats, up to ``-N log Z``).
     hypothesis : str
-        Where the winning pose came from: ``"eq2"`` (the eq. (2) solution, refined) or
-        ``"coarse:<rank>"`` (the coarse search).
+        Where the winning pose came from: ``"eq2:<rank>"`` (the eq. (2) minimiser about the
+        coarse search's hypothesis of that rank, refined), ``"eq2"`` (the descriptor problem's
+        minimiser, or the certifier's better pose, refined), ``"coarse:<rank>"`` (the coarse
+        search) or ``"turn:<k>"`` (a near-symmetric turn of the search's winner).
     eq2_result : RegistrationResult or None
         The eq. (2) solve (``T_target_source`` = its pose), with its certificate.
     eq2_log_likelihood : float
         Eq. (1) at the eq. (2) pose, before refinement (``nan`` without a solve).
     eq2_refined_log_likelihood : float
-        Eq. (1) after refining the eq. (2) pose (``nan`` without a solve).
+        Eq. (1) of the best refined eq. (2) minimiser (``nan`` without a solve).
     certificate : Certificate or None
         Certificate of the eq. (2) solution (it bounds eq. (2), not eq. (1)).
     num_evaluations : int
@@ -667,7 +682,7 @@ class Hypothesis:
         Eq. (1) at ``pose`` on the likelihood of the step that produced it (nats; ``nan`` when
         not scored yet).
     source : str
-        ``"eq2"``, ``"coarse:<rank>"``, ``"centroid"`` or ``"turn:<k>"``.
+        ``"eq2"``, ``"eq2:<rank>"``, ``"coarse:<rank>"``, ``"centroid"`` or ``"turn:<k>"``.
     """
 
     pose: NDArray[np.float64]
@@ -768,33 +783,48 @@ def _build_likelihoods(scene: Any, classification: ObjectClassification, object_
     return search
 
 
-def _eq2_hypothesis(search: _Search, scene: Any, classification: ObjectClassification,
+def _eq2_hypotheses(search: _Search, scene: Any, classification: ObjectClassification,
                     object_model: ObjectModel, lparams: LikelihoodParams, gen: np.random.Generator,
-                    certifier: _Certifier, seeds: list[Hypothesis]
-                    ) -> tuple[Any, RegistrationResult | None, Hypothesis | None]:
-    """Step 2: eq. (2), the certifiable approximation, on the candidates near the coarse search's
-    leading hypotheses (by descriptor without them), solved; its certifier started."""
+                    certifier: _Certifier, coarse: list[Hypothesis]
+                    ) -> tuple[Any, RegistrationResult | None, list[Hypothesis]]:
+    """Step 2: eq. (2), the certifiable approximation, about each of the coarse search's leading
+    hypotheses (by descriptor without them), solved; the certifier started on the minimiser of
+    the highest eq. (2) support.
+
+    Returns the problem and minimiser that are certified, and the hypotheses that go on to the
+    refinement: ``coarse`` with each seed replaced by its own eq. (2) minimiser (source
+    ``"eq2:<rank>"``; a seed near no voxel stays), or the descriptor problem's minimiser
+    (``"eq2"``) before ``coarse``.
+    """
     params = search.params
     t = time.perf_counter()
     try:
-        if seeds and params.eq2.num_seeds > 0:
-            eq2, result = estimate_eq2(scene, classification, object_model,
-                                       np.stack([h.pose for h in seeds]), params=params.eq2,
-                                       likelihood_params=lparams, rng=gen)
+        if coarse and params.eq2.num_seeds > 0:
+            seeded = solve_eq2_about_seeds(scene, classification, object_model,
+                                           np.stack([h.pose for h in coarse]), params=params.eq2,
+                                           likelihood_params=lparams, rng=gen)
+            eq2, result = seeded.problem, seeded.result
+            hyps = list(coarse)
+            for row, T in zip(seeded.seed_rows, seeded.minimisers, strict=True):
+                hyps[row] = Hypothesis(T, float("nan"), f"eq2:{coarse[row].source.split(':')[1]}")
         else:
             eq2 = build_eq2_problem(scene, classification, object_model, params=params.eq2,
                                     likelihood_params=lparams, rng=gen)
             result = solve_eq2(eq2, certify=False)
+            hyps = [Hypothesis(result.T_target_source, float("nan"), "eq2"), *coarse]
     except ValueError as exc:
         log.warning("eq. (2) skipped: %s", exc)
         search.timings["eq2_solve"] = time.perf_counter() - t
-        return None, None, None
+        return None, None, list(coarse)
     search.timings["eq2_solve"] = time.perf_counter() - t
     if params.certify:
         certifier.submit(eq2, result, params.certify_time_limit)
-    T = result.T_target_source
-    search.n_eval += 1
-    return eq2, result, Hypothesis(T, float(search.full(T)), "eq2")
+    return eq2, result, hyps
+
+
+def _is_eq2(h: Hypothesis) -> bool:
+    """Whether ``h`` descends from an eq. (2) minimiser (``"eq2"`` or ``"eq2:<rank>"``)."""
+    return h.source == "eq2" or h.source.startswith("eq2:")
 
 
 def _coarse_hypotheses(search: _Search, centre: NDArray[np.float64],
@@ -852,7 +882,9 @@ def _refine_hypotheses(search: _Search, hyps: list[Hypothesis]) -> list[Hypothes
     # wrong mode (measured: an upside-down synthetic mug).
     exact = np.asarray(search.counted(search.full)(coarse))
     order = [int(i) for i in np.argsort(-exact, kind="stable")]
-    fine = [i for i in order if i in order[: params.num_refine_fine] or hyps[i].source == "eq2"]
+    # The best few, and the best eq. (2) minimiser (the one the certifier's pose competes with).
+    fine = order[: params.num_refine_fine]
+    fine += [i for i in order if _is_eq2(hyps[i]) and i not in fine][:1]
     T2, v2 = refine_poses(search.counted(search.full), coarse[fine], scale=search.scale,
                           max_iter=params.refine_maxiter, max_step=0.1)
     search.timings["refine"] = search.timings.get("refine", 0.0) + time.perf_counter() - t
@@ -1029,10 +1061,12 @@ def estimate_mle(
     eq2_refined_ll = float("nan")
     with _Certifier() as certifier:
         coarse = _coarse_hypotheses(search, centre, view, gen, positives)
-        eq2, eq2_result, h_eq2 = _eq2_hypothesis(search, scene, classification, object_model,
-                                                 lparams, gen, certifier, coarse)
-        eq2_ll = float("nan") if h_eq2 is None else float(search.exact(h_eq2.pose))
-        hyps = ([] if h_eq2 is None else [h_eq2]) + coarse
+        eq2, eq2_result, hyps = _eq2_hypotheses(search, scene, classification, object_model,
+                                                lparams, gen, certifier, coarse)
+        eq2_ll = float("nan")
+        if eq2_result is not None:
+            search.n_eval += 1
+            eq2_ll = float(search.exact(eq2_result.T_target_source))
         finals = _refine_hypotheses(search, hyps)
         # Every point in unobserved space scores N log p_unobserved: a plateau that a failed
         # search ends on (measured: the mustard bottle in 0050/000020, ADD-S 9 cm). Search again.
@@ -1086,8 +1120,8 @@ def estimate_mle(
     if search.full is not search.exact and finals:
         scores = np.atleast_1d(search.counted(search.exact)(np.stack([h.pose for h in finals])))
         finals = [Hypothesis(h.pose, float(v), h.source) for h, v in zip(finals, scores, strict=True)]
-    eq2_refined_ll = max((h.score for h in finals if h.source == "eq2"), default=float("nan"))
-    if best.source == "eq2":
+    eq2_refined_ll = max((h.score for h in finals if _is_eq2(h)), default=float("nan"))
+    if _is_eq2(best):
         eq2_refined_ll = best.score
     timings["total"] = time.perf_counter() - t_start
     cert = None if eq2_result is None else eq2_result.certificate

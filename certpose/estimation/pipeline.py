@@ -211,7 +211,7 @@ class PoseResult:
         (and ``errors`` against the ground truth, when given). More than one: eq. (1) barely
         tells them apart.
     hypothesis : str
-        Which hypothesis won on eq. (1) (``"eq2"`` or ``"coarse:<rank>"``).
+        Which hypothesis won on eq. (1) (see :attr:`~certpose.estimation.mle.MLEResult.hypothesis`).
     eq2_log_likelihood : float
         Eq. (1) at the eq. (2) minimiser, before refinement.
     eq2_refined_log_likelihood : float
