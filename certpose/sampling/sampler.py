@@ -253,9 +253,9 @@ class ISParams:
 
 
 def _so3_log(R: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation vectors of rotation matrices ``R`` (..., 3, 3), vectorised: scipy's
-    ``from_matrix`` cost more than the rest of a mixture density. Scipy only within 0.1 rad of a
-    half turn, where ``theta / (2 sin theta)`` loses its precision."""
+    """Rotation vectors of rotation matrices ``R`` (..., 3, 3), vectorised (scipy's
+    ``from_matrix`` cost more than the rest of a mixture density). Within 0.1 rad of a half
+    turn, where ``theta / (2 sin theta)`` loses its precision, Shepperd's quaternion instead."""
     R = np.asarray(R, dtype=np.float64)
     v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
                   R[..., 1, 0] - R[..., 0, 1]], axis=-1)
@@ -266,8 +266,27 @@ def _so3_log(R: NDArray[np.float64]) -> NDArray[np.float64]:
     w = v * factor[..., None]
     near_pi = theta > np.pi - 0.1
     if np.any(near_pi):
-        w[near_pi] = Rotation.from_matrix(R[near_pi]).as_rotvec()
+        w[near_pi] = _so3_log_near_pi(R[near_pi])
     return w
+
+
+def _so3_log_near_pi(R: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Rotation vectors of rotations ``R`` (n, 3, 3) near a half turn
+    (Shepperd's quaternion from the largest diagonal entry; ``theta`` from ``atan2``)."""
+    n = len(R)
+    d = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], axis=1)
+    i = np.argmax(d, axis=1)
+    j, k = (i + 1) % 3, (i + 2) % 3
+    r = np.arange(n)
+    q = np.empty((n, 4))  # (x, y, z, w)
+    big = np.sqrt(np.maximum(1.0 + d[r, i] - d[r, j] - d[r, k], 1e-300)) / 2.0
+    q[r, i] = big
+    q[r, j] = (R[r, j, i] + R[r, i, j]) / (4.0 * big)
+    q[r, k] = (R[r, k, i] + R[r, i, k]) / (4.0 * big)
+    q[:, 3] = (R[r, k, j] - R[r, j, k]) / (4.0 * big)
+    q *= np.where(q[:, 3] < 0, -1.0, 1.0)[:, None]
+    v = np.linalg.norm(q[:, :3], axis=1)
+    return q[:, :3] * (2.0 * np.arctan2(v, q[:, 3]) / v)[:, None]
 
 
 def _so3_exp(w: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -316,6 +335,7 @@ class TangentMixture:
         if np.any(self.weights < 0) or not math.isclose(float(self.weights.sum()), 1.0, rel_tol=1e-9):
             raise ValueError("Expected mixture `weights` to be non-negative and sum to 1.")
         object.__setattr__(self, "_chol", np.linalg.cholesky(self.covariances))
+        object.__setattr__(self, "_chol_inv", np.linalg.inv(self._chol))
 
     def sample(self, n: int, rng: np.random.Generator) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Draw ``n`` poses; returns rotations (n, 3, 3) and translations (n, 3)."""
@@ -341,15 +361,17 @@ class TangentMixture:
             theta = np.linalg.norm(w, axis=1)
             u = np.where(theta[:, None] > 1e-12, w / np.maximum(theta, 1e-300)[:, None],
                          np.array([1.0, 0.0, 0.0]))
-            d = t - self.translations[k]
             # 2 (1 - cos theta), accurate near 0.
             two_one_minus_cos = np.maximum(4.0 * np.sin(theta / 2) ** 2, 1e-300)
             s = theta[:, None] + 2 * np.pi * _WRAPS[None, :]  # (n, M)
-            x = np.concatenate([s[..., None] * u[:, None, :],
-                                np.broadcast_to(d[:, None, :], (n, len(_WRAPS), 3))], axis=2)
+            # Whitened chart vector of wrap m: s_m A + B, with L^-1 split into its rotation and
+            # translation columns (one product per component, not a solve per wrap).
+            Li = self._chol_inv[k]
+            A = u @ Li[:, :3].T
+            B = (t - self.translations[k]) @ Li[:, 3:].T
+            m2 = (s * s * np.sum(A * A, axis=1)[:, None] + 2.0 * s * np.sum(A * B, axis=1)[:, None]
+                  + np.sum(B * B, axis=1)[:, None])
             L = self._chol[k]
-            z = np.linalg.solve(L, x.reshape(-1, 6).T).T.reshape(n, len(_WRAPS), 6)
-            m2 = np.sum(z * z, axis=2)
             if math.isfinite(self.dof):
                 nu = self.dof
                 log_norm = (gammaln((nu + 6) / 2) - gammaln(nu / 2) - 3 * math.log(nu * math.pi)
@@ -361,7 +383,10 @@ class TangentMixture:
             # Near theta = 0 the m = 0 term's Jacobian ratio s^2 / (2 (1 - cos s)) -> 1.
             log_jac = np.where(s == 0, 0.0, np.log(np.maximum(s * s, 1e-300))
                                - np.log(two_one_minus_cos)[:, None])
-            out[k] = math.log(max(self.weights[k], 1e-300)) + logsumexp(log_gauss + log_jac, axis=1)
+            v = log_gauss + log_jac
+            top = v.max(axis=1)
+            out[k] = (math.log(max(self.weights[k], 1e-300)) + top
+                      + np.log(np.exp(v - top[:, None]).sum(axis=1)))
         return out
 
 
