@@ -227,10 +227,10 @@ def test_an_exception_inside_estimate_mle_leaves_no_certifier_thread(monkeypatch
 
     import certpose.estimation.batch as batch_mod
 
-    # The certifier starts once eq. (2) is solved (after the coarse search that seeds it); the
-    # refinement that follows fails.
+    # The certifier starts once eq. (2)'s minimisers are refined (the one that climbed highest is
+    # certified); the basin hops that follow fail.
     monkeypatch.setattr(mle_mod, "certify_eq2", slow_certify)
-    monkeypatch.setattr(batch_mod, "refine_poses", failing_search)
+    monkeypatch.setattr(batch_mod, "basin_hop", failing_search)
     with pytest.raises(RuntimeError, match="search failed"):
         estimate_mle(scene, cls, obj, params=MLEParams(certify=True, num_rotations=16), rng=0)
     assert started.is_set()

@@ -5,8 +5,8 @@ r"""Maximum-likelihood pose: eq. (2) (see :mod:`certpose.model.eq2`) as one hypo
 among an object point's top-k candidates (see :mod:`certpose.model.eq2`). So eq. (2) is solved
 about each of the coarse search's ``Eq2Params.num_seeds`` leading distinct hypotheses
 (:func:`~certpose.model.eq2.solve_eq2_about_seeds`): each minimiser replaces its seed and is
-refined on eq. (1) as every hypothesis is, so that eq. (1) chooses among their basins; the one of
-the highest eq. (2) support is certified (coarse-to-fine):
+refined on eq. (1) as every hypothesis is, so that eq. (1) chooses among their basins; the one
+whose minimiser climbed highest is certified (coarse-to-fine):
 
 1. a batched coarse search of eq. (1) on a farthest-point subsample of the object: random
    rotations, each with a 3x3x3 grid of translations around the one that puts the
@@ -17,11 +17,12 @@ the highest eq. (2) support is certified (coarse-to-fine):
    centre (a partly occluded object's seen part lies centimetres from its facing side's
    centroid; positives half off the object slide them away, hence both); this stage uses a coarser eq. (1) whose free space is eroded next to
    surfaces (``coarse_erosion``) so that poses a voxel or two off still rank high;
-2. eq. (2) about each of the best distinct hypotheses, solved (a certificate starts in a
-   thread); the hypotheses, the leading ones as their eq. (2) minimisers (``"eq2:<rank>"``), are
-   refined on the coarse model, ranked on the exact eq. (1) of the whole object, and the best few
-   and the best eq. (2) minimiser refined on it (all together:
-   :func:`~certpose.estimation.batch.refine_poses`). Measured (``examples/bench_box.py
+2. eq. (2) about each of the best distinct hypotheses, solved; the hypotheses, the leading
+   ones as their eq. (2) minimisers (``"eq2:<rank>"``), are refined on the coarse model, ranked
+   on the exact eq. (1) of the whole object, and the best few and the best eq. (2) minimiser
+   refined on it (all together: :func:`~certpose.estimation.batch.refine_poses`); the problem
+   of the eq. (2) minimiser that climbed highest gets its local rounds and its certificate
+   starts in a thread. Measured (``examples/bench_box.py
    --models appearance``, 18 cross-scene pairs): the refined eq. (2) hypothesis is the winner or
    within 0.5 cm / 2 deg of it in 17/18 pairs with the mask and 15/18 box only (7/18 and 5/18
    when one minimiser, the highest support's, was refined: with the mask it lost 11, turned
@@ -68,6 +69,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from certpose.model.eq2 import (
     Eq2Params,
+    SeededEq2,
     build_eq2_problem,
     certify_eq2,
     solve_eq2,
@@ -572,7 +574,8 @@ class MLEResult:
         minimiser, or the certifier's better pose, refined), ``"coarse:<rank>"`` (the coarse
         search) or ``"turn:<k>"`` (a near-symmetric turn of the search's winner).
     eq2_result : RegistrationResult or None
-        The eq. (2) solve (``T_target_source`` = its pose), with its certificate.
+        The eq. (2) solve (``T_target_source`` = its pose), with its certificate: about the
+        seed whose minimiser climbed highest on eq. (1), after its local rounds.
     eq2_log_likelihood : float
         Eq. (1) at the eq. (2) pose, before refinement (``nan`` without a solve).
     eq2_refined_log_likelihood : float
@@ -786,24 +789,25 @@ def _build_likelihoods(scene: Any, classification: ObjectClassification, object_
 def _eq2_hypotheses(search: _Search, scene: Any, classification: ObjectClassification,
                     object_model: ObjectModel, lparams: LikelihoodParams, gen: np.random.Generator,
                     certifier: _Certifier, coarse: list[Hypothesis]
-                    ) -> tuple[Any, RegistrationResult | None, list[Hypothesis]]:
+                    ) -> tuple[SeededEq2 | None, Any, RegistrationResult | None, list[Hypothesis]]:
     """Step 2: eq. (2), the certifiable approximation, about each of the coarse search's leading
-    hypotheses (by descriptor without them), solved; the certifier started on the minimiser of
-    the highest eq. (2) support.
+    hypotheses (by descriptor without them), solved.
 
-    Returns the problem and minimiser that are certified, and the hypotheses that go on to the
-    refinement: ``coarse`` with each seed replaced by its own eq. (2) minimiser (source
+    Returns the seeded problems (``None`` for the descriptor problem), the problem and minimiser
+    to certify when known now (the descriptor problem's: its certifier is started; the seeded
+    one's is chosen after the refinement, :func:`_certify_seeded`), and the hypotheses that go
+    on to the refinement: ``coarse`` with each seed replaced by its own eq. (2) minimiser (source
     ``"eq2:<rank>"``; a seed near no voxel stays), or the descriptor problem's minimiser
     (``"eq2"``) before ``coarse``.
     """
     params = search.params
     t = time.perf_counter()
+    seeded, eq2, result = None, None, None
     try:
         if coarse and params.eq2.num_seeds > 0:
             seeded = solve_eq2_about_seeds(scene, classification, object_model,
                                            np.stack([h.pose for h in coarse]), params=params.eq2,
                                            likelihood_params=lparams, rng=gen)
-            eq2, result = seeded.problem, seeded.result
             hyps = list(coarse)
             for row, T in zip(seeded.seed_rows, seeded.minimisers, strict=True):
                 hyps[row] = Hypothesis(T, float("nan"), f"eq2:{coarse[row].source.split(':')[1]}")
@@ -815,11 +819,33 @@ def _eq2_hypotheses(search: _Search, scene: Any, classification: ObjectClassific
     except ValueError as exc:
         log.warning("eq. (2) skipped: %s", exc)
         search.timings["eq2_solve"] = time.perf_counter() - t
-        return None, None, list(coarse)
+        return None, None, None, list(coarse)
     search.timings["eq2_solve"] = time.perf_counter() - t
-    if params.certify:
+    if result is not None and params.certify:
         certifier.submit(eq2, result, params.certify_time_limit)
-    return eq2, result, hyps
+    return seeded, eq2, result, hyps
+
+
+def _certify_seeded(search: _Search, seeded: SeededEq2, finals: list[Hypothesis],
+                    certifier: _Certifier) -> tuple[Any, RegistrationResult]:
+    """Step 2's end: of the seeded eq. (2) problems, the one whose minimiser climbed highest on
+    eq. (1) (eq. (2)'s highest support when none was refined) gets its local rounds, and its
+    certifier is started; returns that problem and minimiser.
+
+    Eq. (2)'s support, without a free-space term, often prefers a can's or a banana's
+    180-degree turn that eq. (1) rejects (8 of the 18 pairs of ``examples/bench_box.py``): the
+    certified minimiser is then not in the basin of the returned pose."""
+    t = time.perf_counter()
+    refined = [h for h in finals if h.source.startswith("eq2:")]
+    i = seeded.best_supported
+    if refined:
+        rank = int(max(refined, key=lambda h: h.score).source.split(":")[1])
+        i = int(np.flatnonzero(seeded.seed_rows == rank)[0])
+    eq2, result = seeded.local_rounds(i)
+    search.timings["eq2_solve"] = search.timings.get("eq2_solve", 0.0) + time.perf_counter() - t
+    if search.params.certify:
+        certifier.submit(eq2, result, search.params.certify_time_limit)
+    return eq2, result
 
 
 def _is_eq2(h: Hypothesis) -> bool:
@@ -1061,13 +1087,16 @@ def estimate_mle(
     eq2_refined_ll = float("nan")
     with _Certifier() as certifier:
         coarse = _coarse_hypotheses(search, centre, view, gen, positives)
-        eq2, eq2_result, hyps = _eq2_hypotheses(search, scene, classification, object_model,
-                                                lparams, gen, certifier, coarse)
+        seeded, eq2, eq2_result, hyps = _eq2_hypotheses(search, scene, classification,
+                                                        object_model, lparams, gen, certifier,
+                                                        coarse)
+        finals = _refine_hypotheses(search, hyps)
+        if seeded is not None:
+            eq2, eq2_result = _certify_seeded(search, seeded, finals, certifier)
         eq2_ll = float("nan")
         if eq2_result is not None:
             search.n_eval += 1
             eq2_ll = float(search.exact(eq2_result.T_target_source))
-        finals = _refine_hypotheses(search, hyps)
         # Every point in unobserved space scores N log p_unobserved: a plateau that a failed
         # search ends on (measured: the mustard bottle in 0050/000020, ADD-S 9 cm). Search again.
         # Search again from the other centres of the classifier's evidence, then from the

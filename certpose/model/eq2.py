@@ -52,7 +52,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -120,10 +120,14 @@ class Eq2Params:
     Every seed's minimiser refined on eq. (1) as the coarse hypotheses are (each replacing its
     seed; ``examples/bench_box.py --models appearance --seed 0``, load 7-9): the refined eq. (2)
     hypothesis is the winner or within 0.5 cm / 2 deg of it in 7/18 -> 17/18 pairs (mask) and
-    5/18 -> 15/18 (box only, best buddies); the raw pose (the highest support's) is unchanged
-    (ADD-S <= 1 cm 18/18 and 16/18) and so are the final poses (ADD-S 18/18, right 15/18, eq. (1)
-    >= refined truth - 1 nat 18/18, in both modes). The highest support's minimiser, refined, was
-    turned by 150-180 degrees from the winner in 8 of the 18 pairs in either mode.
+    5/18 -> 15/18 (box only, best buddies), and the final poses are unchanged (ADD-S 18/18, right
+    15/18, eq. (1) >= refined truth - 1 nat 18/18, in both modes). The highest support's
+    minimiser, refined, was turned by 150-180 degrees from the winner in 8 of the 18 pairs in
+    either mode; the raw (certified) eq. (2) pose is now the one whose minimiser climbed highest
+    on eq. (1): turned from the winner in 8 -> 1 (mask) and 8 -> 3 (box only) pairs, within
+    10 degrees of the truth in 7 -> 11 and 5 -> 8, ADD-S <= 1 cm unchanged (18/18, 16/18). The
+    raw pose is hardly better than its seed: most are 5-25 degrees off, and eq. (1)'s
+    refinement takes them the rest of the way.
 
     Inliers at the true pose of the seeded problem: 1-45 of 1000-1900 pairs (1-27 object
     points of 100); of main's 160: 0-3. The eq. (2) stage takes 0.34 s median (0.18 s
@@ -362,26 +366,37 @@ class SeededEq2:
 
     Attributes
     ----------
-    problem : Eq2Problem
-        The chosen seed's problem after its local rounds (the one ``result`` minimises).
-    result : RegistrationResult
-        Its minimiser (``T_target_source`` = ``T_scene_object``), not certified.
-    chosen : int
-        Row of ``seeds`` whose problem ``result`` solves: the highest support.
     seed_rows : (S',) ndarray of int64
         Rows of ``seeds`` near enough occupied voxels to pose a problem, in seed order.
-    minimisers : (S', 4, 4) ndarray
-        Each of their problems' minimisers (``chosen``'s after its local rounds).
+    problems : tuple of Eq2Problem
+        Their problems (S').
+    results : tuple of RegistrationResult
+        Their minimisers (``T_target_source`` = ``T_scene_object``), not certified.
     supports : (S',) ndarray
-        Eq. (2)'s support of each minimiser (see :func:`_support`), before the local rounds.
+        Eq. (2)'s support of each minimiser (see :func:`_support`); the highest is eq. (2)'s own
+        choice among the seeds' basins.
     """
 
-    problem: Eq2Problem
-    result: RegistrationResult
-    chosen: int
     seed_rows: NDArray[np.int64]
-    minimisers: NDArray[np.float64]
+    problems: tuple[Eq2Problem, ...]
+    results: tuple[RegistrationResult, ...]
     supports: NDArray[np.float64]
+    _rounds: Any = field(repr=False)
+
+    @property
+    def minimisers(self) -> NDArray[np.float64]:
+        """``(S', 4, 4)``: each problem's minimiser."""
+        return np.stack([r.T_target_source for r in self.results])
+
+    @property
+    def best_supported(self) -> int:
+        """Index (into ``seed_rows``) of the highest support, the first of equals."""
+        return int(np.argmax(self.supports))
+
+    def local_rounds(self, i: int) -> tuple[Eq2Problem, RegistrationResult]:
+        """Member ``i``'s problem and minimiser after ``Eq2Params.local_rounds`` rounds on the
+        voxels within two noise bounds of its minimiser (the last round's problem)."""
+        return self._rounds(self.problems[i], self.results[i])
 
 
 def estimate_eq2(
@@ -414,7 +429,7 @@ def estimate_eq2(
     """
     out = solve_eq2_about_seeds(scene, classification, object_model, seeds, params=params,
                                 likelihood_params=likelihood_params, rng=rng)
-    return out.problem, out.result
+    return out.local_rounds(out.best_supported)
 
 
 def solve_eq2_about_seeds(
@@ -427,11 +442,12 @@ def solve_eq2_about_seeds(
     likelihood_params: LikelihoodParams | None = None,
     rng: np.random.Generator | int | None = None,
 ) -> SeededEq2:
-    """:func:`estimate_eq2`, keeping every seed's minimiser (the MLE refines each one on eq. (1)).
+    """Eq. (2) about seed poses, every minimiser kept (the MLE refines each one on eq. (1));
+    :func:`estimate_eq2` is this, then the local rounds of the highest support's.
 
-    With ``seed_mode="each"`` one problem per seed is solved; the minimiser of the highest
-    eq. (2) support is chosen and gets ``local_rounds``. With ``"union"`` one problem over all
-    the seeds' candidates: its minimiser is the only one.
+    With ``seed_mode="each"`` one problem per seed is solved; with ``"union"`` one problem over
+    all the seeds' candidates, whose minimiser is the only one. No local rounds yet (see
+    :meth:`SeededEq2.local_rounds`).
 
     Parameters
     ----------
@@ -477,10 +493,9 @@ def solve_eq2_about_seeds(
 
     if params.seed_mode == "union":
         eq2 = near(T)
-        eq2, result = rounds(eq2, solve_eq2(eq2, certify=False))
-        return SeededEq2(eq2, result, 0, np.zeros(1, dtype=np.int64),
-                         result.T_target_source[None], np.full(1, np.nan))
-    # One solve per seed; the minimisers compete on their support; the best one's local rounds.
+        return SeededEq2(np.zeros(1, dtype=np.int64), (eq2,), (solve_eq2(eq2, certify=False),),
+                         np.full(1, np.nan), rounds)
+    # One solve per seed; the minimisers' support: eq. (2)'s own ranking of their basins.
     found: list[tuple[int, float, Eq2Problem, RegistrationResult]] = []
     for s, start in enumerate(T):
         try:
@@ -495,12 +510,9 @@ def solve_eq2_about_seeds(
         found.append((s, score, eq2, result))
     if not found:
         raise ValueError(f"None of the {T.shape[0]} seed poses is near an occupied voxel.")
-    best = max(range(len(found)), key=lambda i: found[i][1])  # the first of equals
-    eq2, result = rounds(found[best][2], found[best][3])
-    minimisers = np.stack([f[3].T_target_source for f in found])
-    minimisers[best] = result.T_target_source
-    return SeededEq2(eq2, result, found[best][0], np.array([f[0] for f in found], dtype=np.int64),
-                     minimisers, np.array([f[1] for f in found]))
+    return SeededEq2(np.array([f[0] for f in found], dtype=np.int64),
+                     tuple(f[2] for f in found), tuple(f[3] for f in found),
+                     np.array([f[1] for f in found]), rounds)
 
 
 def _timed(solve: Any) -> RegistrationResult:
