@@ -14,6 +14,7 @@ usage::
 
     PYTHONPATH=. python examples/bench_is_seeds.py --seeds 0 1 2 3 4 [--no-ycbv] [--frames 000001]
                                                    [--cache /tmp/is_cache] [--json OUT]
+                                                   [--param rounds=10 sweep_rounds=()]
 """
 
 from __future__ import annotations
@@ -111,13 +112,22 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--cache", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--param", nargs="+", default=[], metavar="NAME=VALUE",
+                    help="ISParams fields other than the defaults (Python literals), e.g. rounds=10")
     args = ap.parse_args()
     if args.cache is not None:
         args.cache.mkdir(parents=True, exist_ok=True)
 
+    import ast
+
     from bench_samplers import free_arc_metrics
 
     from certpose.sampling.sampler import ISParams, sample_pose_distribution
+
+    params = ISParams(resample=10_000, **{k: ast.literal_eval(v) for k, v in
+                                          (item.split("=", 1) for item in args.param)})
+    if args.param:
+        print(f"sampler: {params}")
 
     scenes = ([] if args.no_demo else ["demo"]) + ([] if args.no_ycbv else [f"0000/{f}" for f in args.frames])
     rows, warm = [], False
@@ -133,7 +143,7 @@ def main() -> None:
                 sample_pose_distribution(lik, seeds, params=ISParams(draws=500, rounds=1), rng=0)
                 warm = True
             load = os.getloadavg()[0]
-            res = sample_pose_distribution(lik, seeds, params=ISParams(resample=10_000), rng=seed)
+            res = sample_pose_distribution(lik, seeds, params=params, rng=seed)
             m = free_arc_metrics(res.distribution, gt, arc, centre)
             r = {"scene": name, "seed": seed, "num_seeds": len(seeds), "load": load,
                  "ess": float(res.weighted.ess), "status": res.status, "seconds": res.seconds,
