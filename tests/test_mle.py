@@ -483,7 +483,68 @@ def test_basin_hop_climbs_out_of_a_local_maximum_and_never_worsens():
         basin_hop(lik, T, scale=0.03, samples=0)
     with pytest.raises(ValueError, match="rotation_deg"):
         basin_hop(lik, T, scale=0.03, rotation_deg=-1.0)
+    with pytest.raises(ValueError, match="drop_behind"):
+        basin_hop(lik, T, scale=0.03, drop_behind=-1.0)
 
+
+def test_basin_hop_drops_a_start_far_behind_and_keeps_the_others_path():
+    from certpose.estimation.batch import basin_hop, refine_poses
+
+    rng = np.random.default_rng(7)
+    obj = _box_object(rng)
+    T = make_transform(Rotation.from_rotvec([0.4, -0.3, 0.2]).as_matrix(), [0.0, 0.01, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    lik = PoseLikelihood(scene, cls, obj, params=LikelihoodParams(free_space_tolerance=0,
+                                                                  free_space_ramp=0))
+    # One start near the truth, one 90 degrees off (hundreds of nats behind, and still so
+    # after a round).
+    starts = np.stack([T @ make_transform(Rotation.from_rotvec(np.radians(a) * np.array([1.0, 0, 0])).as_matrix(),
+                                          [0.002, 0, 0]) for a in (3.0, 90.0)])
+    local, v_local = refine_poses(lik, starts, scale=0.03)
+    assert v_local[1] < v_local[0] - 100.0
+    kw = dict(scale=0.03, rounds=3, samples=8, rotation_deg=10.0, rng=0)
+    full, v_full = basin_hop(lik, local, **kw)
+    cut, v_cut = basin_hop(lik, local, drop_behind=50.0, **kw)
+    # The leading start draws the same perturbations and ends where it ended without the cut.
+    np.testing.assert_array_equal(cut[0], full[0])
+    assert v_cut[0] == v_full[0]
+    # The trailing one stopped after the first round: never below its start, short of the
+    # uncut search (which climbs on), and its value is its pose's.
+    assert v_local[1] <= v_cut[1] < v_full[1]
+    assert v_cut[1] == pytest.approx(float(lik(cut[1])), rel=1e-12)
+    first, v_first = basin_hop(lik, local, **{**kw, "rounds": 1})
+    np.testing.assert_array_equal(cut[1], first[1])
+
+
+def test_refine_poses_prune_stops_the_trailing_hypotheses():
+    from certpose.estimation.batch import refine_poses
+
+    rng = np.random.default_rng(7)
+    obj = _box_object(rng)
+    T = make_transform(Rotation.from_rotvec([0.4, -0.3, 0.2]).as_matrix(), [0.0, 0.01, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    lik = PoseLikelihood(scene, cls, obj)
+    starts = np.stack([T @ make_transform(Rotation.from_rotvec(np.radians(a) * np.array([0, 1.0, 0])).as_matrix(),
+                                          [0.003, 0, 0]) for a in (4.0, 90.0)])
+    kw = dict(scale=0.03, max_iter=40)
+    free, v_free = refine_poses(lik, starts, **kw)
+    alone, v_alone = refine_poses(lik, starts[:1], **kw)
+    # The leader climbs as it does alone, whatever happens to the other.
+    both, v_both = refine_poses(lik, starts, prune_margin=0.0, **kw)
+    np.testing.assert_array_equal(both[0], alone[0])
+    assert v_both[0] == v_alone[0]
+    # The one far behind is stopped early: below where it climbs without the pruning, and
+    # never below its start.
+    assert v_free[1] < v_free[0] - 50.0
+    assert lik(starts[1]) <= v_both[1] < v_free[1]
+    assert v_both[1] == pytest.approx(float(lik(both[1])), rel=1e-12)
+    # A generous margin prunes nothing.
+    kept, v_kept = refine_poses(lik, starts, prune_margin=1e6, **kw)
+    np.testing.assert_array_equal(kept, free)
+    with pytest.raises(ValueError, match="prune_margin"):
+        refine_poses(lik, starts, scale=0.03, prune_margin=-1.0)
+    with pytest.raises(ValueError, match="prune_every"):
+        refine_poses(lik, starts, scale=0.03, prune_margin=1.0, prune_every=2)
 
 
 def _ycbv_mle_case(frame, name):

@@ -74,6 +74,8 @@ def refine_poses(
     min_step: float = 2e-3,
     max_step: float = 0.5,
     fd_step: float = 0.02,
+    prune_margin: float | None = None,
+    prune_every: int = 10,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Locally maximise eq. (1) from each of ``T0`` (see the module docstring).
 
@@ -96,6 +98,16 @@ def refine_poses(
         Upper bound of the step.
     fd_step : float
         Central-difference step in chart units (also smooths the piecewise-linear objective).
+    prune_margin : float, optional
+        For callers that keep only the best hypothesis and those near it (see
+        :func:`~certpose.estimation.modes.explore_modes`): every ``prune_every`` iterations, a
+        hypothesis stops where it is when, climbing on at its rate of the last 5 iterations
+        for every iteration left, it would still end more than ``prune_margin`` nats below
+        the best hypothesis now. A hypothesis far behind but climbing fast goes on (measured:
+        a turn of the potted-meat can, 0002/000020, climbed from 220 nats behind to the top
+        in 30 iterations). ``None``: no pruning.
+    prune_every : int
+        Iterations between the pruning checks.
 
     Returns
     -------
@@ -111,6 +123,10 @@ def refine_poses(
         raise ValueError(f"Expected `T0` to have shape (H, 4, 4), got {T.shape}.")
     if not (math.isfinite(scale) and scale > 0):
         raise ValueError(f"`scale` must be positive, got {scale}.")
+    if prune_margin is not None and not prune_margin >= 0:
+        raise ValueError(f"`prune_margin` must be >= 0 nats or None, got {prune_margin}.")
+    if int(prune_every) < 5:
+        raise ValueError(f"`prune_every` must be >= 5 iterations, got {prune_every}.")
     H = T.shape[0]
     if H == 0:
         return T, np.zeros(0)
@@ -127,7 +143,13 @@ def refine_poses(
     grad = gradient(T, np.zeros((H, 6)))
     radius = np.full(H, float(step))
     active = np.ones(H, dtype=bool)
-    for _ in range(int(max_iter)):
+    past: list[NDArray[np.float64]] = []  # values after each iteration (for the pruning)
+    for it in range(int(max_iter)):
+        if prune_margin is not None:
+            past.append(value.copy())
+            if it > 0 and it % int(prune_every) == 0:
+                rate = np.maximum(value - past[it - 5], 0.0) / 5.0
+                active &= value + (int(max_iter) - it) * rate >= value.max() - prune_margin
         idx = np.flatnonzero(active)
         if idx.size == 0:
             break
@@ -183,6 +205,7 @@ def basin_hop(
     rotation_deg: float = 8.0,
     max_iter: int = 30,
     coarse_max_iter: int = 15,
+    drop_behind: float = math.inf,
     rng: np.random.Generator | int | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Climb from each of ``T0`` past the local maxima next to it (see the module docstring).
@@ -214,6 +237,11 @@ def basin_hop(
         Standard deviation of each rotation-vector coordinate, degrees.
     max_iter, coarse_max_iter : int
         Iterations of :func:`refine_poses` on ``likelihood`` and ``coarse_likelihood``.
+    drop_behind : float
+        After each round, a start whose best pose trails the best start's by more than this
+        many nats stops hopping (its best so far is returned). The perturbations are drawn
+        for every start all the same, so the starts that go on follow the same path as
+        without the cut.
     rng : numpy Generator, int or None
 
     Returns
@@ -232,26 +260,31 @@ def basin_hop(
     if not (translation >= 0 and rotation_deg >= 0):
         raise ValueError(f"`translation` and `rotation_deg` must be >= 0, got {translation} and "
                          f"{rotation_deg}.")
+    if not drop_behind >= 0:
+        raise ValueError(f"`drop_behind` must be >= 0 nats, got {drop_behind}.")
     gen = resolve_rng(rng)
     H, M = T.shape[0], int(samples)
     values = np.asarray(likelihood(T), dtype=np.float64).reshape(H)
+    live = np.arange(H)
     for _ in range(int(rounds)):
         X = np.empty((H, M, 6))
         X[..., :3] = gen.normal(scale=translation, size=(H, M, 3))
         X[..., 3:] = gen.normal(scale=math.radians(rotation_deg), size=(H, M, 3))
-        P = twists_to_poses(T, X, scale).reshape(-1, 4, 4)
+        h = live.size
+        P = twists_to_poses(T[live], X[live], scale).reshape(-1, 4, 4)
         if coarse_likelihood is not None:
             P, _ = refine_poses(coarse_likelihood, P, scale=scale, max_iter=coarse_max_iter)
             k = min(int(keep), M)
-            exact = np.asarray(likelihood(P)).reshape(H, M)
+            exact = np.asarray(likelihood(P)).reshape(h, M)
             top = np.argsort(-exact, axis=1)[:, :k]
-            P = P.reshape(H, M, 4, 4)[np.arange(H)[:, None], top].reshape(-1, 4, 4)
+            P = P.reshape(h, M, 4, 4)[np.arange(h)[:, None], top].reshape(-1, 4, 4)
         P, v = refine_poses(likelihood, P, scale=scale, max_iter=max_iter)
-        P, v = P.reshape(H, -1, 4, 4), v.reshape(H, -1)
+        P, v = P.reshape(h, -1, 4, 4), v.reshape(h, -1)
         i = np.argmax(v, axis=1)
-        better = v[np.arange(H), i] > values
-        T[better] = P[better, i[better]]
-        values[better] = v[better, i[better]]
+        better = v[np.arange(h), i] > values[live]
+        T[live[better]] = P[better, i[better]]
+        values[live[better]] = v[better, i[better]]
+        live = live[values[live] >= values.max() - drop_behind]
     return T, values
 
 
