@@ -64,3 +64,53 @@ def test_rotation_error_matches_angle(seed, angle_deg):
     R2 = R @ Rotation.from_rotvec(axis * np.radians(angle_deg)).as_matrix()
     assert abs(lie.rotation_error_deg(R2, R) - angle_deg) < 1e-5
     assert lie.rotation_error_deg(R, R) < 1e-5
+
+
+def _rotvec_equal(w, w_ref, atol):
+    # At exactly pi, w and -w are the same rotation.
+    if np.linalg.norm(w_ref) > np.pi - 1e-6:
+        assert np.allclose(w, w_ref, atol=atol) or np.allclose(w, -w_ref, atol=atol)
+    else:
+        np.testing.assert_allclose(w, w_ref, atol=atol)
+
+
+@given(st.integers(0, 2**32 - 1))
+def test_so3_log_is_scipys_rotation_vector(seed):
+    R = _rot_from_seed(seed)
+    _rotvec_equal(lie.so3_log(R), Rotation.from_matrix(R).as_rotvec(), 1e-9)
+
+
+@given(st.one_of(small_vec3, arrays(np.float64, 3, elements=st.floats(-1e-3, 1e-3))))
+def test_so3_log_near_identity(w):
+    np.testing.assert_allclose(lie.so3_log(lie.so3_exp(w)), w, atol=1e-12)
+
+
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 0.12))
+def test_so3_log_near_a_half_turn(seed, gap):
+    axis = np.random.default_rng(seed).normal(size=3)
+    axis /= np.linalg.norm(axis)
+    w = axis * (np.pi - gap)
+    R = lie.so3_exp(w)
+    out = lie.so3_log(R)
+    assert np.linalg.norm(out) <= np.pi + 1e-12
+    np.testing.assert_allclose(lie.so3_exp(out), R, atol=1e-9)
+    _rotvec_equal(out, w, 1e-7)
+
+
+@given(st.integers(0, 2**32 - 1))
+def test_so3_log_batches_over_leading_axes(seed):
+    R = Rotation.random(6, random_state=np.random.default_rng(seed)).as_matrix()
+    # One of them a half turn, one the identity: the branches mix in one call.
+    R[0] = lie.so3_exp([0.0, np.pi, 0.0])
+    R[1] = np.eye(3)
+    out = lie.so3_log(R.reshape(2, 3, 3, 3))
+    assert out.shape == (2, 3, 3)
+    for Ri, wi in zip(R, out.reshape(6, 3), strict=True):
+        np.testing.assert_allclose(lie.so3_exp(wi), Ri, atol=1e-9)
+
+
+def test_so3_log_rejects_bad_shapes():
+    import pytest
+
+    with pytest.raises(ValueError, match=r"`R` to have shape \(\.\.\., 3, 3\), got \(3, 2\)"):
+        lie.so3_log(np.zeros((3, 2)))

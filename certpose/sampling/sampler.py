@@ -66,6 +66,7 @@ from scipy.spatial.transform import Rotation
 from scipy.special import gammaln, logsumexp
 
 from certpose.sampling.distribution import PoseDistribution
+from solvers.lie import so3_log
 from solvers.validation import resolve_rng
 
 __all__ = ["ISParams", "ISResult", "TangentMixture", "default_temperature", "importance_sample",
@@ -268,43 +269,6 @@ class ISParams:
             raise ValueError(f"Expected `sweep_rounds` >= 0, got {self.sweep_rounds}.")
 
 
-def _so3_log(R: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation vectors of rotation matrices ``R`` (..., 3, 3), vectorised (scipy's
-    ``from_matrix`` cost more than the rest of a mixture density). Within 0.1 rad of a half
-    turn, where ``theta / (2 sin theta)`` loses its precision, Shepperd's quaternion instead."""
-    R = np.asarray(R, dtype=np.float64)
-    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
-                  R[..., 1, 0] - R[..., 0, 1]], axis=-1)
-    cos = np.clip((R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0, -1.0, 1.0)
-    theta = np.arccos(cos)
-    small = theta < 1e-4
-    factor = np.where(small, 0.5 + theta**2 / 12.0, theta / (2.0 * np.where(small, 1.0, np.sin(theta))))
-    w = v * factor[..., None]
-    near_pi = theta > np.pi - 0.1
-    if np.any(near_pi):
-        w[near_pi] = _so3_log_near_pi(R[near_pi])
-    return w
-
-
-def _so3_log_near_pi(R: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation vectors of rotations ``R`` (n, 3, 3) near a half turn
-    (Shepperd's quaternion from the largest diagonal entry; ``theta`` from ``atan2``)."""
-    n = len(R)
-    d = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], axis=1)
-    i = np.argmax(d, axis=1)
-    j, k = (i + 1) % 3, (i + 2) % 3
-    r = np.arange(n)
-    q = np.empty((n, 4))  # (x, y, z, w)
-    big = np.sqrt(np.maximum(1.0 + d[r, i] - d[r, j] - d[r, k], 1e-300)) / 2.0
-    q[r, i] = big
-    q[r, j] = (R[r, j, i] + R[r, i, j]) / (4.0 * big)
-    q[r, k] = (R[r, k, i] + R[r, i, k]) / (4.0 * big)
-    q[:, 3] = (R[r, k, j] - R[r, j, k]) / (4.0 * big)
-    q *= np.where(q[:, 3] < 0, -1.0, 1.0)[:, None]
-    v = np.linalg.norm(q[:, :3], axis=1)
-    return q[:, :3] * (2.0 * np.arctan2(v, q[:, 3]) / v)[:, None]
-
-
 def _so3_exp(w: NDArray[np.float64]) -> NDArray[np.float64]:
     return Rotation.from_rotvec(w).as_matrix()
 
@@ -373,7 +337,7 @@ class TangentMixture:
         n, K = len(R), len(self.weights)
         out = np.empty((K, n))
         for k in range(K):
-            w = _so3_log(np.einsum("ji,njk->nik", self.rotations[k], R))
+            w = so3_log(np.einsum("ji,njk->nik", self.rotations[k], R))
             theta = np.linalg.norm(w, axis=1)
             u = np.where(theta[:, None] > 1e-12, w / np.maximum(theta, 1e-300)[:, None],
                          np.array([1.0, 0.0, 0.0]))
@@ -640,7 +604,7 @@ def _refit(proposal: TangentMixture, logs: NDArray, n_adapted: int, R: NDArray, 
             # it there, as a too-wide one would need, starves the ridge of draws).
             wk = wk / mass
             Rk = proposal.rotations[k]
-            Rk = Rk @ _so3_exp(wk @ _so3_log(np.einsum("ji,njk->nik", Rk, R)))
+            Rk = Rk @ _so3_exp(wk @ so3_log(np.einsum("ji,njk->nik", Rk, R)))
             Rs.append(Rk)
             ts.append(wk @ t)
             Cs.append(proposal.covariances[k])
@@ -650,9 +614,9 @@ def _refit(proposal: TangentMixture, logs: NDArray, n_adapted: int, R: NDArray, 
         # A few Karcher steps from the old centre.
         Rk = proposal.rotations[k]
         for _ in range(3):
-            Rk = Rk @ _so3_exp(wk @ _so3_log(np.einsum("ji,njk->nik", Rk, R)))
+            Rk = Rk @ _so3_exp(wk @ so3_log(np.einsum("ji,njk->nik", Rk, R)))
         tk = wk @ t
-        x = np.concatenate([_so3_log(np.einsum("ji,njk->nik", Rk, R)), t - tk], axis=1)
+        x = np.concatenate([so3_log(np.einsum("ji,njk->nik", Rk, R)), t - tk], axis=1)
         C = (x * wk[:, None]).T @ x / max(1.0 - np.sum(wk**2), 1e-12) + floor
         if alpha < 1.0:
             # The draws were weighted by target^a q^(1-a): for Gaussians its precision is
@@ -708,7 +672,7 @@ def _sweep(log_target: LogTarget, adapted: TangentMixture, temp: float, best: fl
 
     def near(Rj: NDArray, tj: NDArray, Lj: NDArray, T: NDArray) -> NDArray:
         """(n,) whether the poses ``T`` lie within 2 standard deviations of a component."""
-        x = np.concatenate([_so3_log(np.einsum("ji,njk->nik", Rj, T[:, :3, :3])),
+        x = np.concatenate([so3_log(np.einsum("ji,njk->nik", Rj, T[:, :3, :3])),
                             T[:, :3, 3] - tj], axis=1)
         return np.sum(np.linalg.solve(Lj, x.T) ** 2, axis=0) <= 4.0
 
@@ -817,7 +781,7 @@ def _births(log_target: LogTarget, mix: TangentMixture, logs: NDArray, R: NDArra
         if w[i] <= p.birth_weight:
             break
         k = int(np.argmax(logs[:, i]))
-        x = np.concatenate([_so3_log(mix.rotations[k].T @ R[i]), t[i] - mix.translations[k]])
+        x = np.concatenate([so3_log(mix.rotations[k].T @ R[i]), t[i] - mix.translations[k]])
         if np.sum((mix._chol_inv[k] @ x) ** 2) <= 9.0:  # noqa: SLF001
             continue
         Rs.append(R[i])
@@ -978,7 +942,7 @@ def seeds_from_mle(mle) -> NDArray[np.float64]:  # noqa: ANN001
     out: list[NDArray[np.float64]] = []
     for T in poses:
         if all(np.linalg.norm(T[:3, 3] - S[:3, 3]) > 2e-3
-               or np.linalg.norm(_so3_log(S[:3, :3].T @ T[:3, :3])) > 0.02 for S in out):
+               or np.linalg.norm(so3_log(S[:3, :3].T @ T[:3, :3])) > 0.02 for S in out):
             out.append(T)
     return np.stack(out)
 
