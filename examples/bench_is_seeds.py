@@ -70,29 +70,9 @@ def _demo(seed: int, cache: Path | None):  # noqa: ANN202
 def _ycbv(root: Path, frame: str, seed: int, cache: Path | None):  # noqa: ANN202
     f = cache / f"ycbv_{frame}_{seed}.npz" if cache else None
     if f is not None and f.exists():
-        from bench_arc import body_axis_offset
+        from bench_samplers import ycbv_mug
 
-        from certpose.estimation.pipeline import PoseParams
-        from certpose.geometry.features import FPFHBackbone
-        from certpose.geometry.objects import object_from_points
-        from certpose.io.ycbv import load_model_points, load_ycbv_frame
-        from certpose.model.arc import free_space_arc
-        from certpose.model.classifier import classify_from_mask
-        from certpose.model.likelihood import PoseLikelihood
-        from certpose.model.scene import build_scene_field
-
-        params, bb = PoseParams(), FPFHBackbone()
-        pts = load_model_points(root / "models" / "025_mug" / "points.xyz")
-        obj = object_from_points(pts, bb, voxel_size=params.voxel_size, name="025_mug")
-        yf = load_ycbv_frame(root, f"0000/{frame}")
-        mask = yf.object_mask("025_mug")
-        scene = build_scene_field(yf.frame, bb, voxel_size=params.voxel_size, roi_mask=mask,
-                                  margin=params.roi_margin)
-        cls = classify_from_mask(scene, yf.frame.with_mask(mask), params=params.classifier)
-        lik = PoseLikelihood(scene, cls, obj, params=params.likelihood)
-        T_gt = yf.frame.T_world_camera @ yf.poses["025_mug"]
-        centre = body_axis_offset(pts)
-        arc = free_space_arc(scene, pts, T_gt, centre=centre)
+        _, _, _, lik, T_gt, arc, centre, _, _ = ycbv_mug(root, frame)
         return lik, np.load(f)["seeds"], T_gt, arc, centre
     from bench_samplers import ycbv_problem
 

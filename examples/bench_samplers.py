@@ -80,10 +80,10 @@ def demo_problem(seed: int, lparams=None):  # noqa: ANN001, ANN201
 PIXEL_ARC = {"free_space": "pixels", "window": 15, "tolerance": 0.01, "max_violations": 10}
 
 
-def ycbv_problem(root: Path, frame: str, seed: int, lparams=None, arc_test: str = "voxels"):  # noqa: ANN001, ANN201
-    """Scene 0000's mug: likelihood (ground-truth mask classifier), seeds, ground truth (scene
-    frame), the free-space arc about the body's axis and the axis's centre (object frame)."""
-    from certpose.estimation.mle import estimate_mle
+def ycbv_mug(root: Path, frame: str, lparams=None, arc_test: str = "voxels"):  # noqa: ANN001, ANN201
+    """Scene 0000's mug without the MLE: scene, classification (ground-truth mask), object model,
+    likelihood, ground truth (scene frame), the free-space arc about the body's axis, the axis's
+    centre (object frame) and the parameters."""
     from certpose.estimation.pipeline import PoseParams
     from certpose.geometry.features import FPFHBackbone
     from certpose.geometry.objects import object_from_points
@@ -92,7 +92,6 @@ def ycbv_problem(root: Path, frame: str, seed: int, lparams=None, arc_test: str 
     from certpose.model.classifier import classify_from_mask
     from certpose.model.likelihood import PoseLikelihood
     from certpose.model.scene import build_scene_field
-    from certpose.sampling.sampler import seeds_from_mle
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from bench_arc import body_axis_offset
@@ -107,13 +106,22 @@ def ycbv_problem(root: Path, frame: str, seed: int, lparams=None, arc_test: str 
     scene = build_scene_field(yf.frame, bb, voxel_size=params.voxel_size, roi_mask=mask,
                               margin=params.roi_margin)
     cls = classify_from_mask(scene, yf.frame.with_mask(mask), params=params.classifier)
-    T_wc = yf.frame.T_world_camera
-    mle = estimate_mle(scene, cls, obj, params=params.mle, likelihood_params=params.likelihood,
-                       viewpoint=T_wc[:3, 3], rng=seed)
     lik = PoseLikelihood(scene, cls, obj, params=params.likelihood)
-    T_gt = T_wc @ yf.poses["025_mug"]
+    T_gt = yf.frame.T_world_camera @ yf.poses["025_mug"]
     centre = body_axis_offset(pts)
     arc = free_space_arc(scene, pts, T_gt, centre=centre, **(PIXEL_ARC if arc_test == "pixels" else {}))
+    return scene, cls, obj, lik, T_gt, arc, centre, yf.frame.T_world_camera, params
+
+
+def ycbv_problem(root: Path, frame: str, seed: int, lparams=None, arc_test: str = "voxels"):  # noqa: ANN001, ANN201
+    """Scene 0000's mug: likelihood (ground-truth mask classifier), seeds, ground truth (scene
+    frame), the free-space arc about the body's axis and the axis's centre (object frame)."""
+    from certpose.estimation.mle import estimate_mle
+    from certpose.sampling.sampler import seeds_from_mle
+
+    scene, cls, obj, lik, T_gt, arc, centre, T_wc, params = ycbv_mug(root, frame, lparams, arc_test)
+    mle = estimate_mle(scene, cls, obj, params=params.mle, likelihood_params=params.likelihood,
+                       viewpoint=T_wc[:3, 3], rng=seed)
     return lik, seeds_from_mle(mle), T_gt, arc, centre
 
 
