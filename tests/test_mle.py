@@ -125,13 +125,17 @@ def test_refine_pose_never_worsens_and_climbs_back_to_the_truth():
 
 
 
-def _box_case(rotvec, translation, seed=3):
+def _box_case(rotvec, translation, seed=3, params=None):
     """The box of ``_box_object`` (drawn with ``seed``) at the pose ``(rotvec, translation)``
-    in a hand-built scene: object, pose, scene, classifier and the default eq. (1)."""
+    in a hand-built scene: object, pose, scene, classifier and eq. (1) (``params``, default
+    the library's)."""
     obj = _box_object(np.random.default_rng(seed))
     T = make_transform(Rotation.from_rotvec(rotvec).as_matrix(), translation)
     scene, cls = _scene_with_object(obj, T)
-    return obj, T, scene, cls, PoseLikelihood(scene, cls, obj)
+    return obj, T, scene, cls, PoseLikelihood(scene, cls, obj, params=params)
+
+_UNGRADED_FREE_SPACE = LikelihoodParams(free_space_tolerance=0, free_space_ramp=0)
+
 
 def test_estimate_mle_and_coarse_search_on_a_hand_built_scene():
     rng = np.random.default_rng(3)
@@ -450,14 +454,10 @@ def test_compass_polish_climbs_to_the_top_and_never_worsens():
 def test_basin_hop_climbs_out_of_a_local_maximum_and_never_worsens():
     from certpose.estimation.batch import basin_hop, refine_poses
 
-    rng = np.random.default_rng(7)
-    obj = _box_object(rng)
-    T = make_transform(Rotation.from_rotvec([0.4, -0.3, 0.2]).as_matrix(), [0.0, 0.01, 0.5])
-    scene, cls = _scene_with_object(obj, T)
     # The ungraded free space: every free voxel pays c_empty, so that the local maximum below
     # lies far below the truth (the graded default forgives the first 5-10 mm of it).
-    lik = PoseLikelihood(scene, cls, obj, params=LikelihoodParams(free_space_tolerance=0,
-                                                                  free_space_ramp=0))
+    obj, T, scene, cls, lik = _box_case([0.4, -0.3, 0.2], [0.0, 0.01, 0.5], seed=7,
+                                        params=_UNGRADED_FREE_SPACE)
     # Starts 60 degrees off: local refinement stalls hundreds of nats below the truth.
     starts = np.stack([T @ make_transform(Rotation.from_rotvec(np.radians(60) * np.asarray(a)).as_matrix(),
                                           [0.004, 0, 0]) for a in ([1.0, 0, 0], [0, 1.0, 0])])
@@ -490,12 +490,8 @@ def test_basin_hop_climbs_out_of_a_local_maximum_and_never_worsens():
 def test_basin_hop_drops_a_start_far_behind_and_keeps_the_others_path():
     from certpose.estimation.batch import basin_hop, refine_poses
 
-    rng = np.random.default_rng(7)
-    obj = _box_object(rng)
-    T = make_transform(Rotation.from_rotvec([0.4, -0.3, 0.2]).as_matrix(), [0.0, 0.01, 0.5])
-    scene, cls = _scene_with_object(obj, T)
-    lik = PoseLikelihood(scene, cls, obj, params=LikelihoodParams(free_space_tolerance=0,
-                                                                  free_space_ramp=0))
+    obj, T, scene, cls, lik = _box_case([0.4, -0.3, 0.2], [0.0, 0.01, 0.5], seed=7,
+                                        params=_UNGRADED_FREE_SPACE)
     # One start near the truth, one 90 degrees off (hundreds of nats behind, and still so
     # after a round).
     starts = np.stack([T @ make_transform(Rotation.from_rotvec(np.radians(a) * np.array([1.0, 0, 0])).as_matrix(),
