@@ -38,6 +38,13 @@ def test_cached_object_model_is_the_built_one(tmp_path) -> None:
     files[0].write_bytes(b"not an npz")
     _same(object_from_points_cached(pts, FPFHBackbone(), voxel_size=0.005, name="box",
                                     cache_dir=tmp_path), fresh)
+    # A cache file that cannot be written (here a directory stands in its place) costs a
+    # rebuild, and leaves no half-written file behind.
+    files[0].unlink()
+    files[0].mkdir()
+    _same(object_from_points_cached(pts, FPFHBackbone(), voxel_size=0.005, name="box",
+                                    cache_dir=tmp_path), fresh)
+    assert sorted(p.name for p in (tmp_path / "objects").iterdir()) == [files[0].name]
     with pytest.raises(TypeError, match="rng"):
         object_from_points_cached(pts, FPFHBackbone(), voxel_size=0.005,
                                   rng=np.random.default_rng(0))

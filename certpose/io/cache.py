@@ -96,6 +96,7 @@ def _write(path: Path, model: ObjectModel) -> None:
     for k in ("colors", "normals", "areas"):
         if getattr(model, k) is not None:
             arrays[k] = getattr(model, k)
+    tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         # Written beside, then renamed: a concurrent reader sees the whole file or none.
@@ -105,6 +106,8 @@ def _write(path: Path, model: ObjectModel) -> None:
         os.replace(tmp, path)
     except OSError as exc:  # a read-only or full disk costs the next call a rebuild, no more
         log.debug("object cache %s not written: %s", path, exc)
+        if tmp is not None and os.path.exists(tmp):  # no half-written file left behind
+            os.unlink(tmp)
 
 
 def object_from_points_cached(
