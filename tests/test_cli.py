@@ -246,3 +246,23 @@ def test_program_defers_open3d_plotly_until_it_is_used(tmp_path):
                           timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.split() == ["False", "Figure", "True"]
+
+
+def test_a_command_builds_only_its_own_parser():
+    # `certpose pose ...` does not import the other commands (bench's alone costs ~0.2 s a run);
+    # the program's own help and an unknown command still list them all.
+    code = textwrap.dedent("""
+        import sys
+        from certpose.cli import build_parser
+        sub = build_parser("pose")._subparsers._group_actions[0]
+        alone = sorted(sub.choices), "certpose.cli.bench" in sys.modules
+        everything = sorted(build_parser(None)._subparsers._group_actions[0].choices)
+        unknown = sorted(build_parser("posee")._subparsers._group_actions[0].choices)
+        print(alone, everything == unknown, everything)
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == ("(['pose'], False) True ['bench', 'object', 'pose', 'register']")
+    helped = subprocess.run([sys.executable, "-m", "certpose", "pose", "--help"],
+                            capture_output=True, text=True, timeout=300)
+    assert helped.returncode == 0 and "--ycbv" in helped.stdout

@@ -206,3 +206,35 @@ def test_compiling_pauses_the_garbage_collector_and_restores_it():
     with pytest.raises(TypeError):
         jit._compile([broken])
     assert gc.isenabled()  # restored on failure too
+
+
+@pytest.mark.slow
+def test_warm_up_preloads_cached_kernels_in_a_thread(tmp_path):
+    """With a warm cache, preload=True starts no helper process but loads the kernels from the cache
+    in a thread; a call meanwhile waits for its load (numba's lock) and gives the right answer."""
+    kernels = ["solvers.registration._kernels:row_degrees", "solvers.registration._kernels:k_core"]
+    _run(f"""
+        import json
+        from solvers import jit
+        jit._compile([s for s in jit.declared(["solvers.registration._kernels"])
+                      if f"{{s.module}}:{{s.name}}" in {kernels!r}])
+        print("{{}}")
+    """, tmp_path)
+    out = _run(f"""
+        import json, time
+        import numpy as np
+        from solvers import jit
+        specs = [s for s in jit.declared(["solvers.registration._kernels"])
+                 if f"{{s.module}}:{{s.name}}" in {kernels!r}]
+        before = [len(s.dispatcher().overloads) for s in specs]
+        started = jit.warm_up({kernels!r}, preload=True)
+        threads = [t.name for t in jit._PRELOADS]
+        k = jit.compiled("solvers.registration._kernels")
+        jit._join_preloads()
+        print(json.dumps({{"started": started, "pending": jit.pending(), "threads": threads,
+                          "before": before, "after": [len(s.dispatcher().overloads) for s in specs],
+                          "preloading": jit.preloading()}}))
+    """, tmp_path)
+    assert out == {"started": 0, "pending": [], "threads": ["solvers-jit-preload"],
+                   "before": [0, 0], "after": [1, 1], "preloading": False}
+
