@@ -137,3 +137,46 @@ def test_clique_number_bound_is_sound_and_is_the_clique_number(family: str) -> N
                                       rel=1e-9, abs=1e-9)
         # Never above the cost it is given.
         assert clique_number_bound(p, 0.5 * opt) <= 0.5 * opt
+
+
+@pytest.mark.parametrize("family", ["uniform", "uneven", "beta", "all_outliers", "cbar2"])
+def test_the_clique_number_best_gap_is_never_above_the_bound_s_gap(family: str) -> None:
+    """``skip_futile``'s test is sound: the clique-number bound's gap is never below the gap
+    ``_clique_number_best_gap`` says it could reach (else a skip could lose a certificate)."""
+    from solvers.certificate import undiluted_gap
+    from solvers.certify.front import _clique_number_best_gap, _normalised, _outlier_cost
+
+    rng = np.random.default_rng(8)
+    for _ in range(5):
+        pn, _ = _normalised(make_family(rng, family, 9))
+        res = solve_registration(pn, method="auto")
+        R, t = res.rotation, res.translation
+        u = pn.cost(R, t)
+        gap = undiluted_gap(u, clique_number_bound(pn, u), _outlier_cost(pn, R, t))
+        best, k = _clique_number_best_gap(pn, R, t)
+        assert best <= gap + 1e-12
+        assert k == int(np.count_nonzero((pn.residuals_sq(R, t) < pn.cbar2) & (pn.weights > 0)))
+
+
+def test_skip_futile_still_searches_a_clique_number_that_could_certify() -> None:
+    """Exact inliers and outliers 1.5 noise bounds off (consistent with every inlier): the
+    listing gives up (time limit), the candidate's inliers would certify with a clique number
+    of their count, so the clique number is searched with ``skip_futile`` as without it."""
+    from scipy.spatial.transform import Rotation
+
+    from solvers.certify import certify_result
+
+    rng = np.random.default_rng(3)
+    k, m, beta = 20, 40, 0.01
+    src = rng.uniform(-0.5, 0.5, (k + m, 3))
+    dst = src @ Rotation.random(random_state=rng).as_matrix().T + rng.normal(size=3)
+    off = rng.normal(size=(m, 3))
+    dst[k:] += 1.5 * beta * off / np.linalg.norm(off, axis=1, keepdims=True)
+    p = WeightedTLSProblem(src, dst, noise_bound=beta)
+    res = solve_registration(p, method="auto")
+    assert p.inliers(res.rotation, res.translation).sum() == k
+    plain = certify_result(p, res, time_limit=1e-6).certificate
+    skip = certify_result(p, res, time_limit=1e-6, skip_futile=True).certificate
+    assert plain.method == skip.method == "clique_number"
+    assert skip.lower_bound == plain.lower_bound and skip.relative_gap == plain.relative_gap
+    assert "not attempted" not in skip.message

@@ -108,3 +108,24 @@ def test_certify_on_the_dense_pair_bounds_by_the_clique_number(corr):
     assert np.isfinite(cert.lower_bound) and cert.lower_bound <= cert.upper_bound
     # No pose keeps more inliers than the largest consistent set: about N - omega.
     assert cert.lower_bound >= corr.n - 2 * res.info["max_clique_size"]
+
+
+def test_certify_skip_futile_does_not_search_a_clique_number_that_cannot_certify(corr):
+    """With ``skip_futile`` (the MLE's certifier), a clique-number bound whose best possible gap
+    is above the tolerance is not searched: "not attempted", bounded by 0, the same pose and
+    upper bound, and the bound it replaces did not certify either."""
+    from solvers import solve_registration
+    from solvers.certify import certify_result
+    from solvers.certify.front import _clique_number_best_gap, _normalised
+    from solvers.registration.solve import unit_scale_problem
+
+    unit, _ = unit_scale_problem(corr.source, corr.target, noise_bound=NOISE_BOUND)
+    res = solve_registration(unit, method="auto")
+    plain = certify_result(unit, res, time_limit=5).certificate
+    skip = certify_result(unit, res, time_limit=5, skip_futile=True).certificate
+    assert plain.method == "clique_number" and not plain.certified
+    best, k = _clique_number_best_gap(_normalised(unit)[0], res.rotation, res.translation)
+    assert plain.tol < best <= plain.relative_gap
+    assert not skip.certified and skip.status.value == "iteration_limit"
+    assert "clique-number bound not attempted" in skip.message and f"of {k} " in skip.message
+    assert skip.lower_bound == 0.0 and skip.upper_bound == plain.upper_bound

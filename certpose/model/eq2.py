@@ -572,9 +572,11 @@ def solve_eq2(
 
 
 def certify_eq2(
-    eq2: Eq2Problem, result: RegistrationResult, *, time_limit: float | None = None
+    eq2: Eq2Problem, result: RegistrationResult, *, time_limit: float | None = None,
+    skip_futile: bool = False,
 ) -> RegistrationResult:
-    """Certify an eq. (2) solution with :func:`solvers.certify.certify_result`.
+    """Certify an eq. (2) solution with :func:`solvers.certify.certify_result` (``time_limit``
+    and ``skip_futile`` are its own).
 
     If the certifier fails, ``result`` comes back with ``certificate=None`` and
     ``info["certificate_message"]`` says why. The certifier may return
@@ -587,7 +589,8 @@ def certify_eq2(
 
     try:
         t0 = time.perf_counter()
-        certified = certify_result(eq2.problem, result, time_limit=time_limit)
+        certified = certify_result(eq2.problem, result, time_limit=time_limit,
+                                   skip_futile=skip_futile)
         result = replace(result, info={**result.info, "certify_time": time.perf_counter() - t0})
     except Exception as exc:  # a failing backend must not lose the pose
         reraise_interrupt(exc)
