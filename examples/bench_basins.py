@@ -53,7 +53,8 @@ def pairs(root: Path, scenes: list[str], frames: list[str] | None, objects: list
                     yield f"{scene}/{fr}", name
 
 
-def diagnose(root: Path, frame: str, name: str, *, seed: int = 0, free_space: str | None = None) -> dict:
+def diagnose(root: Path, frame: str, name: str, *, seed: int = 0, free_space: str | None = None,
+             field_blur: float | None = None) -> dict:
     from certpose.estimation.mle import estimate_mle, refine_pose
     from certpose.estimation.pipeline import (
         YCBV_SYMMETRY_AXES,
@@ -66,6 +67,8 @@ def diagnose(root: Path, frame: str, name: str, *, seed: int = 0, free_space: st
     params = PoseParams()
     if free_space is not None:
         params = replace(params, likelihood=replace(params.likelihood, free_space=free_space))
+    if field_blur is not None:
+        params = replace(params, likelihood=replace(params.likelihood, field_blur=field_blur))
     # The scene, model and classifier exactly as `certpose pose` builds them.
     setup = ycbv_setup(root, frame, name, params=params)
     yf, points = setup.frame, setup.model_points
@@ -117,15 +120,18 @@ def main(argv: list[str] | None = None) -> int:
     add_pair_arguments(ap)
     ap.add_argument("--free-space", choices=("voxels", "pixels"), default=None,
                     help="LikelihoodParams.free_space (default: the library's)")
+    ap.add_argument("--field-blur", type=float, default=None, metavar="M",
+                    help="LikelihoodParams.field_blur (metres; default: the library's)")
     args = ap.parse_args(argv)
     if not args.ycbv.is_dir():
         ap.error(f"--ycbv {args.ycbv} is not a directory")
     rows = []
     print(f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}, free space "
-          f"{args.free_space or 'default'}")
+          f"{args.free_space or 'default'}, field blur "
+          f"{'default' if args.field_blur is None else args.field_blur}")
     for frame, name in pairs(args.ycbv, args.scenes.split(","), args.frames, args.objects,
                              args.min_px):
-        row = diagnose(args.ycbv, frame, name, free_space=args.free_space)
+        row = diagnose(args.ycbv, frame, name, free_space=args.free_space, field_blur=args.field_blur)
         rows.append(row)
         print(f"{row['case']:32s} gap {row['gap']:+9.1f} nats ({row['verdict']:12s}) "
               f"ADD-S {row['adds_cm']:6.2f} cm rot {row['rot_deg']:6.1f} deg | refined truth "
