@@ -222,6 +222,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--similarity-scale", type=float, default=None, metavar="S",
                     help="AppearanceBackbone.similarity_scale (eq. (1)'s beta is multiplied by it)")
     ap.add_argument("--beta", type=float, default=None, help="eq. (1)'s beta (before the scale)")
+    ap.add_argument("--field-blur", type=float, default=None, metavar="M",
+                    help="LikelihoodParams.field_blur (metres; default: the library's)")
     ap.add_argument("--unseen", choices=("palette", "prior", "shape", "zero"), default=None,
                     help="descriptor of model points no view saw (default: the builder's)")
     args = ap.parse_args(argv)
@@ -234,6 +236,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.beta is not None:
         params = replace(params, likelihood=replace(params.likelihood or LikelihoodParams(),
                                                     beta=args.beta))
+    if args.field_blur is not None:
+        params = replace(params, likelihood=replace(params.likelihood or LikelihoodParams(),
+                                                    field_blur=args.field_blur))
     backbone = AppearanceBackbone()
     if args.color_weight is not None:
         backbone = replace(backbone, color_weight=args.color_weight)
