@@ -33,7 +33,7 @@ Usage::
     python examples/bench_box.py [--models geometry|appearance] [--classifier best-buddies|mask]
         [--seed S] [--scenes 0000,0002,0049,0050]
         [--frames 000001 ...] [--objects NAME ...] [--scene-neighbors K] [--min-similarity S]
-        [--box-margin PX] [--log-p-box L] [--json OUT]
+        [--box-margin PX] [--log-p-box L] [--num-seeds S] [--gnc-seeds G] [--json OUT]
 """
 
 from __future__ import annotations
@@ -224,6 +224,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--beta", type=float, default=None, help="eq. (1)'s beta (before the scale)")
     ap.add_argument("--field-blur", type=float, default=None, metavar="M",
                     help="LikelihoodParams.field_blur (metres; default: the library's)")
+    ap.add_argument("--num-seeds", type=int, default=None,
+                    help="eq. (2) seed poses solved with the max-clique pruning (default Eq2Params')")
+    ap.add_argument("--gnc-seeds", type=int, default=None,
+                    help="further eq. (2) seed poses solved with GNC alone (default Eq2Params')")
     ap.add_argument("--unseen", choices=("palette", "prior", "shape", "zero"), default=None,
                     help="descriptor of model points no view saw (default: the builder's)")
     args = ap.parse_args(argv)
@@ -233,6 +237,10 @@ def main(argv: list[str] | None = None) -> int:
     params = replace(params, classifier=replace(
         params.classifier, scene_neighbors=args.scene_neighbors, min_similarity=args.min_similarity,
         box_margin=args.box_margin, log_p_box=args.log_p_box))
+    eq2 = {k: v for k, v in (("num_seeds", args.num_seeds), ("gnc_seeds", args.gnc_seeds))
+           if v is not None}
+    if eq2:
+        params = replace(params, mle=replace(params.mle, eq2=replace(params.mle.eq2, **eq2)))
     if args.beta is not None:
         params = replace(params, likelihood=replace(params.likelihood or LikelihoodParams(),
                                                     beta=args.beta))
@@ -255,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
              f"{backbone.color_weight:g}, unseen {args.unseen or 'default'}"
              if args.models == "appearance" else "") + ", "
           f"k={c.scene_neighbors}, min similarity {c.min_similarity:g}, box margin "
-          f"{c.box_margin:g} px, log p_O in the box {c.log_p_box}")
+          f"{c.box_margin:g} px, log p_O in the box {c.log_p_box}, eq. (2) seeds "
+          f"{params.mle.eq2.num_seeds} + {params.mle.eq2.gnc_seeds} by GNC alone")
     for frame, name in pairs(args.ycbv, args.scenes.split(","), args.frames, args.objects,
                              args.min_px):
         model = None

@@ -28,7 +28,7 @@ Usage::
 
     python examples/bench_eq2.py [--ycbv DIR] [--scenes 0000,0002,0049,0050] [--frames 000001 ...]
         [--objects 025_mug ...] [--num-object-points N] [--top-k K] [--noise-bound M]
-        [--num-seeds S] [--no-mle] [--json OUT]
+        [--num-seeds S] [--gnc-seeds G] [--no-mle] [--json OUT]
 """
 
 from __future__ import annotations
@@ -129,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--num-seeds", type=int, default=None,
                     help="seed poses of the MLE's eq. (2) (0: the descriptors' top-k, "
                          "--num-object-points x --top-k; default Eq2Params')")
+    ap.add_argument("--gnc-seeds", type=int, default=None,
+                    help="further seed poses solved with GNC alone (default Eq2Params')")
     ap.add_argument("--no-mle", action="store_true", help="only build, solve and certify eq. (2)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
@@ -139,13 +141,14 @@ def main(argv: list[str] | None = None) -> int:
     params = PoseParams()
     over = {k: v for k, v in (("num_object_points", args.num_object_points),
                               ("top_k", args.top_k), ("noise_bound", args.noise_bound),
-                              ("num_seeds", args.num_seeds))
+                              ("num_seeds", args.num_seeds), ("gnc_seeds", args.gnc_seeds))
             if v is not None}
     eq2p = replace(params.mle.eq2, **over)
     params = replace(params, mle=replace(params.mle, eq2=eq2p))
     how = (f"{eq2p.num_object_points} object points x top-{eq2p.top_k}"
            if eq2p.num_seeds == 0 or args.no_mle else
-           f"{eq2p.seed_object_points} object points near {eq2p.num_seeds} seed poses")
+           f"{eq2p.seed_object_points} object points near {eq2p.num_seeds} seed poses"
+           + (f" (+ {eq2p.gnc_seeds} by GNC alone)" if eq2p.gnc_seeds else ""))
     print(f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} | eq. (2): "
           f"{how}, noise bound "
           f"{'one voxel' if eq2p.noise_bound is None else f'{eq2p.noise_bound:g} m'}", flush=True)

@@ -717,6 +717,67 @@ def test_estimate_eq2_from_an_offset_seed_lands_on_the_truth():
     assert eq2.problem.n <= 60 * 8
 
 
+def test_seeded_eq2_local_rounds_from_a_start_pose_register_there():
+    """The local rounds begun at ``start`` (the MLE passes the minimiser once refined on eq. (1))
+    end next to ``start``, not at the seed's own minimiser; a ``start`` near no voxel, or no
+    rounds at all, leave the seed's minimiser and problem as they were."""
+    from certpose.model.eq2 import solve_eq2_about_seeds
+
+    rng = np.random.default_rng(8)
+    obj = _box_object(rng)
+    T = make_transform(Rotation.from_rotvec([0.3, -0.6, 1.1]).as_matrix(), [0.0, 0.01, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    # A seed turned by 90 degrees about the box's shortest axis: its minimiser stays turned.
+    turned = T @ make_transform(Rotation.from_rotvec([0.0, 0.0, math.pi / 2]).as_matrix(),
+                                np.zeros(3))
+    seeded = solve_eq2_about_seeds(scene, cls, obj, turned[None], rng=0,
+                                   params=Eq2Params(seed_object_points=60))
+    assert rotation_error_deg(seeded.results[0].rotation, T[:3, :3]) > 45.0
+    start = T @ make_transform(Rotation.from_rotvec([0.05, -0.04, 0.0]).as_matrix(),
+                               [0.003, -0.002, 0.001])
+    eq2, res = seeded.local_rounds(0, start)
+    assert rotation_error_deg(res.rotation, T[:3, :3]) < 3.0
+    assert np.linalg.norm(res.translation - T[:3, 3]) < 0.002
+    # Its problem is the last round's: the voxels within two noise bounds of the pose before.
+    moved = eq2.problem.source @ res.rotation.T + res.translation
+    assert np.all(np.linalg.norm(moved - eq2.problem.target, axis=1) <= 2 * 0.005 + 0.002)
+    # From nowhere near a voxel, and without rounds: the seed's minimiser, unchanged.
+    far = make_transform(np.eye(3), [1.0, 0.0, 0.5])
+    eq2_far, res_far = seeded.local_rounds(0, far)
+    assert res_far is seeded.results[0] and eq2_far is seeded.problems[0]
+    none = solve_eq2_about_seeds(scene, cls, obj, turned[None], rng=0,
+                                 params=Eq2Params(seed_object_points=60, local_rounds=0))
+    assert none.local_rounds(0, start)[1] is none.results[0]
+    with pytest.raises(ValueError, match="start"):
+        seeded.local_rounds(0, np.stack([start, start]))
+
+
+def test_seeded_eq2_solves_the_further_seeds_with_gnc_alone():
+    """``gnc_seeds``: the seeds after the first ``num_seeds`` are solved too (GNC without the
+    max-clique pruning), each minimiser next to its own seed."""
+    from certpose.model.eq2 import solve_eq2_about_seeds
+
+    rng = np.random.default_rng(9)
+    obj = _box_object(rng)
+    T = make_transform(Rotation.from_rotvec([-0.7, 0.2, 0.4]).as_matrix(), [0.01, 0.0, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    small = make_transform(Rotation.from_rotvec([0.06, 0.0, -0.05]).as_matrix(),
+                           [0.004, 0.0, -0.003])
+    other = make_transform(Rotation.from_rotvec([0.0, -0.05, 0.04]).as_matrix(),
+                           [-0.002, 0.003, 0.0])
+    seeds = np.stack([T @ small, T @ other, T @ np.linalg.inv(small), T @ np.linalg.inv(other)])
+    params = Eq2Params(seed_object_points=60, num_seeds=1, gnc_seeds=2)
+    seeded = solve_eq2_about_seeds(scene, cls, obj, seeds, params=params, rng=0)
+    np.testing.assert_array_equal(seeded.seed_rows, [0, 1, 2])  # the 4th is beyond both
+    assert "clique" not in seeded.results[1].solver and "clique" not in seeded.results[2].solver
+    for res in seeded.results:
+        assert rotation_error_deg(res.rotation, T[:3, :3]) < 5.0
+        assert np.linalg.norm(res.translation - T[:3, 3]) < 0.004
+    only = solve_eq2_about_seeds(scene, cls, obj, seeds, params=replace(params, gnc_seeds=0),
+                                 rng=0)
+    np.testing.assert_array_equal(only.seed_rows, [0])
+
+
 def test_seeded_eq2_rejects_bad_seeds_and_params():
     from certpose.model.eq2 import estimate_eq2
 
@@ -734,7 +795,7 @@ def test_seeded_eq2_rejects_bad_seeds_and_params():
     for kwargs, name in (({"num_seeds": -1}, "num_seeds"), ({"seed_object_points": 2},
                          "seed_object_points"), ({"seed_neighbors": 0}, "seed_neighbors"),
                          ({"seed_radius": 0.0}, "seed_radius"), ({"local_rounds": -1},
-                         "local_rounds")):
+                         "local_rounds"), ({"gnc_seeds": -1}, "gnc_seeds")):
         with pytest.raises(ValueError, match=name):
             Eq2Params(**kwargs)
 
