@@ -72,6 +72,24 @@ and without the 0.02-nat cut; at 7.5 mm the two gave mean 0.68 and 0.69.) With t
 the range inside (6-16 nats, in the last 10-15 deg of each end, where its tip is 0-5 mm deep in
 free space).
 
+Why the target (<= 0.25) is still out of reach with the blur (7.5 mm, ``--step 5``):
+
+* the body's remaining 6-9 nats are mostly the points' sampling (body-only: 3.4-3.5 nats with
+  ``density=8``, at four times eq. (1)'s cost);
+* the arc's ends: the arc allows the handle's tip 5 mm into free space, eq. (1) charges points
+  from about 2.5 mm (the trilinear blend reaches the partly charged voxel centres beyond the
+  spared 5 mm); with ``--arc-tolerance 0.0025`` the handle's share is flat inside (0.7-1.1 nats)
+  and the range inside is the body's (6.0-6.8 nats on frames 1-3; frames 4-5 have no arc at
+  that tolerance), but the drop to 10 deg beyond the shorter arc is 7.8-13.0 (ratio 0.53-0.86);
+* the drop: 10 deg beyond the arc's ends only 1-16 of the 2621 model points stand deeper than
+  the 5-mm tolerance, by 0.8-5.3 mm; each pays at most ``c_empty - log_p_unobserved`` (7.7
+  nats) times its weight (about 0.5) times the ramp's fraction, and the other free runs (the
+  handle behind the foam brick or over pixels without depth) are within 10 deg of the best
+  "outside" angles. Harder free space moves both: ``--c-empty -20`` drop 15.9-42.9, range
+  10.2-37.4 (mean ratio 0.79); ``--ramp 0.0025`` 0.77; ``--tolerance 0.0075`` flattens the inside
+  (6.2-9.5 nats) but the drop falls to -1.7..8.7. Per-pixel free space with the blur
+  (``--free-space pixels --arc-free-space pixels --arc-max-violations 10``): mean 1.17.
+
 The axis is the body's: a circle fitted to the model points of the body (handle excluded) in
 the model's xy plane; it sits about 3.3 mm from the model origin along -x, so turning about the
 model's own z axis through the origin would move the body and roughen the profile by itself.
