@@ -487,6 +487,33 @@ def test_basin_hop_climbs_out_of_a_local_maximum_and_never_worsens():
         basin_hop(lik, T, scale=0.03, drop_behind=-1.0)
 
 
+def test_basin_hop_refines_a_pose_once_however_many_samples_climb_onto_it():
+    from certpose.estimation.batch import basin_hop, refine_poses
+
+    obj, T, scene, cls, lik = _box_case([0.4, -0.3, 0.2], [0.0, 0.01, 0.5], seed=7,
+                                        params=_UNGRADED_FREE_SPACE)
+    coarse = PoseLikelihood(scene, cls, obj.subsample(40, rng=0), params=lik.params)
+    start = T @ make_transform(Rotation.from_rotvec([0.0, np.radians(60), 0.0]).as_matrix(),
+                               [0.004, 0, 0])
+    local, v_local = refine_poses(lik, start[None], scale=0.03)
+    n_eval = [0]
+
+    def counted(P):
+        n_eval[0] += len(P)  # (N, 4, 4) poses
+        return lik(P)
+
+    kw = dict(scale=0.03, coarse_likelihood=coarse, rounds=2, samples=24, rotation_deg=10.0,
+              rng=1)
+    every, v_every = basin_hop(counted, local, merge=None, **kw)
+    n_every, n_eval[0] = n_eval[0], 0
+    once, v_once = basin_hop(counted, local, **kw)
+    # Fewer exact evaluations, out of the local maximum all the same (hundreds of nats), and
+    # the value is the pose's.
+    assert n_eval[0] < n_every
+    assert v_once[0] >= lik(T) - 5.0 and v_every[0] >= lik(T) - 5.0  # the truth's basin
+    assert v_once[0] == pytest.approx(float(lik(once[0])), rel=1e-12)
+
+
 def test_basin_hop_drops_a_start_far_behind_and_keeps_the_others_path():
     from certpose.estimation.batch import basin_hop, refine_poses
 
@@ -510,6 +537,46 @@ def test_basin_hop_drops_a_start_far_behind_and_keeps_the_others_path():
     assert v_cut[1] == pytest.approx(float(lik(cut[1])), rel=1e-12)
     first, v_first = basin_hop(lik, local, **{**kw, "rounds": 1})
     np.testing.assert_array_equal(cut[1], first[1])
+
+
+def test_refine_poses_merge_climbs_onto_one_pose_once():
+    from certpose.estimation.batch import refine_poses
+
+    rng = np.random.default_rng(7)
+    obj = _box_object(rng)
+    T = make_transform(Rotation.from_rotvec([0.4, -0.3, 0.2]).as_matrix(), [0.0, 0.01, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    lik = PoseLikelihood(scene, cls, obj)
+    # Two starts 0.2 degrees apart (one basin, one climb) and one 90 degrees off.
+    starts = np.stack([T @ make_transform(Rotation.from_rotvec(np.radians(a) * np.array([0, 1.0, 0])).as_matrix(),
+                                          [0.003, 0, 0]) for a in (4.0, 4.2, 90.0)])
+    n_eval = [0]
+
+    def counted(P):
+        n_eval[0] += len(P)  # (N, 4, 4) poses
+        return lik(P)
+
+    kw = dict(scale=0.03, max_iter=40)
+    free, v_free = refine_poses(counted, starts, **kw)
+    n_free, n_eval[0] = n_eval[0], 0
+    merged, v_merged = refine_poses(counted, starts, merge=0.01, **kw)
+    assert n_eval[0] < n_free
+    # The near pair: the better climbs as it does alone, the other stopped below where it
+    # climbs alone; the far start climbs as without the merging.
+    i = int(np.argmax(v_merged[:2]))
+    alone, v_alone = refine_poses(lik, starts[[i]], **kw)
+    np.testing.assert_array_equal(merged[i], alone[0])
+    assert v_merged[i] == v_alone[0]
+    assert lik(starts[1 - i]) <= v_merged[1 - i] < v_free[1 - i]
+    assert v_merged[1 - i] == pytest.approx(float(lik(merged[1 - i])), rel=1e-12)
+    np.testing.assert_array_equal(merged[2], free[2])
+    # Poses of different groups never merge.
+    apart, _ = refine_poses(lik, starts, merge=0.01, groups=[0, 1, 2], **kw)
+    np.testing.assert_array_equal(apart, free)
+    with pytest.raises(ValueError, match="merge"):
+        refine_poses(lik, starts, scale=0.03, merge=-1.0)
+    with pytest.raises(ValueError, match="groups"):
+        refine_poses(lik, starts, scale=0.03, merge=0.01, groups=[0, 1])
 
 
 def test_refine_poses_prune_stops_the_trailing_hypotheses():

@@ -76,6 +76,8 @@ def refine_poses(
     fd_step: float = 0.02,
     prune_margin: float | None = None,
     prune_every: int = 10,
+    merge: float | None = None,
+    groups: ArrayLike | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Locally maximise eq. (1) from each of ``T0`` (see the module docstring).
 
@@ -108,6 +110,13 @@ def refine_poses(
         in 30 iterations). ``None``: no pruning.
     prune_every : int
         Iterations between the pruning checks.
+    merge : float, optional
+        For callers that keep only the best hypothesis of each group (see :func:`basin_hop`):
+        after every iteration, a hypothesis within ``merge`` chart units (``sqrt(|dt|^2 /
+        scale^2 + angle^2)``, angle in radians) of a better one of its group stops where it
+        is: two climbs onto one pose are done once. ``None``: no merging.
+    groups : (H,) array_like of int, optional
+        Group of each hypothesis for ``merge`` (default: one group).
 
     Returns
     -------
@@ -127,7 +136,12 @@ def refine_poses(
         raise ValueError(f"`prune_margin` must be >= 0 nats or None, got {prune_margin}.")
     if int(prune_every) < 5:
         raise ValueError(f"`prune_every` must be >= 5 iterations, got {prune_every}.")
+    if merge is not None and not (math.isfinite(merge) and merge >= 0):
+        raise ValueError(f"`merge` must be >= 0 chart units or None, got {merge}.")
     H = T.shape[0]
+    grp = np.zeros(H, dtype=np.int64) if groups is None else np.asarray(groups, dtype=np.int64)
+    if grp.shape != (H,):
+        raise ValueError(f"Expected `groups` to have shape ({H},), got {grp.shape}.")
     if H == 0:
         return T, np.zeros(0)
     # Values at the 12 central-difference points around a chart offset (the trial itself
@@ -175,7 +189,22 @@ def refine_poses(
         radius[worse] *= 0.4
         active[idx[flat]] = False
         active[radius < min_step] = False
+        if merge is not None and active.any():
+            active &= ~_merged(T, value, grp, scale, float(merge))
     return T, value
+
+
+def _merged(T: NDArray[np.float64], value: NDArray[np.float64], grp: NDArray[np.int64],
+            scale: float, tol: float) -> NDArray[np.bool_]:
+    """Which poses lie within ``tol`` chart units of a better pose of their group (ties: of
+    an earlier one)."""
+    dt = np.linalg.norm(T[:, None, :3, 3] - T[None, :, :3, 3], axis=-1) / scale
+    cos = (np.einsum("aij,bij->ab", T[:, :3, :3], T[:, :3, :3]) - 1.0) / 2.0
+    near = dt**2 + np.arccos(np.clip(cos, -1.0, 1.0)) ** 2 <= tol**2
+    i = np.arange(T.shape[0])
+    better = (value[None, :] > value[:, None]) | ((value[None, :] == value[:, None])
+                                                  & (i[None, :] < i[:, None]))
+    return np.any(near & better & (grp[None, :] == grp[:, None]), axis=1)
 
 
 def _check_starts(T0: ArrayLike, scale: float) -> NDArray[np.float64]:
@@ -206,6 +235,7 @@ def basin_hop(
     max_iter: int = 30,
     coarse_max_iter: int = 15,
     drop_behind: float = math.inf,
+    merge: float | None = 0.02,
     rng: np.random.Generator | int | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Climb from each of ``T0`` past the local maxima next to it (see the module docstring).
@@ -242,6 +272,15 @@ def basin_hop(
         many nats stops hopping (its best so far is returned). The perturbations are drawn
         for every start all the same, so the starts that go on follow the same path as
         without the cut.
+    merge : float or None
+        ``merge`` of both refinements, per start (only each start's best is kept): a pose
+        that comes within this many chart units of a better one of its start stops, and of
+        the ``keep`` best after the cheap refinement, those within it of a better one are not
+        refined again. Measured on the hop's exact refinements of 15 YCB-Video pairs
+        (``examples/bench_basins.py``): 56% ended within 0.02 units and 2 degrees of a better
+        one of their start; with 0.02 (the central-difference step: their gradients come from
+        overlapping stencils) the hop evaluated 16% fewer point terms on 20 of those pairs, every
+        pair within 0.2 nats of its value without. ``None``: every pose climbs to the end.
     rng : numpy Generator, int or None
 
     Returns
@@ -272,14 +311,26 @@ def basin_hop(
         X[..., 3:] = gen.normal(scale=math.radians(rotation_deg), size=(H, M, 3))
         h = live.size
         P = twists_to_poses(T[live], X[live], scale).reshape(-1, 4, 4)
+        rows = np.arange(h)[:, None]
+        keep_mask = np.ones((h, M), dtype=bool)
         if coarse_likelihood is not None:
-            P, _ = refine_poses(coarse_likelihood, P, scale=scale, max_iter=coarse_max_iter)
+            groups = np.repeat(np.arange(h), M)
+            P, _ = refine_poses(coarse_likelihood, P, scale=scale, max_iter=coarse_max_iter,
+                                merge=merge, groups=groups)
             k = min(int(keep), M)
-            exact = np.asarray(likelihood(P)).reshape(h, M)
+            exact = np.asarray(likelihood(P), dtype=np.float64).reshape(h, M)
+            # Of the best, those that climbed onto a better one's pose are not refined again.
+            dup = (np.zeros((h, M), dtype=bool) if merge is None
+                   else _merged(P, exact.ravel(), groups, scale, float(merge)).reshape(h, M))
             top = np.argsort(-exact, axis=1)[:, :k]
-            P = P.reshape(h, M, 4, 4)[np.arange(h)[:, None], top].reshape(-1, 4, 4)
-        P, v = refine_poses(likelihood, P, scale=scale, max_iter=max_iter)
-        P, v = P.reshape(h, -1, 4, 4), v.reshape(h, -1)
+            P = P.reshape(h, M, 4, 4)[rows, top]
+            keep_mask = ~dup[rows, top]
+        else:
+            P = P.reshape(h, M, 4, 4)
+        v = np.full(keep_mask.shape, -np.inf)
+        P[keep_mask], v[keep_mask] = refine_poses(
+            likelihood, P[keep_mask], scale=scale, max_iter=max_iter, merge=merge,
+            groups=np.broadcast_to(rows, keep_mask.shape)[keep_mask])
         i = np.argmax(v, axis=1)
         better = v[np.arange(h), i] > values[live]
         T[live[better]] = P[better, i[better]]
