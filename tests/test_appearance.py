@@ -376,3 +376,29 @@ def test_the_certified_eq2_minimiser_box_only_is_in_the_refined_minimisers_basin
     best = max((h for h in mle.hypotheses if h.source.startswith("eq2:")), key=lambda h: h.score)
     assert rotation_error_deg(raw.rotation, best.pose[:3, :3]) < 5.0
     assert np.linalg.norm(raw.translation - best.pose[:3, 3]) < 0.005
+
+
+@pytest.mark.slow
+def test_the_certified_eq2_minimiser_follows_a_winning_turn(root):
+    """Issue 10 item 2, box only: the mustard bottle in 0002/000010, model from scene 0050's
+    views. Every refined eq. (2) minimiser is the bottle turned by 180 degrees; the winner is
+    that pose's near-symmetric turn (the MLE's mode step), and the minimiser certified was the
+    turned one (raw ADD-S 1.12 cm). Eq. (2) is now solved again about the winner."""
+    from certpose.estimation.pipeline import pose_errors, run_ycbv
+    from solvers.lie import rotation_error_deg
+
+    obj = "006_mustard_bottle"
+    views = [f"0050/{m.name[:6]}" for m in sorted((root / "0050").glob("*-meta.mat"))]
+    built = build_ycbv_object_model(root, views, obj)
+    assert "0002" not in built.scenes
+    res = run_ycbv(root, "0002/000010", obj, object_model=built, rng=0,
+                   classifier="best_buddies")
+    mle = res.mle
+    assert res.errors.add_s < 0.01 and res.errors.rotation_deg < 10.0
+    raw = mle.eq2_result
+    points = load_model_points(root / "models" / obj / "points.xyz")
+    assert pose_errors(np.linalg.inv(res.T_world_camera) @ raw.T_target_source,
+                       res.T_camera_object_gt, points).add_s < 0.01
+    W = mle.T_scene_object
+    assert rotation_error_deg(raw.rotation, W[:3, :3]) < 5.0
+    assert np.linalg.norm(raw.translation - W[:3, 3]) < 0.005

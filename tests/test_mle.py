@@ -243,6 +243,42 @@ def test_an_exception_inside_estimate_mle_leaves_no_certifier_thread(monkeypatch
     assert alive == []
 
 
+def test_the_certifier_certifies_the_last_problem_submitted(monkeypatch):
+    """The MLE submits eq. (2) again about its winner when that is not the minimiser certified
+    (a near-symmetric turn): the second problem replaces the first, whose thread is gone."""
+    import threading
+    import time
+
+    import certpose.estimation.mle as mle_mod
+
+    real_certify = mle_mod.certify_eq2
+
+    def slow_certify(*args, **kwargs):
+        time.sleep(0.3)  # the first is still running when the second is submitted
+        return real_certify(*args, **kwargs)
+
+    monkeypatch.setattr(mle_mod, "certify_eq2", slow_certify)
+    from certpose.model.eq2 import solve_eq2_about_seeds
+
+    rng = np.random.default_rng(10)
+    obj = _box_object(rng)
+    T = make_transform(Rotation.from_rotvec([0.2, 0.9, -0.4]).as_matrix(), [0.0, -0.01, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    turned = T @ make_transform(Rotation.from_rotvec([0.0, 0.0, math.pi / 2]).as_matrix(),
+                                np.zeros(3))
+    seeded = solve_eq2_about_seeds(scene, cls, obj, np.stack([turned, T]), rng=0,
+                                   params=Eq2Params(seed_object_points=60))
+    with mle_mod._Certifier() as certifier:
+        certifier.submit(seeded.problems[0], seeded.results[0], 5.0)
+        certifier.submit(seeded.problems[1], seeded.results[1], 5.0)
+        alive = [t for t in threading.enumerate()
+                 if t.name.startswith(mle_mod._Certifier.THREAD_PREFIX)]
+        assert len(alive) <= 1
+        res = certifier.result()
+    assert rotation_error_deg(res.rotation, T[:3, :3]) < 5.0
+    assert rotation_error_deg(seeded.results[0].rotation, T[:3, :3]) > 45.0
+
+
 def test_estimate_mle_records_its_hypotheses():
     rng = np.random.default_rng(3)
     obj = _box_object(rng)
