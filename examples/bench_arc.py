@@ -130,6 +130,19 @@ ARC = (-15.0, 80.0)  # the issue's rough statement of the arc, degrees
 WINDOW = (-60.0, 120.0)  # where the stated arc's outside was measured (earlier figures)
 
 
+def turned_pose(G: np.ndarray, C: np.ndarray, theta: float, x: np.ndarray) -> np.ndarray:
+    """``G`` turned by ``theta`` degrees about the body axis through ``C`` (object frame, the
+    model's z direction), then tilted by ``x[:2]`` (rad) and shifted by ``x[2:]`` (m): the
+    five refined degrees of freedom; the turn itself is not refined."""
+    from scipy.spatial.transform import Rotation
+
+    Rz = Rotation.from_rotvec([0.0, 0.0, np.radians(theta)]).as_matrix()
+    T = G.copy()
+    T[:3, :3] = G[:3, :3] @ Rz @ Rotation.from_rotvec([x[0], x[1], 0.0]).as_matrix()
+    T[:3, 3] = G[:3, 3] + G[:3, :3] @ (C - Rz @ C) + x[2:]
+    return T
+
+
 def body_axis_offset(points: np.ndarray, handle_x: float = 0.045) -> np.ndarray:
     """Centre (object frame, z = 0) of the circle fitted to the body points in the xy plane."""
     body = points[points[:, 0] < handle_x]
@@ -166,7 +179,6 @@ def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine:
             symmetrise: int = 0, sampling: dict | None = None, arc_tolerance: float | None = None,
             arc_options: dict | None = None):
     from scipy.optimize import minimize
-    from scipy.spatial.transform import Rotation
 
     from certpose.estimation.pipeline import PoseParams
     from certpose.geometry.features import FPFHBackbone
@@ -202,13 +214,7 @@ def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine:
     lik, lik0 = weighted(lik1), weighted(lik01)
 
     def pose(theta: float, x: np.ndarray) -> np.ndarray:
-        # Turn about the body axis through C (object frame), then tilt (x[:2], rad) and shift
-        # (x[2:], m): the turn itself is not refined.
-        Rz = Rotation.from_rotvec([0.0, 0.0, np.radians(theta)]).as_matrix()
-        T = G.copy()
-        T[:3, :3] = G[:3, :3] @ Rz @ Rotation.from_rotvec([x[0], x[1], 0.0]).as_matrix()
-        T[:3, 3] = G[:3, 3] + G[:3, :3] @ (C - Rz @ C) + x[2:]
-        return T
+        return turned_pose(G, C, theta, x)
 
     scale = np.array([0.05, 0.05, 0.005, 0.005, 0.005])
     handle = obj.points[:, 0] >= 0.045

@@ -169,7 +169,7 @@ def test_field_blur_flattens_the_mug_body_along_its_hidden_handle_arc():
     from certpose.estimation.pipeline import ycbv_setup
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from bench_arc import body_axis_offset
+    from bench_arc import body_axis_offset, turned_pose
 
     s = ycbv_setup(require_data("ycbv"), "0000/000001", "025_mug")
     G = s.frame.poses["025_mug"]
@@ -179,11 +179,7 @@ def test_field_blur_flattens_the_mug_body_along_its_hidden_handle_arc():
     scale = np.array([0.05, 0.05, 0.005, 0.005, 0.005])
 
     def pose(theta: float, x: np.ndarray) -> np.ndarray:
-        Rz = Rotation.from_rotvec([0.0, 0.0, np.radians(theta)]).as_matrix()
-        T = G.copy()
-        T[:3, :3] = G[:3, :3] @ Rz @ Rotation.from_rotvec([x[0], x[1], 0.0]).as_matrix()
-        T[:3, 3] = G[:3, 3] + G[:3, :3] @ (C - Rz @ C) + x[2:]
-        return T
+        return turned_pose(G, C, theta, x)
 
     ranges = {}
     for blur in (0.0, 0.0075):

@@ -575,17 +575,22 @@ def test_basin_hop_drops_a_start_far_behind_and_keeps_the_others_path():
     np.testing.assert_array_equal(cut[1], first[1])
 
 
-def test_refine_poses_merge_climbs_onto_one_pose_once():
-    from certpose.estimation.batch import refine_poses
-
+def _turned_box_starts(angles):
+    """A box's likelihood and starts turned by ``angles`` (deg) about its y axis, 3 mm off."""
     rng = np.random.default_rng(7)
     obj = _box_object(rng)
     T = make_transform(Rotation.from_rotvec([0.4, -0.3, 0.2]).as_matrix(), [0.0, 0.01, 0.5])
     scene, cls = _scene_with_object(obj, T)
-    lik = PoseLikelihood(scene, cls, obj)
+    turn = [make_transform(Rotation.from_rotvec(np.radians(a) * np.array([0, 1.0, 0])).as_matrix(),
+                           [0.003, 0, 0]) for a in angles]
+    return PoseLikelihood(scene, cls, obj), np.stack([T @ D for D in turn])
+
+
+def test_refine_poses_merge_climbs_onto_one_pose_once():
+    from certpose.estimation.batch import refine_poses
+
     # Two starts 0.2 degrees apart (one basin, one climb) and one 90 degrees off.
-    starts = np.stack([T @ make_transform(Rotation.from_rotvec(np.radians(a) * np.array([0, 1.0, 0])).as_matrix(),
-                                          [0.003, 0, 0]) for a in (4.0, 4.2, 90.0)])
+    lik, starts = _turned_box_starts((4.0, 4.2, 90.0))
     n_eval = [0]
 
     def counted(P):
@@ -618,13 +623,7 @@ def test_refine_poses_merge_climbs_onto_one_pose_once():
 def test_refine_poses_prune_stops_the_trailing_hypotheses():
     from certpose.estimation.batch import refine_poses
 
-    rng = np.random.default_rng(7)
-    obj = _box_object(rng)
-    T = make_transform(Rotation.from_rotvec([0.4, -0.3, 0.2]).as_matrix(), [0.0, 0.01, 0.5])
-    scene, cls = _scene_with_object(obj, T)
-    lik = PoseLikelihood(scene, cls, obj)
-    starts = np.stack([T @ make_transform(Rotation.from_rotvec(np.radians(a) * np.array([0, 1.0, 0])).as_matrix(),
-                                          [0.003, 0, 0]) for a in (4.0, 90.0)])
+    lik, starts = _turned_box_starts((4.0, 90.0))
     kw = dict(scale=0.03, max_iter=40)
     free, v_free = refine_poses(lik, starts, **kw)
     alone, v_alone = refine_poses(lik, starts[:1], **kw)
