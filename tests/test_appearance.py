@@ -24,6 +24,12 @@ from tests.conftest import require_data
 OBJ = "009_gelatin_box"
 
 
+
+def _model_from_scene(root, scene: str, obj: str):
+    """``obj``'s appearance model from every frame of ``scene`` (to be tested on another scene)."""
+    views = [f"{scene}/{m.name[:6]}" for m in sorted((root / scene).glob("*-meta.mat"))]
+    return build_ycbv_object_model(root, views, obj)
+
 @pytest.fixture(scope="module")
 def root() -> Path:
     require_data("ycbv", "0000", "000001-meta.mat")
@@ -221,8 +227,7 @@ def test_the_turn_of_an_appearance_model_is_refined_when_it_is_the_truth(root):
     from certpose.estimation.pipeline import run_ycbv
 
     obj = "010_potted_meat_can"
-    views = [f"0049/{m.name[:6]}" for m in sorted((root / "0049").glob("*-meta.mat"))]
-    built = build_ycbv_object_model(root, views, obj)
+    built = _model_from_scene(root, "0049", obj)
     assert "0002" not in built.scenes
     res = run_ycbv(root, "0002/000020", obj, object_model=built, rng=0, classifier="mask")
     assert res.errors.add_s < 0.01 and res.errors.rotation_deg < 10.0
@@ -239,8 +244,7 @@ def test_the_refined_eq2_minimiser_lands_in_the_winners_basin(root):
     from solvers.lie import rotation_error_deg
 
     obj = "010_potted_meat_can"
-    views = [f"0049/{m.name[:6]}" for m in sorted((root / "0049").glob("*-meta.mat"))]
-    built = build_ycbv_object_model(root, views, obj)
+    built = _model_from_scene(root, "0049", obj)
     assert "0002" not in built.scenes
     res = run_ycbv(root, "0002/000001", obj, object_model=built, rng=0, classifier="mask")
     mle = res.mle
@@ -269,8 +273,7 @@ def test_box_only_search_keeps_the_translations_not_slid_onto_the_positives(root
     from certpose.estimation.pipeline import run_ycbv
 
     obj = "006_mustard_bottle"
-    views = [f"0050/{m.name[:6]}" for m in sorted((root / "0050").glob("*-meta.mat"))]
-    built = build_ycbv_object_model(root, views, obj)
+    built = _model_from_scene(root, "0050", obj)
     assert "0002" not in built.scenes
     res = run_ycbv(root, "0002/000010", obj, object_model=built, rng=0, classifier="best_buddies")
     assert res.errors.add_s < 0.01
@@ -358,8 +361,7 @@ def test_the_certified_eq2_minimiser_box_only_is_in_the_refined_minimisers_basin
     from solvers.lie import rotation_error_deg
 
     obj = "006_mustard_bottle"
-    views = [f"0002/{m.name[:6]}" for m in sorted((root / "0002").glob("*-meta.mat"))]
-    built = build_ycbv_object_model(root, views, obj)
+    built = _model_from_scene(root, "0002", obj)
     assert "0050" not in built.scenes
     res = run_ycbv(root, "0050/000020", obj, object_model=built, rng=0,
                    classifier="best_buddies")
@@ -388,8 +390,7 @@ def test_the_certified_eq2_minimiser_follows_a_winning_turn(root):
     from solvers.lie import rotation_error_deg
 
     obj = "006_mustard_bottle"
-    views = [f"0050/{m.name[:6]}" for m in sorted((root / "0050").glob("*-meta.mat"))]
-    built = build_ycbv_object_model(root, views, obj)
+    built = _model_from_scene(root, "0050", obj)
     assert "0002" not in built.scenes
     res = run_ycbv(root, "0002/000010", obj, object_model=built, rng=0,
                    classifier="best_buddies")

@@ -12,10 +12,11 @@ from scipy.spatial.transform import Rotation
 from certpose.geometry.objects import ObjectModel
 from certpose.model.classifier import ClassifierStatus, ObjectClassification
 from certpose.model.grid import EMPTY, OCCUPIED, UNOBSERVED
-from certpose.model.likelihood import LikelihoodParams, PoseLikelihood, free_space_values
+from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 from certpose.model.scene import SceneField
 from solvers.lie import make_transform
 from tests.conftest import require_data
+from tests.test_likelihood import _reference
 
 
 def _gauss(sigma: float, radius: int) -> np.ndarray:
@@ -41,38 +42,6 @@ def _spread(scene: SceneField, cls: ObjectClassification, params: LikelihoodPara
             s += (cls.log_p[tuple(u)] - params.log_p_unobserved) * np.prod(w[du + r])
         out[tuple(v)] = s if abs(s) >= 0.02 else 0.0
     return out
-
-
-def _reference(scene, cls, obj, T, params: LikelihoodParams, spread: dict) -> float:
-    """Eq. (1) point by point and corner by corner with the blurred per-voxel values."""
-    background = free_space_values(scene.state, scene.voxel_size, params)
-    total = 0.0
-    for p, z in zip(obj.points, obj.descriptors, strict=True):
-        q = T[:3, :3] @ p + T[:3, 3]
-        g = (q - scene.origin) / scene.voxel_size - 0.5
-        i0 = np.floor(g).astype(int)
-        if np.any(i0 < -1) or np.any(i0 > np.asarray(scene.shape) - 1):
-            total += params.log_p_unobserved  # beyond the padded grid
-            continue
-        f = g - i0
-        term = 0.0
-        for dx in (0, 1):
-            for dy in (0, 1):
-                for dz in (0, 1):
-                    w = ((f[0] if dx else 1 - f[0]) * (f[1] if dy else 1 - f[1])
-                         * (f[2] if dz else 1 - f[2]))
-                    ijk = tuple(i0 + (dx, dy, dz))
-                    inside = all(0 <= ijk[a] < scene.shape[a] for a in range(3))
-                    s = scene.state[ijk] if inside else UNOBSERVED
-                    if s == OCCUPIED:
-                        v = params.log_p_unobserved + params.beta * float(scene.descriptors[ijk] @ z)
-                    elif s == EMPTY:
-                        v = background[ijk]
-                    else:
-                        v = params.log_p_unobserved
-                    term += w * (v + spread[ijk])
-        total += term
-    return total
 
 
 def _world(seed: int = 0, shape: tuple[int, int, int] = (9, 8, 7), d: int = 5):

@@ -41,15 +41,22 @@ def _world(seed: int = 0, shape: tuple[int, int, int] = (12, 10, 9), d: int = 7)
     return rng, scene, cls, obj
 
 
-def _reference(scene, cls, obj, T, params: LikelihoodParams) -> float:
+def _reference(scene, cls, obj, T, params: LikelihoodParams, spread: dict | None = None) -> float:
     """Eq. (1) point by point, corner by corner, in plain Python (free-space values per voxel
-    from :func:`free_space_values`, tested on its own below)."""
+    from :func:`free_space_values`, tested on its own below).
+
+    ``spread``: per-voxel classifier terms relative to unobserved space (by voxel index, absent:
+    0), added at every corner in place of the occupied voxels' own ``cls.log_p`` (the
+    ``field_blur`` option, tests/test_field_blur.py)."""
     background = free_space_values(scene.state, scene.voxel_size, params)
     total = 0.0
     for p, z in zip(obj.points, obj.descriptors, strict=True):
         q = T[:3, :3] @ p + T[:3, 3]
         g = (q - scene.origin) / scene.voxel_size - 0.5  # voxel centres at integers
         i0 = np.floor(g).astype(int)
+        if np.any(i0 < -1) or np.any(i0 > np.asarray(scene.shape) - 1):
+            total += params.log_p_unobserved  # beyond the padded grid: unobserved
+            continue
         f = g - i0
         term = 0.0
         for dx in (0, 1):
@@ -61,12 +68,13 @@ def _reference(scene, cls, obj, T, params: LikelihoodParams) -> float:
                     inside = all(0 <= ijk[a] < scene.shape[a] for a in range(3))
                     s = scene.state[tuple(ijk)] if inside else UNOBSERVED
                     if s == OCCUPIED:
-                        v = cls.log_p[tuple(ijk)] + params.beta * float(scene.descriptors[tuple(ijk)] @ z)
+                        own = cls.log_p[tuple(ijk)] if spread is None else params.log_p_unobserved
+                        v = own + params.beta * float(scene.descriptors[tuple(ijk)] @ z)
                     elif s == EMPTY:
                         v = background[tuple(ijk)]
                     else:
                         v = params.log_p_unobserved
-                    term += w * v
+                    term += w * (v + (0.0 if spread is None else spread.get(tuple(ijk), 0.0)))
         total += term
     return total
 
