@@ -99,6 +99,35 @@ def test_batch_equals_slow_reference_loop():
     assert lik(poses[5]) == pytest.approx(slow[5], rel=1e-5, abs=1e-4)
 
 
+def test_batch_of_close_poses_equals_slow_reference_loop():
+    """Poses a few millimetres apart (a refinement's finite-difference poses) put a point in the
+    cell of the pose before most of the time, where the kernel reuses the cell's corner values:
+    the values are still the reference's, for every pose (crossing into other cells and back)
+    and every point (the kept values are never another point's)."""
+    rng, scene, cls, obj = _world(2)
+    params = LikelihoodParams(beta=1.3, c_empty=-6.0, log_p_unobserved=math.log(0.3))
+    lik = PoseLikelihood(scene, cls, obj, params=params)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    T0 = _random_poses(rng, 1, centre, 0.01)[0]
+    # A random walk of 70 small steps (0.5-3 mm at the points) and back steps.
+    poses = [T0]
+    for _ in range(69):
+        step = make_transform(Rotation.from_rotvec(rng.normal(scale=0.01, size=3)).as_matrix(),
+                              rng.normal(scale=0.001, size=3))
+        poses.append(poses[-1] @ step if rng.random() < 0.7 else poses[-2])
+    poses = np.stack(poses)
+    # Most consecutive poses keep a point in its cell (so the reuse is exercised).
+    cell = np.floor((np.einsum("bij,nj->bni", poses[:, :3, :3], obj.points) + poses[:, None, :3, 3]
+                     - scene.origin) / scene.voxel_size - 0.5)
+    same = np.all(cell[1:] == cell[:-1], axis=2).mean()
+    assert 0.5 < same < 0.99
+    slow = np.array([_reference(scene, cls, obj, T, params) for T in poses])
+    np.testing.assert_allclose(lik(poses), slow, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(lik(poses[:12]), slow[:12], rtol=1e-5, atol=1e-4)  # one thread
+    for b in (0, 33, 69):
+        assert lik.point_terms(poses[b]).sum() == pytest.approx(slow[b], rel=1e-5, abs=1e-4)
+
+
 def test_point_terms_sum_to_eq1_and_keep_model_order():
     rng, scene, cls, obj = _world(1)
     lik = PoseLikelihood(scene, cls, obj)

@@ -35,8 +35,9 @@ MIXED, UNIFORM_EMPTY, UNIFORM_UNOBSERVED, UNIFORM = 0, 1, 2, 3
 
 
 @njit(inline="always")
-def _point_term(index, cells, background, desc, logp, zi, qx, qy, qz, origin, inv_vs, offset, beta,
-                c_empty, c_unobs):  # pragma: no cover
+def _cell(cells, qx, qy, qz, origin, inv_vs, offset):  # pragma: no cover
+    """The padded grid's cell of a scene point: its lowest corner (-1 when outside the grid),
+    its state code and the point's offsets in it (0..1 per axis)."""
     # Continuous coordinates in the padded grid (one unobserved voxel on each side), integer
     # values at voxel centres.
     ux = (qx - origin[0]) * inv_vs - offset + 1.0
@@ -47,39 +48,56 @@ def _point_term(index, cells, background, desc, logp, zi, qx, qy, qz, origin, in
     fz0 = np.floor(uz)
     nx, ny, nz = cells.shape
     if fx0 < 0.0 or fy0 < 0.0 or fz0 < 0.0 or fx0 >= nx or fy0 >= ny or fz0 >= nz:
-        return c_unobs
+        return -1, 0, 0, UNIFORM_UNOBSERVED, 0.0, 0.0, 0.0
     x0 = int(fx0)
     y0 = int(fy0)
     z0 = int(fz0)
-    # Cells whose 8 corners share one non-occupied value need no interpolation.
-    cell = cells[x0, y0, z0]
-    if cell == UNIFORM_EMPTY:
-        return c_empty
-    if cell == UNIFORM_UNOBSERVED:
-        return c_unobs
-    if cell == UNIFORM:
-        return background[x0, y0, z0]
-    ax = ux - fx0
-    ay = uy - fy0
-    az = uz - fz0
+    return x0, y0, z0, cells[x0, y0, z0], ux - fx0, uy - fy0, uz - fz0
+
+
+@njit(inline="always")
+def _corner_values(index, background, desc, logp, zi, x0, y0, z0, beta, c_unobs,
+                   cv):  # pragma: no cover
+    """The 8 values of a mixed cell's corners for one point (descriptor ``zi``) into ``cv``."""
+    k = 0
+    for dx in range(2):
+        for dy in range(2):
+            for dz in range(2):
+                v = index[x0 + dx, y0 + dy, z0 + dz]
+                if v >= 0:
+                    s = np.float32(0.0)
+                    for m in range(zi.shape[0]):
+                        s += desc[v, m] * zi[m]
+                    cv[k] = logp[v] + beta * s
+                elif v == EMPTY_CODE:
+                    cv[k] = background[x0 + dx, y0 + dy, z0 + dz]
+                else:
+                    cv[k] = c_unobs
+                k += 1
+
+
+@njit(inline="always")
+def _interpolate(cv, ax, ay, az):  # pragma: no cover
     acc = 0.0
+    k = 0
     for dx in range(2):
         wx = ax if dx == 1 else 1.0 - ax
         for dy in range(2):
             wxy = wx * (ay if dy == 1 else 1.0 - ay)
             for dz in range(2):
-                w = wxy * (az if dz == 1 else 1.0 - az)
-                v = index[x0 + dx, y0 + dy, z0 + dz]
-                if v >= 0:
-                    s = np.float32(0.0)
-                    for k in range(zi.shape[0]):
-                        s += desc[v, k] * zi[k]
-                    acc += w * (logp[v] + beta * s)
-                elif v == EMPTY_CODE:
-                    acc += w * background[x0 + dx, y0 + dy, z0 + dz]
-                else:
-                    acc += w * c_unobs
+                acc += wxy * (az if dz == 1 else 1.0 - az) * cv[k]
+                k += 1
     return acc
+
+
+@njit(inline="always")
+def _uniform_value(background, x0, y0, z0, cell, c_empty, c_unobs):  # pragma: no cover
+    """The value of a cell whose 8 corners share one non-occupied value (no interpolation)."""
+    if cell == UNIFORM_EMPTY:
+        return c_empty
+    if cell == UNIFORM_UNOBSERVED:
+        return c_unobs
+    return background[x0, y0, z0]
 
 
 # Poses per block of eq1_batch (their 12 transform entries stay in L1 beside the point).
@@ -97,11 +115,18 @@ def eq1_batch(T, points, weights, zdesc, index, cells, background, desc, logp, o
     often close (a refinement's 12 finite-difference poses), so a point's descriptor and the
     voxels it lands on are read once from memory and reused from cache by the whole block
     (measured: about 20% less time per term on such batches). Each pose's terms are still
-    summed in point order, so the values are the same as pose by pose.
+    summed in point order, so the values are the same as pose by pose. A point's 8 corner
+    values depend on its cell only: they are kept while the block's next poses put the point
+    in the same cell (about a millimetre apart, a 5 mm voxel), which skips their look-ups and
+    descriptor products (measured, one thread, CPU time: 43 -> 26 ns per term on batches of
+    finite-difference poses near the truth, and 207 -> 127 ms on 2048 random rotations, the
+    kernel's simpler branches; values within 1e-12 nats of the kernel before, whose fastmath
+    sums ran in another order).
     """
     B = T.shape[0]
     out = np.zeros(B)
     R = np.empty((_POSE_BLOCK, 12))
+    cv = np.empty(8)  # corner values of the point's cell (lx, ly, lz)
     for b0 in range(0, B, _POSE_BLOCK):
         nb = min(_POSE_BLOCK, B - b0)
         for j in range(nb):
@@ -112,12 +137,27 @@ def eq1_batch(T, points, weights, zdesc, index, cells, background, desc, logp, o
             px, py, pz = points[i, 0], points[i, 1], points[i, 2]
             zi = zdesc[i]
             wi = weights[i]
+            lx = -1
+            ly = -1
+            lz = -1
             for j in range(nb):
                 qx = R[j, 0] * px + R[j, 1] * py + R[j, 2] * pz + R[j, 3]
                 qy = R[j, 4] * px + R[j, 5] * py + R[j, 6] * pz + R[j, 7]
                 qz = R[j, 8] * px + R[j, 9] * py + R[j, 10] * pz + R[j, 11]
-                out[b0 + j] += wi * _point_term(index, cells, background, desc, logp, zi, qx, qy, qz, origin,
-                                                inv_vs, offset, beta, c_empty, c_unobs)
+                x0, y0, z0, cell, ax, ay, az = _cell(cells, qx, qy, qz, origin, inv_vs, offset)
+                if x0 < 0:
+                    out[b0 + j] += wi * c_unobs
+                    continue
+                if cell != MIXED:
+                    out[b0 + j] += wi * _uniform_value(background, x0, y0, z0, cell, c_empty,
+                                                       c_unobs)
+                    continue
+                if x0 != lx or y0 != ly or z0 != lz:
+                    _corner_values(index, background, desc, logp, zi, x0, y0, z0, beta, c_unobs, cv)
+                    lx = x0
+                    ly = y0
+                    lz = z0
+                out[b0 + j] += wi * _interpolate(cv, ax, ay, az)
     return out
 
 
@@ -127,11 +167,19 @@ def eq1_points(T, points, weights, zdesc, index, cells, background, desc, logp, 
     """Per-point weighted terms ``(N,)`` for one pose ``T`` (4, 4)."""
     N = points.shape[0]
     out = np.empty(N)
+    cv = np.empty(8)
     for i in range(N):
         px, py, pz = points[i, 0], points[i, 1], points[i, 2]
         qx = T[0, 0] * px + T[0, 1] * py + T[0, 2] * pz + T[0, 3]
         qy = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
         qz = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
-        out[i] = weights[i] * _point_term(index, cells, background, desc, logp, zdesc[i], qx, qy, qz, origin, inv_vs,
-                             offset, beta, c_empty, c_unobs)
+        x0, y0, z0, cell, ax, ay, az = _cell(cells, qx, qy, qz, origin, inv_vs, offset)
+        if x0 < 0:
+            term = c_unobs
+        elif cell != MIXED:
+            term = _uniform_value(background, x0, y0, z0, cell, c_empty, c_unobs)
+        else:
+            _corner_values(index, background, desc, logp, zdesc[i], x0, y0, z0, beta, c_unobs, cv)
+            term = _interpolate(cv, ax, ay, az)
+        out[i] = weights[i] * term
     return out
