@@ -96,6 +96,38 @@ Why the target (<= 0.25) is still out of reach with the blur (7.5 mm, ``--step 5
   (6.2-9.5 nats) but the drop falls to -1.7..8.7. Per-pixel free space with the blur
   (``--free-space pixels --arc-free-space pixels --arc-max-violations 10``): mean 1.17.
 
+Free space charged at the point (2026-11-26, ``--free-space-at point``,
+``LikelihoodParams.free_space_at="point"``): the distances into free space are blended and the
+ramp applied to the point's own depth (the arc's measure), so nothing is charged before a point
+passes the tolerance. The arc's ends are then flat: the handle's share varies by 0.0-0.1 nats
+inside the arc (1.2-1.6 with the blur; the blur's spread, not free space), against 5-16 before.
+But the drop goes with them, because the handle's points 10 deg beyond the ends stand only
+0.8-5.3 mm past the tolerance and the refinement (tilt and shift) moves them out. Computed arc,
+per frame 1-5, range inside / drop (nats), ratio:
+
+==============================================  ====================================  ====================
+option (``--free-space-at point`` and ...)      range inside / drop                   ratio (target 0.25)
+==============================================  ====================================  ====================
+(alone), 2 deg                                  31.9/-12.4 38.2/-13.0 41.2/-18.2      inf (all 5)
+                                                28.8/-14.3 23.0/-8.3
+``--field-blur 0.0075``, 2 deg                  9.4/2.1 9.0/-1.5 7.8/-0.7 10.1/-4.0   4.42 inf inf inf 3.11
+                                                9.2/3.0 (body 7.0-10.7)
+blur, ``--ramp 0.001``, 5 deg                   8.9/5.7 7.7/-0.1 6.7/1.9 9.2/-3.4     1.55 inf 3.48 inf 0.55
+                                                8.1/14.7
+blur, ``--ramp 0.001 --c-empty -30``, 5 deg     8.9/6.7 7.8/-0.2 6.7/2.5 9.5/-3.5     1.32 inf 2.72 inf 0.63
+                                                8.6/13.6
+blur, ``--ramp 0 --c-empty -100``, 5 deg        8.8/6.4 7.7/16.4 6.7/7.2 9.5/-3.3     1.38 0.47 0.94 inf 0.40
+                                                8.2/20.7
+blur, ``--tolerance 0.0025 --ramp 0.0025``,     12.9/38.6 26.5/41.0 16.9/23.6          0.33 0.65 0.71 1.36 0.32
+5 deg                                           17.2/12.7 8.2/25.8                    (mean 0.67)
+==============================================  ====================================  ====================
+
+(The last row charges from 2.5 mm at the point, what the voxel-centre default does along the
+grid's axes: its handle's range inside is back to 2.4-23.9 nats; the blur alone at 5 deg gave
+mean 0.69.) Even a hard step at the tolerance (``c_empty`` -100) leaves the drop at -3.3..20.7
+nats: past the arc's tolerance there is little left to charge that the refinement cannot avoid by
+a millimetre or two.
+
 The axis is the body's: a circle fitted to the model points of the body (handle excluded) in
 the model's xy plane; it sits about 3.3 mm from the model origin along -x, so turning about the
 model's own z axis through the origin would move the body and roughen the profile by itself.
@@ -115,6 +147,7 @@ usage::
     python examples/bench_arc.py --json arc.json                  # the profiles, for plotting
     python examples/bench_arc.py --free-space pixels --arc-free-space pixels --arc-max-violations 10
     python examples/bench_arc.py --field-blur 0.0075              # the classifier's term spread
+    python examples/bench_arc.py --free-space-at point            # free space charged at the point
 """
 
 from __future__ import annotations
@@ -275,6 +308,8 @@ def main() -> None:
                     help="LikelihoodParams.free_space_ramp (metres)")
     ap.add_argument("--free-space-from", choices=("surface", "boundary"), default=None,
                     help="LikelihoodParams.free_space_from (what --tolerance is measured from)")
+    ap.add_argument("--free-space-at", choices=("voxel", "point"), default=None,
+                    help="LikelihoodParams.free_space_at (the ramp per voxel centre or per point)")
     ap.add_argument("--free-space", choices=("voxels", "pixels"), default=None,
                     help="LikelihoodParams.free_space (eq. (1)'s free space from voxels or pixels)")
     ap.add_argument("--depth-tolerance", type=float, default=None, metavar="M",
@@ -318,7 +353,7 @@ def main() -> None:
         overrides["free_space_ramp"] = args.ramp
     if args.free_space_from is not None:
         overrides["free_space_from"] = args.free_space_from
-    for opt in ("free_space", "depth_tolerance", "depth_ramp", "depth_window", "field_blur"):
+    for opt in ("free_space_at", "free_space", "depth_tolerance", "depth_ramp", "depth_window", "field_blur"):
         if getattr(args, opt) is not None:
             overrides[opt] = getattr(args, opt)
     arc_options = {"free_space": args.arc_free_space, "window": args.arc_window,

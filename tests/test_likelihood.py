@@ -47,8 +47,15 @@ def _reference(scene, cls, obj, T, params: LikelihoodParams, spread: dict | None
 
     ``spread``: per-voxel classifier terms relative to unobserved space (by voxel index, absent:
     0), added at every corner in place of the occupied voxels' own ``cls.log_p`` (the
-    ``field_blur`` option, tests/test_field_blur.py)."""
+    ``field_blur`` option, tests/test_field_blur.py).
+
+    With ``free_space_at="point"``: EMPTY corners count as unobserved, and the point pays the
+    ramp of its depth, the trilinear blend of scipy's full distance transform (uncapped) minus
+    half a voxel."""
+    at_point = params.free_space_at == "point"
     background = free_space_values(scene.state, scene.voxel_size, params)
+    if at_point:
+        D = _edt_depth(scene.state, scene.voxel_size, params)
     total = 0.0
     for p, z in zip(obj.points, obj.descriptors, strict=True):
         q = T[:3, :3] @ p + T[:3, 3]
@@ -59,6 +66,7 @@ def _reference(scene, cls, obj, T, params: LikelihoodParams, spread: dict | None
             continue
         f = g - i0
         term = 0.0
+        depth = 0.0
         for dx in (0, 1):
             for dy in (0, 1):
                 for dz in (0, 1):
@@ -72,11 +80,32 @@ def _reference(scene, cls, obj, T, params: LikelihoodParams, spread: dict | None
                         v = own + params.beta * float(scene.descriptors[tuple(ijk)] @ z)
                     elif s == EMPTY:
                         v = background[tuple(ijk)]
+                        if at_point:
+                            depth += w * D[tuple(ijk)]
                     else:
                         v = params.log_p_unobserved
                     term += w * (v + (0.0 if spread is None else spread.get(tuple(ijk), 0.0)))
+        if at_point:
+            over = depth - 0.5 * scene.voxel_size - params.free_space_tolerance
+            ramp = params.free_space_ramp
+            frac = float(over > 0) if ramp == 0 else min(max(over / ramp, 0.0), 1.0)
+            term += frac * (params.c_empty - params.log_p_unobserved)
         total += term
     return total
+
+
+def _edt_depth(state, voxel_size, params):
+    """Distance from each EMPTY voxel centre to the nearest voxel centre that is not EMPTY
+    (``free_space_from="boundary"``, outside the grid unobserved) or occupied (``"surface"``),
+    0 elsewhere: scipy's full transform, uncapped (no erosion)."""
+    from scipy.ndimage import distance_transform_edt
+
+    empty = state == EMPTY
+    if params.free_space_from == "boundary":
+        d = distance_transform_edt(np.pad(empty, 1), sampling=voxel_size)[1:-1, 1:-1, 1:-1]
+    else:
+        d = distance_transform_edt(state != OCCUPIED, sampling=voxel_size)
+    return np.where(empty, d, 0.0)
 
 
 def _random_poses(rng, n, centre, spread):
@@ -459,3 +488,97 @@ def test_graded_free_space_equals_the_full_distance_transform(seed):
             vs = float(rng.choice([0.004, 0.005, 0.0075]))
             np.testing.assert_allclose(free_space_values(state, vs, p),
                                        _edt_free_space_values(state, vs, p), rtol=1e-12, atol=1e-12)
+
+
+def _sparse_world(seed: int, shape=(20, 18, 16), d: int = 5):
+    """Mostly observed free space with a few surface and unobserved voxels: free space several
+    voxels deep, so the point-relative ramp sees every depth."""
+    rng = np.random.default_rng(seed)
+    state = rng.choice([UNOBSERVED, EMPTY, OCCUPIED], size=shape, p=[0.003, 0.99, 0.007]).astype(np.int8)
+    desc = np.zeros((*shape, d))
+    occ = state == OCCUPIED
+    desc[occ] = _unit_rows(rng, int(occ.sum()), d)
+    scene = SceneField(0.005, np.array([-0.05, -0.045, 0.2]), shape, desc, state)
+    log_p = np.where(rng.random(shape) < 0.5, math.log(0.9), -5.0)
+    cls = ObjectClassification(log_p, occ & (log_p > -1), -5.0, "test", ClassifierStatus.OK, "")
+    obj = ObjectModel(rng.normal(scale=0.015, size=(50, 3)), _unit_rows(rng, 50, d))
+    return rng, scene, cls, obj
+
+
+@pytest.mark.parametrize("kwargs", [
+    {},
+    {"free_space_ramp": 0.0},
+    {"free_space_from": "surface", "free_space_tolerance": 0.002, "free_space_ramp": 0.008},
+    {"c_empty": -30.0, "free_space_ramp": 0.001, "free_space_tolerance": 0.0},
+])
+def test_free_space_at_point_equals_the_reference(kwargs):
+    rng, scene, cls, obj = _sparse_world(21)
+    params = LikelihoodParams(free_space_at="point", **kwargs)
+    lik = PoseLikelihood(scene, cls, obj, params=params)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    poses = _random_poses(rng, 24, centre, 0.02)
+    # And poses within a millimetre of each other (a point stays in its cell from one pose to
+    # the next: the kernel keeps the cell's corner values and distances).
+    close = poses[0] @ np.stack([make_transform(Rotation.from_rotvec(rng.normal(scale=0.01, size=3)).as_matrix(),
+                                                rng.normal(scale=0.0005, size=3)) for _ in range(20)])
+    poses = np.concatenate([poses, close])
+    fast = lik(poses)
+    slow = np.array([_reference(scene, cls, obj, T, params) for T in poses])
+    np.testing.assert_allclose(fast, slow, rtol=1e-6, atol=1e-6)
+    assert lik.point_terms(poses[3]).sum() == pytest.approx(fast[3], rel=1e-9, abs=1e-9)
+    # with_object switching to and from the option gives the likelihoods built from scratch.
+    voxel = replace(params, free_space_at="voxel")
+    np.testing.assert_allclose(lik.with_object(obj, params=voxel)(poses),
+                               PoseLikelihood(scene, cls, obj, params=voxel)(poses), rtol=1e-12)
+    back = PoseLikelihood(scene, cls, obj, params=voxel).with_object(obj, params=params)
+    np.testing.assert_allclose(back(poses), fast, rtol=1e-12)
+    # It differs from the voxel-centre ramp (the test sees the option at all).
+    assert np.max(np.abs(fast - PoseLikelihood(scene, cls, obj, params=voxel)(poses))) > 1.0
+
+
+def test_free_space_at_point_charges_a_point_only_past_the_tolerance():
+    # A plane of surface at z = 0 and a shadow column (3, 5, z >= 1), voxels of 5 mm: free voxel
+    # (2, 4, z) is 7.07 mm from the shadow, (2, 5) and (3, 4) 5 mm. Between them and the shadow
+    # a point's blended distance is 4.27 mm, i.e. it stands 1.8 mm deep in free space.
+    vs = 0.005
+    state = np.where(np.arange(12)[None, None, :] == 0, OCCUPIED, EMPTY).astype(np.int8) * np.ones(
+        (7, 7, 1), np.int8)
+    state[3, 5, 1:] = UNOBSERVED
+    scene = SceneField(vs, np.zeros(3), state.shape, np.zeros((*state.shape, 2)), state)
+    cls = ObjectClassification(np.full(state.shape, math.log(0.9)), state == OCCUPIED, -5.0, "t",
+                               ClassifierStatus.OK, "")
+    one = ObjectModel(np.zeros((3, 3)), np.tile([[1.0, 0.0]], (3, 1)))  # one point, three times
+
+    def at(ijk, params):  # eq. (1) of one point at grid coordinates ijk (voxel centres integer)
+        T = make_transform(np.eye(3), (np.asarray(ijk, dtype=float) + 0.5) * vs)
+        return PoseLikelihood(scene, cls, one, params=params)(T) / 3
+
+    voxel, point = LikelihoodParams(), LikelihoodParams(free_space_at="point")
+    lpu, c = voxel.log_p_unobserved, voxel.c_empty
+    shallow = (2.5, 4.5, 6.0)
+    # The voxel-centre ramp charges it (a quarter of (2, 4)'s 41%); the point-relative one does not.
+    assert at(shallow, voxel) == pytest.approx(lpu + 0.25 * (np.sqrt(2) - 1) * (c - lpu))
+    assert at(shallow, point) == pytest.approx(lpu)
+    # 5 mm above the plane, 1.5 voxels from the faces: 2.5 mm deep, spared both ways.
+    assert at((3, 3, 1), point) == pytest.approx(lpu)
+    # Voxel centre 10 mm from the plane (the shadow and the faces are farther): the point stands
+    # 7.5 mm deep and pays (7.5 - 5) / 5 of the charge; the voxel-centre ramp reads 10 mm, all of it.
+    assert at((3, 2, 2.0), point) == pytest.approx(lpu + 0.5 * (c - lpu))
+    assert at((3, 2, 2.0), voxel) == pytest.approx(lpu + 1.0 * (c - lpu))
+    # Deep in free space: c_empty either way.
+    assert at((3, 2, 6), point) == pytest.approx(c)
+
+
+def test_free_space_at_validation():
+    with pytest.raises(ValueError, match="free_space_at"):
+        LikelihoodParams(free_space_at="pixel")
+    with pytest.raises(ValueError, match="free_space_at"):
+        LikelihoodParams(free_space_at="point", free_space="pixels")
+    # "auto" keeps voxels when the point-relative ramp is asked for.
+    from certpose.model.likelihood import resolve_free_space
+
+    class WithFrames:
+        frames = (object(),)
+
+    assert resolve_free_space(LikelihoodParams(free_space="auto", free_space_at="point"),
+                              WithFrames()).free_space == "voxels"

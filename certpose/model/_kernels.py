@@ -10,6 +10,16 @@ interpolating: ``UNIFORM_EMPTY`` (all ``c_empty``) and ``UNIFORM_UNOBSERVED`` (a
 without reading ``background`` (the common cells, kept free of a second memory access),
 ``UNIFORM`` (another shared value, e.g. graded free space) from it. Points outside the (padded)
 grid count as unobserved.
+
+``eq1_batch_graded`` and ``eq1_points_graded`` charge free space at the point instead
+(``LikelihoodParams.free_space_at="point"``): EMPTY voxels hold ``c_unobs`` (plus any blurred
+classifier term) in ``background`` and their distance into free space in ``depth`` (metres, 0
+elsewhere); the distances of a mixed cell's corners are blended like the values, and a point whose
+blend exceeds ``fs_start`` pays the fraction ``min(1, (blend - fs_start) / fs_ramp)`` of
+``c_empty - c_unobs`` on top (a step when ``fs_ramp`` is 0). ``UNIFORM`` cells are then cells
+without any charge and ``UNIFORM_EMPTY`` cells fully charged ones
+(:func:`certpose.model.likelihood._cell_codes`). Separate kernels, so that the default one keeps
+its arguments and speed.
 """
 
 from __future__ import annotations
@@ -28,6 +38,9 @@ f4, f8 = nt.float32, nt.float64
 # background values, voxel descriptors, log p_O, origin, 1 / voxel size, offset, beta, c_empty,
 # c_unobs.
 _MODEL = (F2, F1, S2, I3, B3, F3, S2, F1, F1, f8, f8, f4, f8, f8)
+# The graded kernels' further arguments: distance into free space (metres), where the charge
+# starts and its ramp (metres).
+_GRADED = (F3, f8, f8)
 
 EMPTY_CODE = -1
 UNOBSERVED_CODE = -2
@@ -181,5 +194,100 @@ def eq1_points(T, points, weights, zdesc, index, cells, background, desc, logp, 
         else:
             _corner_values(index, background, desc, logp, zdesc[i], x0, y0, z0, beta, c_unobs, cv)
             term = _interpolate(cv, ax, ay, az)
+        out[i] = weights[i] * term
+    return out
+
+
+@njit(inline="always")
+def _corner_depths(depth, x0, y0, z0, cd):  # pragma: no cover
+    """The 8 distances into free space of a cell's corners into ``cd`` (order of _corner_values)."""
+    k = 0
+    for dx in range(2):
+        for dy in range(2):
+            for dz in range(2):
+                cd[k] = depth[x0 + dx, y0 + dy, z0 + dz]
+                k += 1
+
+
+@njit(inline="always")
+def _charge(g, fs_start, fs_ramp, c_empty, c_unobs):  # pragma: no cover
+    """Free-space charge of a point whose blended distance into free space is ``g``."""
+    if g <= fs_start:
+        return 0.0
+    frac = 1.0
+    if fs_ramp > 0.0:
+        frac = min(1.0, (g - fs_start) / fs_ramp)
+    return frac * (c_empty - c_unobs)
+
+
+@kernel(F3, *_MODEL, *_GRADED, fastmath=True, nogil=True)
+def eq1_batch_graded(T, points, weights, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset,
+                     beta, c_empty, c_unobs, depth, fs_start, fs_ramp):  # pragma: no cover - compiled
+    """:func:`eq1_batch` with free space charged at the point (module docstring)."""
+    B = T.shape[0]
+    out = np.zeros(B)
+    R = np.empty((_POSE_BLOCK, 12))
+    cv = np.empty(8)
+    cd = np.empty(8)
+    for b0 in range(0, B, _POSE_BLOCK):
+        nb = min(_POSE_BLOCK, B - b0)
+        for j in range(nb):
+            for r in range(3):
+                for c in range(4):
+                    R[j, 4 * r + c] = T[b0 + j, r, c]
+        for i in range(points.shape[0]):
+            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+            zi = zdesc[i]
+            wi = weights[i]
+            lx = -1
+            ly = -1
+            lz = -1
+            for j in range(nb):
+                qx = R[j, 0] * px + R[j, 1] * py + R[j, 2] * pz + R[j, 3]
+                qy = R[j, 4] * px + R[j, 5] * py + R[j, 6] * pz + R[j, 7]
+                qz = R[j, 8] * px + R[j, 9] * py + R[j, 10] * pz + R[j, 11]
+                x0, y0, z0, cell, ax, ay, az = _cell(cells, qx, qy, qz, origin, inv_vs, offset)
+                if x0 < 0:
+                    out[b0 + j] += wi * c_unobs
+                    continue
+                if cell != MIXED:
+                    out[b0 + j] += wi * _uniform_value(background, x0, y0, z0, cell, c_empty,
+                                                       c_unobs)
+                    continue
+                if x0 != lx or y0 != ly or z0 != lz:
+                    _corner_values(index, background, desc, logp, zi, x0, y0, z0, beta, c_unobs, cv)
+                    _corner_depths(depth, x0, y0, z0, cd)
+                    lx = x0
+                    ly = y0
+                    lz = z0
+                out[b0 + j] += wi * (_interpolate(cv, ax, ay, az)
+                                     + _charge(_interpolate(cd, ax, ay, az), fs_start, fs_ramp, c_empty,
+                                               c_unobs))
+    return out
+
+
+@kernel(F2, *_MODEL, *_GRADED, fastmath=True, nogil=True)
+def eq1_points_graded(T, points, weights, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset,
+                      beta, c_empty, c_unobs, depth, fs_start, fs_ramp):  # pragma: no cover - compiled
+    """:func:`eq1_points` with free space charged at the point (module docstring)."""
+    N = points.shape[0]
+    out = np.empty(N)
+    cv = np.empty(8)
+    cd = np.empty(8)
+    for i in range(N):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        qx = T[0, 0] * px + T[0, 1] * py + T[0, 2] * pz + T[0, 3]
+        qy = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
+        qz = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
+        x0, y0, z0, cell, ax, ay, az = _cell(cells, qx, qy, qz, origin, inv_vs, offset)
+        if x0 < 0:
+            term = c_unobs
+        elif cell != MIXED:
+            term = _uniform_value(background, x0, y0, z0, cell, c_empty, c_unobs)
+        else:
+            _corner_values(index, background, desc, logp, zdesc[i], x0, y0, z0, beta, c_unobs, cv)
+            _corner_depths(depth, x0, y0, z0, cd)
+            term = _interpolate(cv, ax, ay, az) + _charge(_interpolate(cd, ax, ay, az), fs_start, fs_ramp,
+                                                          c_empty, c_unobs)
         out[i] = weights[i] * term
     return out

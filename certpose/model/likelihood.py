@@ -60,7 +60,7 @@ if TYPE_CHECKING:
     from certpose.geometry.objects import ObjectModel
     from certpose.model.classifier import ObjectClassification
 
-__all__ = ["LikelihoodParams", "PoseLikelihood", "blurred_terms", "free_space_values",
+__all__ = ["LikelihoodParams", "PoseLikelihood", "blurred_terms", "free_space_depths", "free_space_values",
            "log_likelihood", "resolve_free_space"]
 
 log = logging.getLogger(__name__)
@@ -108,6 +108,27 @@ class LikelihoodParams:
         observed free space (an observed surface or unobserved space: the edge of a shadow or
         of the grid too), i.e. how deep the voxel lies in free space, the measure of
         :func:`certpose.model.arc.free_space_arc`. Default ``"boundary"``.
+    free_space_at : {"voxel", "point"}
+        Where the tolerance and the ramp are applied. ``"voxel"`` (default): to each EMPTY
+        voxel centre's distance (:func:`free_space_values`), and the ramped values are blended
+        trilinearly, so a point is charged as soon as one of its 8 voxel centres is, up to
+        about half a voxel before it passes the tolerance itself. ``"point"``: the distances
+        (:func:`free_space_depths`) are blended trilinearly and half a voxel subtracted (the
+        point's depth into free space, the measure of :func:`certpose.model.arc.free_space_arc`),
+        and the point pays ``clip((depth - free_space_tolerance) / free_space_ramp, 0, 1)`` of
+        ``c_empty - log_p_unobserved``: the charge starts where the point itself passes the
+        tolerance. On the mug's hidden-handle arc (``examples/bench_arc.py``, YCB-Video 0000
+        frames 1-5, 2-deg steps, refined) the handle's share inside the arc is then flat
+        (range 0.0-0.1 nats; 1.2-1.6 with ``field_blur=0.0075``) where the voxel-centre
+        ramp charged its tip 5-15 nats near the arc's ends; unrefined, on 0000/000001, no free
+        space is charged anywhere inside the arc (tests/test_free_space_at_point.py). But the
+        drop to the best angle 10 deg beyond the free runs falls too (-18..-8 nats; with the
+        blur -4..3): the points there stand at most a few millimetres past the tolerance and
+        the refinement moves them out; the range-to-drop ratio is not better than the
+        voxel-centre default's (bench_arc's docstring). Not the default; no other free-space
+        option applies (``free_space="pixels"`` rejects it). The graded kernels it uses cost
+        about 0-15% more per evaluation than the default kernel (mostly in cells near free
+        space; interleaved, YCB-Video 0000/000001).
     free_space : {"voxels", "pixels", "auto"}
         Where observed free space is read from (``"auto"``: pixels when the scene keeps its depth
         images and no voxel grading option is set, voxels otherwise; :func:`resolve_free_space`). ``"voxels"`` (default): the scene grid's EMPTY
@@ -180,6 +201,7 @@ class LikelihoodParams:
     free_space_tolerance: float = 0.005
     free_space_ramp: float = 0.005
     free_space_from: str = "boundary"
+    free_space_at: str = "voxel"
     free_space: str = "voxels"
     depth_tolerance: float = 0.01
     depth_ramp: float = 0.0
@@ -207,13 +229,17 @@ class LikelihoodParams:
             raise ValueError(
                 f"`free_space_from` must be 'surface' or 'boundary', got {self.free_space_from!r}."
             )
+        if self.free_space_at not in ("voxel", "point"):
+            raise ValueError(
+                f"`free_space_at` must be 'voxel' or 'point', got {self.free_space_at!r}.")
         if self.free_space not in ("voxels", "pixels", "auto"):
             raise ValueError(
                 f"`free_space` must be 'voxels', 'pixels' or 'auto', got {self.free_space!r}.")
         if self.free_space == "pixels" and self.voxel_grading_changed:
             raise ValueError(
-                "`free_space_tolerance`, `free_space_ramp` and `free_space_from` grade the voxel "
-                "grid's free space; with free_space='pixels' use `depth_tolerance` and `depth_ramp`."
+                "`free_space_tolerance`, `free_space_ramp`, `free_space_from` and `free_space_at` "
+                "grade the voxel grid's free space; with free_space='pixels' use `depth_tolerance` "
+                "and `depth_ramp`."
             )
         if int(self.depth_window) != self.depth_window or self.depth_window < 0:
             raise ValueError(f"`depth_window` must be a non-negative integer, got {self.depth_window}.")
@@ -225,10 +251,16 @@ class LikelihoodParams:
     @property
     def voxel_grading_changed(self) -> bool:
         """Whether an option grading the voxel grid's free space (``free_space_tolerance``,
-        ``free_space_ramp``, ``free_space_from``) differs from its default."""
+        ``free_space_ramp``, ``free_space_from``, ``free_space_at``) differs from its default."""
         defaults = {f.name: f.default for f in fields(self)}
         return any(getattr(self, f) != defaults[f]
-                   for f in ("free_space_tolerance", "free_space_ramp", "free_space_from"))
+                   for f in ("free_space_tolerance", "free_space_ramp", "free_space_from", "free_space_at"))
+
+    @property
+    def graded_at_point(self) -> bool:
+        """Whether eq. (1) applies the free-space ramp at the point (``free_space_at="point"``
+        with voxel free space)."""
+        return self.free_space_at == "point" and self.free_space == "voxels"
 
 
 def _morton_order(points: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
@@ -248,11 +280,14 @@ def _morton_order(points: NDArray[np.float64], cell: float) -> NDArray[np.int64]
     return np.argsort(code, kind="stable")
 
 
-def _cell_codes(index: NDArray[np.int32], background: NDArray[np.float64], c_empty: float) -> NDArray[np.int8]:
+def _cell_codes(index: NDArray[np.int32], background: NDArray[np.float64], c_empty: float,
+                depth: tuple[NDArray[np.float64], float, float, float] | None = None) -> NDArray[np.int8]:
     """Per cell (between 8 neighbouring voxel centres), see :mod:`certpose.model._kernels`:
     ``UNIFORM_UNOBSERVED`` (8 unobserved corners), ``UNIFORM_EMPTY`` (8 non-occupied corners
     holding ``c_empty``), ``UNIFORM`` (8 non-occupied corners sharing another value) or
-    ``MIXED``."""
+    ``MIXED``. ``depth``: ``(depths, start, ramp, c_unobs)`` of ``free_space_at="point"``; a
+    cell is then ``UNIFORM`` only if no corner is deeper than ``start`` (no charge), and
+    ``UNIFORM_EMPTY`` if every corner is charged in full and holds ``c_unobs``."""
     from certpose.model._kernels import (
         MIXED,
         UNIFORM,
@@ -269,8 +304,15 @@ def _cell_codes(index: NDArray[np.int32], background: NDArray[np.float64], c_emp
     free = np.logical_and.reduce([c < 0 for c in ci])
     same = free & np.logical_and.reduce([b == cb[0] for b in cb[1:]])
     cells = np.full(free.shape, MIXED, dtype=np.int8)
-    cells[same] = UNIFORM
-    cells[same & (cb[0] == c_empty)] = UNIFORM_EMPTY
+    if depth is None:
+        cells[same] = UNIFORM
+        cells[same & (cb[0] == c_empty)] = UNIFORM_EMPTY
+    else:
+        g, start, ramp, c_unobs = depth
+        cg = corners(g)
+        cells[same & np.logical_and.reduce([c <= start for c in cg])] = UNIFORM
+        full = np.logical_and.reduce([(c > start) if ramp == 0 else (c >= start + ramp) for c in cg])
+        cells[same & full & (cb[0] == c_unobs)] = UNIFORM_EMPTY
     cells[np.logical_and.reduce([c == UNOBSERVED_CODE for c in ci])] = UNIFORM_UNOBSERVED
     return cells
 
@@ -287,7 +329,9 @@ def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodPar
     ``free_space="pixels"`` EMPTY voxels hold ``log_p_unobserved`` (free space is charged per
     pixel instead).
     ``free_space_erosion`` is applied first (eroded voxels are unobserved). Occupied voxels hold 0
-    (unused: eq. (1) reads the classifier and the descriptors there).
+    (unused: eq. (1) reads the classifier and the descriptors there). With
+    ``free_space_at="point"`` EMPTY voxels hold ``log_p_unobserved`` too (the charge is applied
+    per point from :func:`free_space_depths`).
 
     Parameters
     ----------
@@ -305,16 +349,10 @@ def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodPar
     if state.ndim != 3:
         raise ValueError(f"Expected `state` to have shape (X, Y, Z), got {state.shape}.")
     occupied = state == OCCUPIED
-    if params.free_space == "pixels":  # free space is charged per pixel (PoseLikelihood)
+    if params.free_space == "pixels" or params.free_space_at == "point":
+        # Free space is charged per pixel or per point (PoseLikelihood).
         return np.where(occupied, 0.0, params.log_p_unobserved)
-    empty = state == EMPTY
-    if params.free_space_erosion > 0:
-        from scipy.ndimage import maximum_filter
-
-        # k dilations by the 3x3x3 cube are one by a (2k+1)-cube: separable, 2-3x faster.
-        near = maximum_filter(occupied.view(np.uint8), size=2 * int(params.free_space_erosion) + 1,
-                              mode="constant", cval=0)
-        empty &= near == 0
+    empty = _observed_free(state, params)
     out = np.full(state.shape, params.log_p_unobserved, dtype=np.float64)
     out[occupied] = 0.0
     tol, ramp = params.free_space_tolerance, params.free_space_ramp
@@ -322,19 +360,91 @@ def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodPar
         out[empty] = params.c_empty
     elif empty.any():
         # Only distances up to tol + ramp change the value: beyond, the voxel pays c_empty.
-        reach = tol + ramp
-        if params.free_space_from == "boundary":
-            # Outside the grid is unobserved, so the grid's faces are a boundary too.
-            d = _distance_to(~empty, float(voxel_size), reach, outside=True)[empty]
-        elif occupied.any():
-            d = _distance_to(occupied, float(voxel_size), reach, outside=False)[empty]
-        else:  # no observed surface at all: every free voxel is deep in free space
-            d = np.full(int(empty.sum()), np.inf)
+        d = _free_distance(state, empty, float(voxel_size), tol + ramp, params)[empty]
         frac = (d > tol).astype(np.float64) if ramp == 0 else np.clip((d - tol) / ramp, 0.0, 1.0)
         graded = params.log_p_unobserved + frac * (params.c_empty - params.log_p_unobserved)
         # Exactly c_empty deep in free space (the kernel's fast path tests for it).
         out[empty] = np.where(frac >= 1.0, params.c_empty, graded)
     return out
+
+
+def _observed_free(state: NDArray[Any], params: LikelihoodParams) -> NDArray[np.bool_]:
+    """EMPTY voxels after ``free_space_erosion`` (eroded ones count as unobserved)."""
+    empty = state == EMPTY
+    if params.free_space_erosion > 0:
+        from scipy.ndimage import maximum_filter
+
+        # k dilations by the 3x3x3 cube are one by a (2k+1)-cube: separable, 2-3x faster.
+        near = maximum_filter((state == OCCUPIED).view(np.uint8),
+                              size=2 * int(params.free_space_erosion) + 1, mode="constant", cval=0)
+        empty &= near == 0
+    return empty
+
+
+def _free_distance(state: NDArray[Any], empty: NDArray[np.bool_], voxel_size: float, reach: float,
+                   params: LikelihoodParams) -> NDArray[np.float64]:
+    """Distance (metres) from each voxel centre to what ``free_space_from`` measures from, exact
+    up to ``reach`` and ``inf`` beyond."""
+    if params.free_space_from == "boundary":
+        # Outside the grid is unobserved, so the grid's faces are a boundary too.
+        return _distance_to(~empty, voxel_size, reach, outside=True)
+    occupied = state == OCCUPIED
+    if occupied.any():
+        return _distance_to(occupied, voxel_size, reach, outside=False)
+    # No observed surface at all: every free voxel is deep in free space.
+    return np.where(empty, np.inf, 0.0)
+
+
+def free_space_depths(state: ArrayLike, voxel_size: float,
+                      params: LikelihoodParams) -> tuple[NDArray[np.float64], float]:
+    """Per-voxel distances into free space for ``free_space_at="point"``, and where the charge
+    starts.
+
+    Each EMPTY voxel (after ``free_space_erosion``) holds the distance (metres) from its centre
+    to the nearest voxel centre that is not EMPTY (``free_space_from="boundary"``) or occupied
+    (``"surface"``), other voxels 0. Eq. (1) blends these trilinearly at a point: the blend minus
+    half a voxel is the point's depth into free space (as in
+    :func:`certpose.model.arc.free_space_arc`), and the point pays
+    ``clip((depth - free_space_tolerance) / free_space_ramp, 0, 1)`` of
+    ``c_empty - log_p_unobserved`` (a step when the ramp is 0). With ``"boundary"`` distances
+    beyond ``start + ramp + sqrt(3) voxels`` are stored as that value: the distances of a cell's 8
+    corners differ by at most ``sqrt(3)`` voxels (every non-EMPTY corner is a boundary, at 0), so a
+    cell with a corner beyond it is charged in full either way. With ``"surface"`` (unobserved
+    corners hold 0 but need not be near the surface) they are exact; without any occupied voxel
+    every EMPTY voxel holds the grid's diagonal.
+
+    Parameters
+    ----------
+    state : (X, Y, Z) array_like of int
+        ``UNOBSERVED`` (0), ``EMPTY`` (1) or ``OCCUPIED`` (2).
+    voxel_size : float
+        Voxel side, metres.
+    params : LikelihoodParams
+
+    Returns
+    -------
+    depth : ndarray, shape (X, Y, Z)
+        Metres.
+    start : float
+        Metres, ``free_space_tolerance + voxel_size / 2``: the blended distance beyond which a
+        point is charged.
+    """
+    state = np.asarray(state)
+    if state.ndim != 3:
+        raise ValueError(f"Expected `state` to have shape (X, Y, Z), got {state.shape}.")
+    vs = float(voxel_size)
+    start = params.free_space_tolerance + 0.5 * vs
+    cap = start + params.free_space_ramp + math.sqrt(3.0) * vs
+    empty = _observed_free(state, params)
+    out = np.zeros(state.shape)
+    if not empty.any():
+        return out, start
+    if params.free_space_from == "boundary":
+        out[empty] = np.minimum(_free_distance(state, empty, vs, cap, params)[empty], cap)
+    else:
+        d = _free_distance(state, empty, vs, math.inf, params)[empty]
+        out[empty] = np.where(np.isfinite(d), d, vs * math.sqrt(sum(n * n for n in state.shape)))
+    return out, start
 
 
 def _distance_to(target: NDArray[np.bool_], voxel_size: float, reach: float, *,
@@ -348,7 +458,7 @@ def _distance_to(target: NDArray[np.bool_], voxel_size: float, reach: float, *,
     equal to it value for value where the offsets of one length give one value (the same
     arithmetic; the default reach, two voxels), within rounding otherwise. Farther reaches use
     the transform."""
-    R = int(np.floor(reach / voxel_size + 1e-9))
+    R = int(min(np.floor(reach / voxel_size + 1e-9), 4.0))
     if R > 3:  # hundreds of offsets: the transform is cheaper
         from scipy.ndimage import distance_transform_edt
 
@@ -535,9 +645,10 @@ class PoseLikelihood:
         self._raw_index, self._raw_logp = self._index, np.ascontiguousarray(occ_logp, dtype=np.float64)
         self._index, self._background, self._logp = blurred_terms(
             self._raw_index, self._background, self._raw_logp, self.grid.voxel_size, self.params)
-        self._cells = _cell_codes(self._index, self._background, self.params.c_empty)
         self._state = state
         self._scene = scene
+        self._set_depth(resolve_free_space(self.params, scene))
+        self._cells = _cell_codes(self._index, self._background, self.params.c_empty, self._depth_codes())
         self._pixels = _pixel_free_space(scene, self.params, self.grid.voxel_size)
         self._set_object(object_model)
 
@@ -560,10 +671,26 @@ class PoseLikelihood:
             other._index, other._background, other._logp = blurred_terms(
                 self._raw_index, np.pad(background, 1, constant_values=params.log_p_unobserved),
                 self._raw_logp, self.grid.voxel_size, params)
-            other._cells = _cell_codes(other._index, other._background, params.c_empty)
+            other._set_depth(resolve_free_space(params, self._scene))
+            other._cells = _cell_codes(other._index, other._background, params.c_empty,
+                                       other._depth_codes())
             other._pixels = _pixel_free_space(self._scene, params, self.grid.voxel_size)
         other._set_object(object_model)
         return other
+
+    def _set_depth(self, params: LikelihoodParams) -> None:
+        # Distances into free space for free_space_at="point" (the graded kernels).
+        self._graded = params.graded_at_point
+        if self._graded:
+            depth, self._fs_start = free_space_depths(self._state, self.grid.voxel_size, params)
+            self._depth = np.pad(depth, 1)  # the padding is unobserved: depth 0
+        else:
+            self._depth, self._fs_start = None, 0.0
+
+    def _depth_codes(self) -> tuple[NDArray[np.float64], float, float, float] | None:
+        if not self._graded:
+            return None
+        return self._depth, self._fs_start, self.params.free_space_ramp, self.params.log_p_unobserved
 
     def _set_object(self, object_model: ObjectModel) -> None:
         # Points in Morton (Z-curve) order: neighbours in memory stay neighbours in the grid
@@ -584,10 +711,12 @@ class PoseLikelihood:
 
     def _args(self) -> tuple[Any, ...]:
         p = self.params
+        # The graded kernels (free_space_at="point") take the distances into free space too.
+        extra = (self._depth, self._fs_start, p.free_space_ramp) if self._graded else ()
         return (
             self._points, self._weights, self._z, self._index, self._cells, self._background, self._desc,
             self._logp, self.grid.origin, 1.0 / self.grid.voxel_size, self.grid.offset,
-            np.float32(p.beta), p.c_empty, p.log_p_unobserved,
+            np.float32(p.beta), p.c_empty, p.log_p_unobserved, *extra,
         )
 
     def __call__(self, T: ArrayLike) -> float | NDArray[np.float64]:
@@ -607,7 +736,8 @@ class PoseLikelihood:
         float or (B,) ndarray
             Log-likelihood up to the constant ``-N log Z`` (nats).
         """
-        eq1_batch = compiled("certpose.model._kernels").eq1_batch
+        kernels = compiled("certpose.model._kernels")
+        eq1_batch = kernels.eq1_batch_graded if self._graded else kernels.eq1_batch
         if self._pixels is not None:
             # The pixel kernel is loaded here, on the calling thread, not by the pool's threads.
             eq1_batch = functools.partial(_with_pixels, eq1_batch, self._pixels.batch_kernel(), self)
@@ -629,7 +759,8 @@ class PoseLikelihood:
         """Per-point terms ``w_i log p_loc(q_i)`` (N,) at one pose ``T`` (4, 4), weighted as in
         eq. (1) (``w_i = 1`` unless the model has :attr:`~certpose.geometry.objects.ObjectModel.areas`);
         they sum to eq. (1)."""
-        eq1_points = compiled("certpose.model._kernels").eq1_points
+        kernels = compiled("certpose.model._kernels")
+        eq1_points = kernels.eq1_points_graded if self._graded else kernels.eq1_points
 
         poses, single = _as_poses(T)
         if not single:
