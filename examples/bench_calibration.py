@@ -12,8 +12,8 @@ the scene whose views built them).
 
 Two levels per run: ``target`` ranks the draws by eq. (1) itself (the exact highest-density
 region of ``exp(eq. (1) / T)``, :meth:`ISResult.credible_level`; the reported one) and ``kde`` by
-a kernel density of the particles (:meth:`PoseDistribution.credible_level`; one bandwidth for
-the whole set, coarse when the distribution has several modes).
+a kernel density of the particles (:meth:`PoseDistribution.credible_level`; one kernel per
+mode of the particles).
 
 Temperatures. ``--scales`` multiplies the library's default rule
 (:func:`certpose.sampling.sampler.default_temperature`); ``--fit SCENES`` instead fits the scale

@@ -219,3 +219,83 @@ def test_kernel_of_resampled_set_counts_distinct_particles():
     assert big._kernel_count() <= 400
     # Same kernel (bandwidth x covariance) as the set it was drawn from, to sampling error.
     np.testing.assert_allclose(big._kernel()[0], d._kernel()[0], rtol=0.1, atol=1e-4)
+
+
+def _two_modes(rng, n_a=600, n_b=400):
+    """Two Gaussian clouds 90 deg and 30 cm apart, masses 0.6 / 0.4 (equal particle weights)."""
+    sd = np.array([0.02, 0.03, 0.01, 0.004, 0.002, 0.003])
+    d_a, R0, t0 = _gaussian_particles(n_a, sd, rng)
+    R1 = R0 @ Rotation.from_rotvec([0.0, np.pi / 2, 0.0]).as_matrix()
+    X = rng.normal(size=(n_b, 6)) * sd[[2, 0, 1, 5, 3, 4]]
+    R_b = R1 @ Rotation.from_rotvec(X[:, :3]).as_matrix()
+    t_b = t0 + [0.3, 0.0, 0.0] + X[:, 3:]
+    n = n_a + n_b
+    both = PoseDistribution(np.concatenate([d_a.rotations, R_b]),
+                            np.concatenate([d_a.translations, t_b]), np.full(n, 1.0 / n))
+    return both, d_a, R0, t0
+
+
+def test_log_density_of_two_modes_is_each_modes_density_times_its_mass():
+    # One covariance over both modes (90 deg and 30 cm wide) would smooth each mode away; per
+    # mode, the density at a mode's centre is that mode's own kernel density times its mass.
+    both, d_a, R0, t0 = _two_modes(np.random.default_rng(11))
+    assert len(both.modes()) == 2
+    expected = np.log(0.6) + d_a.log_density(R0, t0)
+    assert both.log_density(R0, t0) == pytest.approx(expected, abs=1e-9)
+    # And the lone mode's density is its Gaussian's, widened by Scott's factor (as above).
+    sd = np.array([0.02, 0.03, 0.01, 0.004, 0.002, 0.003])
+    h2 = 600 ** (-0.2)
+    gauss = -3 * np.log(2 * np.pi) - np.sum(np.log(sd)) - 3 * np.log(1 + h2)
+    assert d_a.log_density(R0, t0) == pytest.approx(gauss, abs=0.3)
+
+
+def test_log_density_of_an_arc_about_an_offset_axis():
+    # A hidden handle: rotations spread uniformly over 90 deg about an axis 5 cm from the object
+    # origin, with small tilts and a small spread of the axis point. The origin's translation
+    # sweeps a curved 5 cm arc; in the chart of the axis point (the mode's pivot) the mode is a
+    # straight, thin slab, and the density at its middle is the slab's.
+    rng = np.random.default_rng(12)
+    n, width = 4000, np.pi / 2
+    c = np.array([0.05, 0.0, 0.0])  # a point on the axis, object frame
+    s_tilt, s_t = 0.01, 0.001
+    phi = rng.uniform(-width / 2, width / 2, n)
+    tilt = np.c_[rng.normal(0, s_tilt, (n, 2)), np.zeros(n)]
+    R0 = Rotation.from_rotvec([0.3, -0.2, 1.0]).as_matrix()
+    R = R0 @ Rotation.from_rotvec(np.outer(phi, [0, 0, 1])).as_matrix() @ Rotation.from_rotvec(tilt).as_matrix()
+    axis_point = np.array([0.1, 0.0, 0.6]) + rng.normal(0, s_t, (n, 3))
+    t = axis_point - R @ c
+    d = PoseDistribution(R, t, np.full(n, 1.0 / n))
+    # Exact density at the middle of the slab (phi = 0, no tilt, axis point at its mean): uniform
+    # along phi, Gaussian in the two tilts and the axis point's three coordinates; the KDE widens
+    # the five Gaussian directions by (1 + h^2).
+    h2 = n ** (-0.2)
+    exact = (-np.log(width) - np.log(2 * np.pi * s_tilt**2) - 1.5 * np.log(2 * np.pi * s_t**2)
+             - 2.5 * np.log(1 + h2))
+    t_mid = np.array([0.1, 0.0, 0.6]) - R0 @ c
+    assert d.log_density(R0, t_mid) == pytest.approx(exact, abs=0.3)
+
+
+def test_credible_level_of_two_modes():
+    from scipy.stats import kstest
+
+    rng = np.random.default_rng(13)
+    both, _, R0, t0 = _two_modes(rng)
+    # Fresh draws of the same two-mode law: uniform levels.
+    fresh, _, _, _ = _two_modes(np.random.default_rng(14), 36, 24)
+    levels = [both.credible_level(R, t) for R, t in zip(fresh.rotations, fresh.translations, strict=True)]
+    assert kstest(levels, "uniform").pvalue > 0.01
+    # The heavier mode's centre is inside the smallest region; between the modes, outside all.
+    assert both.credible_level(R0, t0) < 0.05
+    assert both.credible_level(R0, t0 + [0.15, 0.0, 0.0]) == 1.0
+
+
+def test_log_density_bad_input():
+    d, R0, t0 = _gaussian_particles(50, np.full(6, 0.01), np.random.default_rng(0))
+    with pytest.raises(ValueError, match="not a rotation"):
+        d.log_density(2.0 * R0, t0)
+    with pytest.raises(ValueError, match="`R`"):
+        d.log_density(R0[:2], t0)
+    with pytest.raises(ValueError, match="`t`"):
+        d.log_density(R0, [0.0, np.nan, 0.0])
+    with pytest.raises(ValueError, match="`t`"):
+        d.credible_level(R0, [0.0, 0.0])

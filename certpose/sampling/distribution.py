@@ -39,6 +39,55 @@ def _check_rotations(rotations: NDArray[np.float64]) -> None:
         )
 
 
+def _check_query(R: ArrayLike, t: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """One query pose: ``R`` (3, 3) a rotation, ``t`` (3,) finite."""
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    if R.shape != (3, 3):
+        raise ValueError(f"Expected `R` to have shape (3, 3), got {R.shape}.")
+    if t.size != 3 or not np.all(np.isfinite(t)):
+        raise ValueError(f"Expected `t` to hold 3 finite values, got shape {t.shape}.")
+    _check_rotations(R[None])
+    return R, t.reshape(3)
+
+
+#: A mode with fewer distinct particles has no covariance of its own for the kernel density.
+_MIN_MODE_PARTICLES = 12
+
+
+def _gaussian_kernel(cov: NDArray[np.float64], count: float) -> tuple[NDArray[np.float64], float]:
+    """Cholesky factor of ``h^2 cov`` with Scott's ``h = count^(-1/10)`` (6-D) and the
+    Gaussian's log-normaliser."""
+    h2 = float(count) ** (-2.0 / 10.0)
+    L = np.linalg.cholesky(h2 * cov + 1e-12 * np.eye(6))
+    return L, float(-0.5 * 6 * np.log(2 * np.pi) - np.sum(np.log(np.diag(L))))
+
+
+@dataclass(frozen=True, eq=False)
+class _ModeKernels:
+    """Per-mode Gaussian kernels: ``label`` (n,) the mode of each particle, ``chol`` (M, 6, 6)
+    and ``log_norm`` (M,) each mode's kernel, ``pivots`` (M, 3) each mode's pivot (object frame,
+    m; see :meth:`PoseDistribution.log_density`), ``centres`` each mode's mean ``(R, t + R c)``."""
+
+    label: NDArray[np.int64]
+    chol: NDArray[np.float64]
+    log_norm: NDArray[np.float64]
+    pivots: NDArray[np.float64]
+    centres: list
+
+
+def _pivot(R: NDArray[np.float64], t: NDArray[np.float64], w: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(3,) the object point ``c`` whose camera position ``R_i c + t_i`` varies least over the
+    weighted poses (least squares; the minimum-norm one when a turn leaves a line of them
+    fixed: the axis). A turn about an axis through ``c`` then leaves the chart's translation
+    part fixed."""
+    Rm = np.einsum("n,nij->ij", w, R)
+    A = (R - Rm) * np.sqrt(w)[:, None, None]
+    b = (t - w @ t) * np.sqrt(w)[:, None]
+    c, *_ = np.linalg.lstsq(A.reshape(-1, 3), -b.reshape(-1), rcond=1e-6)
+    return c
+
+
 @dataclass(frozen=True, eq=False)
 class PoseMode:
     """One cluster of a :class:`PoseDistribution`.
@@ -230,6 +279,26 @@ class PoseDistribution:
         handle) stays one mode. At most ``max_points`` particles (a systematic resampling) are
         clustered; every particle then joins the cluster of its nearest clustered particle.
         """
+        labels = self._cluster_labels(rotation_scale=rotation_scale,
+                                      translation_scale=translation_scale,
+                                      max_points=max_points, rng=rng)
+        out = []
+        for lab in np.unique(labels):
+            idx = np.flatnonzero(labels == lab)
+            mass = float(self.weights[idx].sum())
+            R, t, cov = self._subset(idx).mean_and_covariance()
+            out.append(PoseMode(R, t, cov, mass, len(idx)))
+        return sorted(out, key=lambda m: -m.mass)
+
+    def _subset(self, idx: NDArray[np.int64]) -> PoseDistribution:
+        """The particles ``idx`` with their weights renormalised."""
+        w = self.weights[idx]
+        return PoseDistribution(self.rotations[idx], self.translations[idx], w / w.sum())
+
+    def _cluster_labels(self, *, rotation_scale: float = 0.1, translation_scale: float = 0.01,
+                        max_points: int = 2000,
+                        rng: np.random.Generator | int | None = 0) -> NDArray[np.int64]:
+        """(n,) cluster label of every particle (see :meth:`modes`)."""
         from scipy.cluster.hierarchy import fcluster, linkage
         from scipy.spatial import cKDTree
 
@@ -244,20 +313,11 @@ class PoseDistribution:
         sub = self if len(self) <= max_points else self.resample(int(max_points), rng=rng)
         sub_feats = np.hstack([sub.rotations.reshape(-1, 9) / (np.sqrt(2) * rotation_scale),
                                sub.translations / translation_scale])
-        uniq, inv = np.unique(sub_feats, axis=0, return_inverse=True)
+        uniq = np.unique(sub_feats, axis=0)
         labels_u = (np.ones(1, dtype=int) if len(uniq) == 1
                     else fcluster(linkage(uniq, method="single"), t=1.0, criterion="distance"))
         _, nearest = cKDTree(uniq).query(feats)
-        labels = labels_u[nearest]
-        out = []
-        for lab in np.unique(labels):
-            idx = np.flatnonzero(labels == lab)
-            mass = float(self.weights[idx].sum())
-            part = PoseDistribution(self.rotations[idx], self.translations[idx],
-                                    self.weights[idx] / mass)
-            R, t, cov = part.mean_and_covariance()
-            out.append(PoseMode(R, t, cov, mass, len(idx)))
-        return sorted(out, key=lambda m: -m.mass)
+        return np.asarray(labels_u[nearest], dtype=np.int64)
 
     def _kernel_count(self) -> float:
         """Sample size behind Scott's bandwidth: the ESS, at most the number of distinct
@@ -266,53 +326,118 @@ class PoseDistribution:
         return float(max(min(self.ess, distinct), 1.0))
 
     def _kernel(self) -> tuple[NDArray[np.float64], float]:
-        """Cholesky factor of the kernel covariance ``h^2 C`` and the kernel's log-normaliser."""
+        """Cholesky factor of the one-mode kernel covariance ``h^2 C`` (``C`` the weighted
+        tangent covariance of all the particles) and the kernel's log-normaliser."""
         _, _, cov = self.mean_and_covariance()
-        h2 = self._kernel_count() ** (-2.0 / 10.0)
-        L = np.linalg.cholesky(h2 * cov + 1e-12 * np.eye(6))
-        return L, float(-0.5 * 6 * np.log(2 * np.pi) - np.sum(np.log(np.diag(L))))
+        return _gaussian_kernel(cov, self._kernel_count())
+
+    def _mode_kernels(self, *, per_mode: bool = True, pivot: bool = True) -> _ModeKernels:
+        """The kernel of every particle: that of its mode (see :meth:`log_density`).
+
+        ``per_mode=False`` treats all the particles as one mode and ``pivot=False`` keeps the
+        object origin as the chart's translation point (both off: one covariance for the whole
+        set, the estimator before the modes; kept for ``examples/bench_samplers.py --kde-check``).
+        """
+        labels = self._cluster_labels() if per_mode else np.zeros(len(self), dtype=np.int64)
+        modes = []
+        for lab in np.unique(labels):
+            idx = np.flatnonzero(labels == lab)
+            part = self._subset(idx)
+            distinct = len(np.unique(part.translations, axis=0))
+            c = (_pivot(part.rotations, part.translations, part.weights)
+                 if pivot and distinct >= _MIN_MODE_PARTICLES else None)
+            modes.append([idx, part, c, distinct, float(self.weights[idx].sum())])
+        big = [m for m in modes if m[3] >= _MIN_MODE_PARTICLES]
+        # A mode too small for a covariance (or pivot) of its own borrows the heaviest big
+        # mode's pivot, and the big modes' covariances (mass-weighted) taken at their pivots.
+        default_pivot = max(big, key=lambda m: m[4])[2] if big and pivot else np.zeros(3)
+        label = np.empty(len(self), dtype=np.int64)
+        chol, log_norm, centres, pivots, covs = [], [], [], [], []
+        for j, (idx, part, c, _, _) in enumerate(modes):
+            c = default_pivot if c is None else c
+            shifted = PoseDistribution(part.rotations, part.translations + part.rotations @ c,
+                                       part.weights)
+            R, t, cov = shifted.mean_and_covariance()
+            label[idx] = j
+            centres.append((R, t))
+            pivots.append(c)
+            covs.append(cov)
+        if big:
+            pooled = sum(m[4] * covs[j] for j, m in enumerate(modes) if m[3] >= _MIN_MODE_PARTICLES) \
+                / sum(m[4] for m in big)
+        else:
+            pooled = PoseDistribution(self.rotations, self.translations + self.rotations @ default_pivot,
+                                      self.weights).mean_and_covariance()[2]
+        for j, (_, part, _, distinct, _) in enumerate(modes):
+            L, ln = _gaussian_kernel(covs[j] if distinct >= _MIN_MODE_PARTICLES else pooled,
+                                     part._kernel_count())
+            chol.append(L)
+            log_norm.append(ln)
+        return _ModeKernels(label, np.stack(chol), np.asarray(log_norm), np.stack(pivots), centres)
 
     def _log_density_many(self, R: NDArray[np.float64], t: NDArray[np.float64],
-                          L: NDArray[np.float64], log_norm: float,
-                          chunk: int = 256) -> NDArray[np.float64]:
+                          kernels: _ModeKernels, chunk: int = 256) -> NDArray[np.float64]:
         """Kernel log-density at ``m`` poses ``R`` (m, 3, 3), ``t`` (m, 3)."""
         out = np.empty(len(R))
-        logw = np.log(self.weights)
+        # Each particle's log-weight plus its kernel's log-normaliser.
+        logw = np.log(self.weights) + kernels.log_norm[kernels.label]
+        groups = [np.flatnonzero(kernels.label == j) for j in range(len(kernels.chol))]
         for s in range(0, len(R), chunk):
             Rq, tq = R[s:s + chunk], t[s:s + chunk]
             # rel[q, n] = R_n^T R_q: the query in the chart around each particle.
             rel = np.einsum("nji,qjk->qnik", self.rotations, Rq).reshape(-1, 3, 3)
             rv = Rotation.from_matrix(rel).as_rotvec().reshape(len(Rq), len(self), 3)
-            X = np.concatenate([rv, tq[:, None, :] - self.translations[None]], axis=2)
-            z = np.linalg.solve(L, X.reshape(-1, 6).T).T.reshape(len(Rq), len(self), 6)
-            out[s:s + chunk] = logsumexp(logw[None] - 0.5 * np.sum(z * z, axis=2), axis=1) + log_norm
+            d2 = np.empty((len(Rq), len(self)))
+            for j, idx in enumerate(groups):
+                c = kernels.pivots[j]
+                dt = (tq + Rq @ c)[:, None, :] - (self.translations[idx] + self.rotations[idx] @ c)[None]
+                X = np.concatenate([rv[:, idx], dt], axis=2)
+                z = np.linalg.solve(kernels.chol[j], X.reshape(-1, 6).T)
+                d2[:, idx] = np.sum(z * z, axis=0).reshape(len(Rq), len(idx))
+            out[s:s + chunk] = logsumexp(logw[None] - 0.5 * d2, axis=1)
         return out
 
     def log_density(self, R: ArrayLike, t: ArrayLike) -> float:
         """Log-density of one pose under a Gaussian kernel density of the particles.
 
-        Each particle carries a Gaussian of covariance ``h^2 C`` in the chart around itself, with
-        ``C`` the weighted tangent covariance and ``h`` Scott's factor ``n^(-1/10)``, ``n`` the ESS
-        or, if fewer, the number of distinct particles (resampling repeats them). The density
-        is per unit of rotation vector (rad^3) and metre^3; the exp-map Jacobian is ignored, which
-        is exact to O(h^2 |omega|^2) for kernels a few degrees wide.
+        Each particle carries a Gaussian in the chart around itself whose covariance is that of
+        its mode (:meth:`modes`): ``h_m^2 C_m``, with ``C_m`` the weighted tangent covariance of
+        the mode's particles and ``h_m`` Scott's factor ``n_m^(-1/10)``, ``n_m`` the mode's ESS
+        (its weights renormalised) or, if fewer, its number of distinct particles (resampling
+        repeats them). A mode with fewer than 12 distinct particles has no covariance of its
+        own and takes the mass-weighted mean of the other modes' (if none has one, the
+        covariance of all the particles). One covariance for the whole set, as a plain KDE
+        has, would span the gaps between the modes (an arc and a flip) and smooth every mode
+        down to nothing; per mode, a mode's density is the mode's own KDE times its mass.
+
+        The chart's translation part is that of the mode's pivot ``c`` (object frame), the
+        point whose position ``R c + t`` varies least over the mode (weighted least squares):
+        ``x = (log(R_i^T R), (t + R c) - (t_i + R_i c))``. A mug turning about its axis (a
+        hidden handle's arc) then moves along one straight direction of the chart instead of
+        sweeping the origin's translation round a curve that a single covariance smears across.
+        The shift ``t -> t + R c`` has unit Jacobian, so the density is unchanged in meaning.
+        Held-out log-likelihood (half of the weighted draws scored under the KDE of the other
+        half) of the importance sampler's distributions of YCB-Video 0000's mug, frames 1-5
+        (``examples/bench_samplers.py``, which has them): +0.9-1.3 nats per mode over one
+        covariance for all the particles, +0.04-0.15 more with the pivot.
+
+        The density is per unit of rotation vector (rad^3) and metre^3; the exp-map Jacobian is
+        ignored, which is exact to O(h^2 |omega|^2) for kernels a few degrees wide.
         """
-        R = np.asarray(R, dtype=np.float64)
-        t = np.asarray(t, dtype=np.float64).reshape(3)
-        _check_rotations(R[None])
-        L, log_norm = self._kernel()
-        return float(self._log_density_many(R[None], t[None], L, log_norm)[0])
+        R, t = _check_query(R, t)
+        return float(self._log_density_many(R[None], t[None], self._mode_kernels())[0])
 
     def credible_level(self, R: ArrayLike, t: ArrayLike, *, max_particles: int = 2000,
                        rng: np.random.Generator | int | None = 0) -> float:
         """Smallest highest-density credible level whose region contains the pose ``(R, t)``.
 
-        The mass of the particles whose kernel density (:meth:`log_density`) exceeds the
-        density at ``(R, t)``: the pose lies inside the ``alpha`` highest-density region iff
-        the level is ``<= alpha``. For a calibrated distribution the level of the true pose is
-        uniform on [0, 1]. The density at each particle leaves its own kernel out. Above
-        ``max_particles`` the kernel density and the mass are taken over a systematic
-        resampling of that size (whose repeated particles make the level slightly low).
+        The mass of the particles whose kernel density (the per-mode kernels of
+        :meth:`log_density`) exceeds the density at ``(R, t)``: the pose lies inside the
+        ``alpha`` highest-density region iff the level is ``<= alpha``. For a calibrated
+        distribution the level of the true pose is uniform on [0, 1]. The density at each
+        particle leaves its own kernel out. Above ``max_particles`` the kernel density and the
+        mass are taken over a systematic resampling of that size (whose repeated particles make
+        the level slightly low).
 
         Parameters
         ----------
@@ -328,29 +453,35 @@ class PoseDistribution:
         float
             In [0, 1].
         """
-        R = np.asarray(R, dtype=np.float64)
-        t = np.asarray(t, dtype=np.float64).reshape(3)
-        _check_rotations(R[None])
+        R, t = _check_query(R, t)
         if int(max_particles) < 1:
             raise ValueError(f"Expected `max_particles` >= 1, got {max_particles}.")
         sub = self if len(self) <= max_particles else self.resample(int(max_particles), rng=rng)
-        # One chart around the mean for all particles (rather than one per particle, as in
-        # log_density): O(n) rotation logarithms, then a Euclidean kernel sum.
-        R0, t0, cov = sub.mean_and_covariance()
-        L = np.linalg.cholesky(sub._kernel_count() ** (-2.0 / 10.0) * cov + 1e-12 * np.eye(6))
-        Z = np.linalg.solve(L, sub.tangent(R0, t0).T).T
-        q = np.hstack([Rotation.from_matrix(R0.T @ R).as_rotvec(), t - t0])
-        zq = np.linalg.solve(L, q)
+        kern = sub._mode_kernels()
         logw = np.log(sub.weights)
-        at_pose = logsumexp(logw - 0.5 * np.sum((Z - zq) ** 2, axis=1))
-        at_particles = np.empty(len(sub))
-        for s in range(0, len(sub), 512):
-            d2 = np.sum((Z[s:s + 512, None, :] - Z[None, :, :]) ** 2, axis=2)
-            at_particles[s:s + 512] = logsumexp(logw[None] - 0.5 * d2, axis=1)
+        at_pose = np.full(len(kern.chol), -np.inf)
+        at_particles = np.full((len(kern.chol), len(sub)), -np.inf)
+        for j, (R0, t0) in enumerate(kern.centres):
+            # Mode j's kernels in one chart around its mean (rather than one per particle, as
+            # in log_density): O(n) rotation logarithms, then a Euclidean kernel sum.
+            idx = np.flatnonzero(kern.label == j)
+            L, c = kern.chol[j], kern.pivots[j]
+            X = np.hstack([Rotation.from_matrix(np.einsum("ji,njk->nik", R0, sub.rotations)).as_rotvec(),
+                           sub.translations + sub.rotations @ c - t0])
+            Z = np.linalg.solve(L, X.T).T
+            zq = np.linalg.solve(L, np.hstack([Rotation.from_matrix(R0.T @ R).as_rotvec(), t + R @ c - t0]))
+            lw = logw[idx] + kern.log_norm[j]
+            at_pose[j] = logsumexp(lw - 0.5 * np.sum((Z[idx] - zq) ** 2, axis=1))
+            for s in range(0, len(sub), 512):
+                d2 = np.sum((Z[s:s + 512, None, :] - Z[None, idx, :]) ** 2, axis=2)
+                at_particles[j, s:s + 512] = logsumexp(lw[None] - 0.5 * d2, axis=1)
+        at_pose = logsumexp(at_pose)
+        at_particles = logsumexp(at_particles, axis=0)
         # Leave each particle's own kernel out: with it, the density at a particle is biased
         # up by w_i K(0), which dominates in the tails.
+        self_term = logw + kern.log_norm[kern.label]
         with np.errstate(divide="ignore", invalid="ignore"):
-            loo = at_particles + np.log1p(-np.exp(np.minimum(logw - at_particles, 0.0))) \
+            loo = at_particles + np.log1p(-np.exp(np.minimum(self_term - at_particles, 0.0))) \
                 - np.log1p(-np.minimum(sub.weights, 1.0 - 1e-12))
         return float(min(np.sum(sub.weights[loo > at_pose]), 1.0))
 
