@@ -165,6 +165,8 @@ def test_bench_samplers_demo(tmp_path: Path) -> None:
     budget = rows[0]["seconds"]
     for r in rows:
         assert r["ess"] > 0 and math.isfinite(r["log_p_gt"]) and 0 <= r["arc_coverage"] <= 1
+        assert 0 <= r["arc_coverage_in_arc"] <= 1 and math.isfinite(r["log_p_gt_target"])
+        assert r["log_p_gt_error"] == abs(r["log_p_gt"] - r["log_p_gt_target"])
         # The baselines stop at ours' sampling time (plus at most one batch of evaluations).
         assert r["seconds"] <= budget + 1.0, r
     assert "ours best or tied on" in proc.stdout
