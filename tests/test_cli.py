@@ -248,6 +248,57 @@ def test_program_defers_open3d_plotly_until_it_is_used(tmp_path):
     assert proc.stdout.split() == ["False", "Figure", "True"]
 
 
+def test_program_defers_numpy_tool_packages_until_they_are_used():
+    # `certpose` skips numpy.f2py and numpy.testing, which SciPy's array_api_compat imports
+    # (~0.09 s a run); they still work, also when threads reach them at once.
+    code = textwrap.dedent("""
+        import sys, threading
+        from certpose.cli import defer_numpy_extras
+        defer_numpy_extras()
+        import numpy as np
+        import scipy.linalg  # scipy._lib copies every public name of numpy
+        heavy = ("numpy.f2py.crackfortran", "charset_normalizer", "numpy.testing._private")
+        before = [n for n in heavy if n in sys.modules]
+        barrier, errors = threading.Barrier(8), []
+        def use():
+            barrier.wait()
+            try:
+                np.testing.assert_array_equal(np.arange(3), [0, 1, 2])
+            except Exception as exc:
+                errors.append(repr(exc))
+        threads = [threading.Thread(target=use) for _ in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        from numpy.f2py import crackfortran
+        print(before, errors, callable(crackfortran.crackfortran), "numpy.testing._private" in sys.modules)
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["[]", "[]", "True", "True"]
+
+
+def test_pose_start_up_leaves_unused_modules_unloaded():
+    # What `certpose pose --ycbv` imports before its scene: the frame (Pillow reads its PNGs,
+    # scipy.io its meta.mat) and the progress bar's check (no terminal: no tqdm).
+    root = require_data("ycbv")
+    code = textwrap.dedent(f"""
+        import argparse, sys
+        from certpose.cli import busy, defer_numpy_extras
+        defer_numpy_extras()
+        from certpose.io.ycbv import load_ycbv_frame
+        with busy(argparse.Namespace(quiet=False), "test", delay=0.0):
+            frame = load_ycbv_frame({str(root)!r}, "0000/000001")
+        lazy = ("imageio", "tqdm", "charset_normalizer", "numpy.f2py.crackfortran")
+        print(frame.label.shape, [n for n in lazy if n in sys.modules])
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "(480, 640) []"
+
+
 def test_a_command_builds_only_its_own_parser():
     # `certpose pose ...` does not import the other commands (bench's alone costs ~0.2 s a run);
     # the program's own help and an unknown command still list them all.

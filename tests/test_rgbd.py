@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -148,6 +150,59 @@ def test_load_rgbd_reads_files_and_names_missing_ones(tmp_path):
     np.testing.assert_allclose(frame.depth, raw / 1000.0)
     with pytest.raises(FileNotFoundError, match="missing.png"):
         load_rgbd(None, tmp_path / "missing.png", K_SMALL)
+
+
+def test_read_image_gives_imageios_arrays(tmp_path):
+    # PNGs read by Pillow directly (plain modes) or through imageio (the others) come out as
+    # imageio.v3.imread gives them: same dtype, shape and values, writeable.
+    import imageio.v3 as iio
+    from PIL import Image
+
+    from certpose.geometry.rgbd import read_image
+
+    rng = np.random.default_rng(0)
+    rgba = rng.integers(0, 256, size=(6, 7, 4), dtype=np.uint8)
+    images = {
+        "L": Image.fromarray(rgba[..., 0]),
+        "LA": Image.fromarray(rgba[..., :2], mode="LA"),
+        "RGB": Image.fromarray(rgba[..., :3]),
+        "RGBA": Image.fromarray(rgba),
+        "I;16": Image.fromarray(rng.integers(0, 65536, size=(6, 7), dtype=np.uint16)),
+        "P": Image.fromarray(rgba[..., :3]).convert("P", palette=Image.Palette.ADAPTIVE, colors=5),
+        "1": Image.fromarray(rgba[..., 0] > 127),
+    }
+    for mode, image in images.items():
+        assert image.mode == mode
+        path = tmp_path / f"{mode.replace(';', '_')}.png"
+        image.save(path)
+        got, ref = read_image(path), iio.imread(path)
+        assert got.dtype == ref.dtype and got.shape == ref.shape, mode
+        np.testing.assert_array_equal(got, ref, err_msg=mode)
+        assert got.flags.writeable
+    # The palette image comes out in colour (imageio's conversion), not as palette indices.
+    assert read_image(tmp_path / "P.png").shape == (6, 7, 3)
+    Image.fromarray(rgba[..., :3]).save(tmp_path / "c.bmp")  # not a PNG: imageio
+    np.testing.assert_array_equal(read_image(tmp_path / "c.bmp"), rgba[..., :3])
+    (tmp_path / "bad.png").write_bytes(b"not an image")
+    with pytest.raises(OSError, match="Cannot read the depth image"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # imageio's plugins, tried in turn
+        read_image(tmp_path / "bad.png", "depth")
+    with pytest.raises(FileNotFoundError, match="nothing.png"):
+        read_image(tmp_path / "nothing.png")
+
+
+def test_read_image_ycbv_frame_as_imageio():
+    import imageio.v3 as iio
+
+    from certpose.geometry.rgbd import read_image
+    from tests.conftest import require_data
+
+    folder = require_data("ycbv", "0000")
+    for suffix in ("color.png", "depth.png", "label.png"):
+        path = folder / f"000001-{suffix}"
+        got, ref = read_image(path), iio.imread(path)
+        assert got.dtype == ref.dtype and got.shape == ref.shape, suffix
+        np.testing.assert_array_equal(got, ref, err_msg=suffix)
 
 
 def test_structured_cloud_validation():

@@ -22,6 +22,7 @@ import logging
 import sys
 import threading
 import traceback
+import types
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -89,12 +90,12 @@ def emit_json(args: argparse.Namespace, payload: Any) -> None:
 def busy(args: argparse.Namespace, desc: str, *, delay: float = 1.0) -> Iterator[None]:
     """A progress bar (elapsed seconds) on stderr around work that reports no steps; shown
     after ``delay`` seconds on a terminal, never with --quiet."""
+    if not (show_progress(args) and sys.stderr.isatty()):  # before importing tqdm (~10 ms)
+        yield
+        return
     try:
         from tqdm import tqdm
     except ImportError:  # the bench extra is not installed: no bar
-        yield
-        return
-    if not (show_progress(args) and sys.stderr.isatty()):
         yield
         return
     stop = threading.Event()
@@ -266,10 +267,81 @@ def defer_open3d_plotly() -> None:
     sys.meta_path.insert(0, _DeferredOpen3dPlotly())
 
 
+_LAZY_LOCK = threading.RLock()
+_LAZY_LOADING: set[int] = set()
+
+
+class _LazyModule(types.ModuleType):
+    """A module whose code runs on the first access to one of its attributes. Thread-safe
+    (unlike ``importlib.util.LazyLoader`` before Python 3.12.3): other threads wait for the
+    code to finish; the loading thread's own accesses (the code reading its module) go through."""
+
+    def __getattribute__(self, attr: str) -> Any:
+        if type(self) is _LazyModule:
+            with _LAZY_LOCK:
+                if type(self) is _LazyModule and id(self) not in _LAZY_LOADING:
+                    _LAZY_LOADING.add(id(self))
+                    try:
+                        types.ModuleType.__getattribute__(self, "__spec__").loader.exec_module(self)
+                        self.__class__ = types.ModuleType
+                    finally:
+                        _LAZY_LOADING.discard(id(self))
+        return types.ModuleType.__getattribute__(self, attr)
+
+
+class _LazyLoader(importlib.abc.Loader):
+    def __init__(self, loader: Any) -> None:
+        self.loader = loader
+
+    def create_module(self, spec: Any) -> Any:
+        return self.loader.create_module(spec)
+
+    def exec_module(self, module: Any) -> None:
+        module.__spec__.loader = module.__loader__ = self.loader
+        module.__class__ = _LazyModule
+
+
+class _DeferredNumpyExtras(importlib.abc.MetaPathFinder):
+    """Imports NumPy's tool sub-packages lazily: their module objects exist, their code runs on
+    first use.
+
+    SciPy's vendored ``array_api_compat`` copies every public name of ``numpy`` on the first
+    import of any ``scipy`` sub-package (``scipy._lib._array_api``), which imports ``numpy.f2py``
+    (with ``charset_normalizer``) and ``numpy.testing`` (with ``unittest``): about 0.09 s of
+    every ``certpose pose`` run on this project's machine, for modules the program never uses
+    (``numpy.ma`` too, but numba reads it on every kernel call).
+    Installed by :func:`run` only (the program, not the library)."""
+
+    NAMES = frozenset({"numpy.f2py", "numpy.testing"})
+
+    def find_spec(self, name: str, path: Any = None, target: Any = None) -> Any:
+        if name not in self.NAMES:
+            return None
+        for finder in sys.meta_path:
+            if finder is self or not hasattr(finder, "find_spec"):
+                continue
+            spec = finder.find_spec(name, path, target)
+            if spec is not None:
+                if hasattr(spec.loader, "exec_module"):
+                    spec.loader = _LazyLoader(spec.loader)
+                return spec
+        return None
+
+
+def defer_numpy_extras() -> None:
+    """Install :class:`_DeferredNumpyExtras` unless one of its modules is loaded."""
+    names = _DeferredNumpyExtras.NAMES
+    if any(n in sys.modules for n in names) or any(isinstance(f, _DeferredNumpyExtras)
+                                                   for f in sys.meta_path):
+        return
+    sys.meta_path.insert(0, _DeferredNumpyExtras())
+
+
 def run() -> None:
     """The ``certpose`` program (console script and ``python -m certpose``): :func:`main`, then
     exit without the interpreter's last garbage collection."""
     defer_open3d_plotly()
+    defer_numpy_extras()
     # No collections while the start-up imports build their ~10^6 objects (none of them garbage).
     gc.disable()
     try:

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from certpose.geometry.rgbd import CameraIntrinsics, RGBDFrame, load_rgbd
+from certpose.geometry.rgbd import CameraIntrinsics, RGBDFrame, load_rgbd, read_image
 from solvers.lie import make_transform, project_to_so3
 
 if TYPE_CHECKING:
@@ -138,7 +138,6 @@ def load_ycbv_frame(root: str | Path, frame: str = "0000/000001") -> YCBVFrame:
     ValueError
         For a malformed ``meta.mat``.
     """
-    import imageio.v3 as iio
     import scipy.io
 
     root = Path(root)
@@ -156,7 +155,7 @@ def load_ycbv_frame(root: str | Path, frame: str = "0000/000001") -> YCBVFrame:
         if key not in meta:
             raise ValueError(f"{meta_path} has no `{key}` entry.")
     names_all = load_class_names(root)
-    label = np.asarray(iio.imread(label_path))
+    label = read_image(label_path, "label")
     if label.ndim != 2:
         raise ValueError(f"Expected the label image {label_path} to have one channel, got shape {label.shape}.")
     height, width = label.shape
