@@ -158,7 +158,9 @@ voxel-centre + density 8,  8.7/27.3 30.2/26.2 13.0/18.6 6.7/16.2 6.7/20.3       
 the point from 3.5 mm beats the voxel-centre ramp (mean 0.43 against 0.58; target met on frames
 1 and 5 against none): the handle's share inside the arc varies by 1.6-12.0 nats instead of
 4.9-23.9. Frame 2's handle keeps 9-24 nats near its arc's far end (98.5 deg) either way, and
-frame 4's drop stays at 10-16 nats.
+frame 4's drop stays at 10-16 nats. Cheaper, 2 deg, tolerance 3.5 mm at the point: twice denser
+points (``--density 4``) 0.32 1.09 0.47 0.53 0.32 (mean 0.54, body 4.1-6.6 nats); a 10-mm blur
+at the default density 0.50 0.94 0.61 1.36 0.39 (mean 0.76, body 6.3-9.4).
 
 The axis is the body's: a circle fitted to the model points of the body (handle excluded) in
 the model's xy plane; it sits about 3.3 mm from the model origin along -x, so turning about the
