@@ -31,6 +31,21 @@ def require_data(*parts: str) -> Path:
     return path
 
 
+def mug_on_0000(frame: str = "000001"):
+    """The mug on YCB-Video 0000/``frame`` for the hidden-handle arc tests: the pipeline's set-up,
+    its ground truth ``T_camera_object``, the body axis' offset in the model frame and
+    ``bench_arc.turned_pose`` (examples/bench_arc.py)."""
+    import sys
+
+    from certpose.estimation.pipeline import ycbv_setup
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    from bench_arc import body_axis_offset, turned_pose
+
+    s = ycbv_setup(require_data("ycbv"), f"0000/{frame}", "025_mug")
+    return s, s.frame.poses["025_mug"], body_axis_offset(s.model_points), turned_pose
+
+
 def strict_json(text: str) -> object:
     """Parse JSON as the standard says: ``NaN`` and ``Infinity`` (which Python writes and reads by
     default) are errors."""

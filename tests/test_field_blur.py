@@ -15,7 +15,7 @@ from certpose.model.grid import EMPTY, OCCUPIED, UNOBSERVED
 from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 from certpose.model.scene import SceneField
 from solvers.lie import make_transform
-from tests.conftest import require_data
+from tests.conftest import mug_on_0000
 from tests.test_likelihood import _reference
 
 
@@ -130,19 +130,9 @@ def test_field_blur_flattens_the_mug_body_along_its_hidden_handle_arc():
     # favourably on the one-voxel-thick shell of classifier terms. Spread over 1.5 voxels the
     # shell is smoother than the points' spacing (measured every 10 deg over -20..70 deg:
     # 28.6 nats unblurred, 6.7 with field_blur=7.5 mm; examples/bench_arc.py has the whole arc).
-    import sys
-    from pathlib import Path
-
     from scipy.optimize import minimize
 
-    from certpose.estimation.pipeline import ycbv_setup
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from bench_arc import body_axis_offset, turned_pose
-
-    s = ycbv_setup(require_data("ycbv"), "0000/000001", "025_mug")
-    G = s.frame.poses["025_mug"]
-    C = body_axis_offset(s.model_points)
+    s, G, C, turned_pose = mug_on_0000("000001")
     obj = s.object_model
     body = obj.select(np.flatnonzero(obj.points[:, 0] < 0.045))
     scale = np.array([0.05, 0.05, 0.005, 0.005, 0.005])

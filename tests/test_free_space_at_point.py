@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
-from tests.conftest import require_data
+from tests.conftest import mug_on_0000
 
 
 @pytest.mark.slow
@@ -20,18 +20,9 @@ def test_no_free_space_charge_inside_the_mugs_hidden_handle_arc():
     # about 2.5 mm (measured every 5 deg over the arc, -26.5..82.5 deg: 0.6-2.9 nats in the body
     # of the arc, 15.4 and 5.8 at its ends); 10 deg beyond the ends both charge (point
     # 23.9 / 5.1 nats, voxel 63.9 / 32.9).
-    import sys
-    from pathlib import Path
-
-    from certpose.estimation.pipeline import ycbv_setup
     from certpose.model.arc import free_space_arc
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from bench_arc import body_axis_offset, turned_pose
-
-    s = ycbv_setup(require_data("ycbv"), "0000/000001", "025_mug")
-    G = s.frame.poses["025_mug"]
-    C = body_axis_offset(s.model_points)
+    s, G, C, turned_pose = mug_on_0000("000001")
     obj = s.object_model
     arc = free_space_arc(s.scene, obj.points, G, centre=C, tolerance=0.005)
     assert arc.success

@@ -27,17 +27,20 @@ def _unit_rows(rng: np.random.Generator, n: int, d: int) -> np.ndarray:
     return x / np.linalg.norm(x, axis=1, keepdims=True)
 
 
-def _world(seed: int = 0, shape: tuple[int, int, int] = (12, 10, 9), d: int = 7):
-    """A random hand-built scene, classifier and object (states mixed everywhere)."""
+def _world(seed: int = 0, shape: tuple[int, int, int] = (12, 10, 9), d: int = 7, *,
+           p_states=(0.3, 0.3, 0.4), voxel: float = 0.01, origin=(-0.06, -0.05, 0.2),
+           n_points: int = 60, spread: float = 0.03):
+    """A random hand-built scene, classifier and object (states mixed everywhere by default;
+    ``p_states``: the chances of UNOBSERVED, EMPTY, OCCUPIED)."""
     rng = np.random.default_rng(seed)
-    state = rng.choice([UNOBSERVED, EMPTY, OCCUPIED], size=shape, p=[0.3, 0.3, 0.4]).astype(np.int8)
+    state = rng.choice([UNOBSERVED, EMPTY, OCCUPIED], size=shape, p=list(p_states)).astype(np.int8)
     desc = np.zeros((*shape, d))
     occ = state == OCCUPIED
     desc[occ] = _unit_rows(rng, int(occ.sum()), d)
-    scene = SceneField(0.01, np.array([-0.06, -0.05, 0.2]), shape, desc, state)
+    scene = SceneField(voxel, np.array(origin, dtype=np.float64), shape, desc, state)
     log_p = np.where(rng.random(shape) < 0.5, math.log(0.9), -5.0)
     cls = ObjectClassification(log_p, occ & (log_p > -1), -5.0, "test", ClassifierStatus.OK, "")
-    obj = ObjectModel(rng.normal(scale=0.03, size=(60, 3)), _unit_rows(rng, 60, d))
+    obj = ObjectModel(rng.normal(scale=spread, size=(n_points, 3)), _unit_rows(rng, n_points, d))
     return rng, scene, cls, obj
 
 
@@ -493,16 +496,8 @@ def test_graded_free_space_equals_the_full_distance_transform(seed):
 def _sparse_world(seed: int, shape=(20, 18, 16), d: int = 5):
     """Mostly observed free space with a few surface and unobserved voxels: free space several
     voxels deep, so the point-relative ramp sees every depth."""
-    rng = np.random.default_rng(seed)
-    state = rng.choice([UNOBSERVED, EMPTY, OCCUPIED], size=shape, p=[0.003, 0.99, 0.007]).astype(np.int8)
-    desc = np.zeros((*shape, d))
-    occ = state == OCCUPIED
-    desc[occ] = _unit_rows(rng, int(occ.sum()), d)
-    scene = SceneField(0.005, np.array([-0.05, -0.045, 0.2]), shape, desc, state)
-    log_p = np.where(rng.random(shape) < 0.5, math.log(0.9), -5.0)
-    cls = ObjectClassification(log_p, occ & (log_p > -1), -5.0, "test", ClassifierStatus.OK, "")
-    obj = ObjectModel(rng.normal(scale=0.015, size=(50, 3)), _unit_rows(rng, 50, d))
-    return rng, scene, cls, obj
+    return _world(seed, shape, d, p_states=(0.003, 0.99, 0.007), voxel=0.005,
+                  origin=(-0.05, -0.045, 0.2), n_points=50, spread=0.015)
 
 
 @pytest.mark.parametrize("kwargs", [

@@ -14,7 +14,7 @@ from certpose.geometry.objects import (
     object_from_points,
     sample_surface,
 )
-from tests.conftest import require_data
+from tests.conftest import mug_on_0000
 
 VS = 0.005
 # A mug without handle: 4-mm wall (outer radius 40 mm, inner 36 mm), 80 mm tall, closed 4-mm
@@ -194,20 +194,11 @@ def test_even_sampling_smooths_eq1_along_the_mugs_hidden_handle_arc():
     # walls merged in some voxels), with the even surface samples by about half that (measured
     # 3.5 and 1.7 with the graded free space; 5.3 and 2.1 with the former ungraded one); eq. (1)
     # is on the same scale (total weight 1139 and 1144).
-    import sys
-    from pathlib import Path
-
     from scipy.spatial.transform import Rotation
 
-    from certpose.estimation.pipeline import ycbv_setup
     from certpose.model.likelihood import PoseLikelihood
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from bench_arc import body_axis_offset
-
-    s = ycbv_setup(require_data("ycbv"), "0000/000002", "025_mug")
-    G = s.frame.poses["025_mug"]
-    C = body_axis_offset(s.model_points)
+    s, G, C, _ = mug_on_0000("000002")
     steps = {}
     for sampling in ("voxel", "surface"):
         obj = object_from_points(s.model_points, FPFHBackbone(), voxel_size=VS, sampling=sampling)

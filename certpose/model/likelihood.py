@@ -350,9 +350,7 @@ def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodPar
     -------
     ndarray, shape (X, Y, Z)
     """
-    state = np.asarray(state)
-    if state.ndim != 3:
-        raise ValueError(f"Expected `state` to have shape (X, Y, Z), got {state.shape}.")
+    state = _check_state(state)
     occupied = state == OCCUPIED
     if params.free_space == "pixels" or params.free_space_at == "point":
         # Free space is charged per pixel or per point (PoseLikelihood).
@@ -371,6 +369,14 @@ def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodPar
         # Exactly c_empty deep in free space (the kernel's fast path tests for it).
         out[empty] = np.where(frac >= 1.0, params.c_empty, graded)
     return out
+
+
+def _check_state(state: ArrayLike) -> NDArray[Any]:
+    """``state`` as an array, checked to be a 3-D voxel grid."""
+    state = np.asarray(state)
+    if state.ndim != 3:
+        raise ValueError(f"Expected `state` to have shape (X, Y, Z), got {state.shape}.")
+    return state
 
 
 def _observed_free(state: NDArray[Any], params: LikelihoodParams) -> NDArray[np.bool_]:
@@ -434,9 +440,7 @@ def free_space_depths(state: ArrayLike, voxel_size: float,
         Metres, ``free_space_tolerance + voxel_size / 2``: the blended distance beyond which a
         point is charged.
     """
-    state = np.asarray(state)
-    if state.ndim != 3:
-        raise ValueError(f"Expected `state` to have shape (X, Y, Z), got {state.shape}.")
+    state = _check_state(state)
     vs = float(voxel_size)
     start = params.free_space_tolerance + 0.5 * vs
     cap = start + params.free_space_ramp + math.sqrt(3.0) * vs
