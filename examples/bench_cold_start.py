@@ -23,6 +23,10 @@ and 4.76 / 4.90. Interleaved with the code before them (8 runs each, fresh cache
 cold register median 5.81 -> 4.71 s. The VM's speed varies by up to 2x within minutes: only
 interleaved figures compare code.
 
+2026-11-26, quiet (load 0.6-1.2), ``--repeat 2``, after the eq. (1) kernel's kept corner values
+(9758705) and the deferred NumPy tool packages (3b1f607): cold ``register --demo`` 3.26 / 3.33 s
+(5.84 CPU s), ``pose --demo`` 6.75 / 6.76 s (12.49 CPU s); warm 0.62 / 0.63 and 2.53 / 2.54 s.
+
 usage::
 
     python examples/bench_cold_start.py               # both commands, 1 cold + 1 warm run each
