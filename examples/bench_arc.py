@@ -179,6 +179,7 @@ usage::
     python examples/bench_arc.py --tolerance 0.0075 --ramp 0.005 --c-empty -20
     python examples/bench_arc.py --sampling surface --density 4
     python examples/bench_arc.py --json arc.json                  # the profiles, for plotting
+    python examples/bench_arc.py --plot arc.png                   # eq. (1) against the angle, per frame
     python examples/bench_arc.py --free-space pixels --arc-free-space pixels --arc-max-violations 10
     python examples/bench_arc.py --field-blur 0.0075              # the classifier's term spread
     python examples/bench_arc.py --free-space-at point            # free space charged at the point
@@ -323,6 +324,44 @@ def arc_stats(v: np.ndarray, inside: np.ndarray, outside: np.ndarray) -> dict:
             "step": float(np.abs(np.diff(v[inside])).mean())}
 
 
+def plot_profiles(angles: np.ndarray, dump: list[dict], guard: float, path: Path) -> None:
+    """One panel per frame: eq. (1) and its body and handle shares against the angle about the
+    mug's axis (relative to the ground truth), each relative to its mean inside the computed arc;
+    the arc shaded green, the scene's other free runs yellow, the guard grey (PNG, Agg canvas)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9.0, 2.2 * len(dump)), constrained_layout=True)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(len(dump), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, d in zip(axes, dump, strict=True):
+        inside = np.zeros(angles.shape, bool)
+        if d["arc"]:
+            lo, hi = d["arc"]
+            inside = (angles >= lo) & (angles <= hi)
+            ax.axvspan(lo - guard, lo, color="0.9", lw=0)
+            ax.axvspan(hi, hi + guard, color="0.9", lw=0)
+            ax.axvspan(lo, hi, color="tab:green", alpha=0.15, lw=0, label="computed arc")
+        for k, (lo, hi) in enumerate(r for r in d["arcs"] if r != d["arc"]):
+            ax.axvspan(lo, hi, color="gold", alpha=0.25, lw=0, label="other free run" if k == 0 else None)
+        for key, style, label in (("eq1", dict(color="k", lw=1.6), "eq. (1)"),
+                                  ("body", dict(color="tab:blue", lw=0.8), "body"),
+                                  ("handle", dict(color="tab:red", lw=0.8), "handle")):
+            v = np.asarray(d[key])
+            ref = v[inside].mean() if inside.any() else v.max()
+            ax.plot(angles, v - ref, label=label, **style)
+        ax.axvline(0.0, color="k", ls=":", lw=0.8)
+        ax.set_ylabel(f"{d['frame']}\nnats")
+        lo_y = min(np.asarray(d["eq1"])[inside].min() - np.asarray(d["eq1"])[inside].mean(), -10.0) \
+            if inside.any() else -50.0
+        ax.set_ylim(3.0 * lo_y, 0.5 * abs(lo_y) + 5.0)
+    axes[0].legend(loc="lower left", ncol=6, fontsize=7)
+    axes[0].set_title("eq. (1), refined, against the turn about the mug's axis (0 = ground truth), "
+                      "relative to its mean inside the arc", fontsize=9)
+    axes[-1].set_xlabel("turn about the mug's axis (deg)")
+    fig.savefig(path, dpi=110)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     here = Path(__file__).resolve().parents[1]
@@ -334,6 +373,8 @@ def main() -> None:
     ap.add_argument("--arc-tolerance", type=float, default=None, metavar="M",
                     help="free_space_arc's tolerance (metres; default one voxel)")
     ap.add_argument("--json", type=Path, default=None, help="write the profiles and arcs here")
+    ap.add_argument("--plot", type=Path, default=None, metavar="OUT.png",
+                    help="plot eq. (1) against the angle, one panel per frame (needs matplotlib)")
     ap.add_argument("--c-empty", type=float, default=None, help="LikelihoodParams.c_empty")
     ap.add_argument("--erosion", type=int, default=None, help="LikelihoodParams.free_space_erosion")
     ap.add_argument("--tolerance", type=float, default=None, metavar="M",
@@ -450,6 +491,9 @@ def main() -> None:
         args.json.write_text(json.dumps({"angles": angles.tolist(), "overrides": overrides,
                                          "frames": dump}))
         print(f"wrote {args.json}")
+    if args.plot is not None:
+        plot_profiles(angles, dump, args.guard, args.plot)
+        print(f"wrote {args.plot}")
 
 
 if __name__ == "__main__":

@@ -248,10 +248,16 @@ def test_bench_eq2_on_a_real_frame(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_bench_arc_reports_the_ratio_per_frame_and_part() -> None:
+def test_bench_arc_reports_the_ratio_per_frame_and_part(tmp_path: Path) -> None:
     require_data("ycbv", "0000")
-    proc = _run("bench_arc.py", "--frames", "000001", "--step", "10", "--no-refine")  # defaults
+    png = tmp_path / "arc.png"
+    proc = _run("bench_arc.py", "--frames", "000001", "--step", "10", "--no-refine",  # defaults
+                "--plot", str(png))
     assert proc.returncode == 0, proc.stdout + proc.stderr
+    from PIL import Image
+
+    with Image.open(png) as im:  # one panel per frame
+        assert im.format == "PNG" and im.size[0] > im.size[1] > 100, im.size
     assert "likelihood overrides none" in proc.stdout
     # The computed arc (issue 11's definition) holds the ground truth and about the stated
     # -15..80 deg; the other free runs are printed with it.
