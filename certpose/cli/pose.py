@@ -25,6 +25,15 @@ examples:
       --classifier best-buddies --object-model mustard_0002.npz   # no mask: box.txt + best buddies
   certpose pose --demo --samples 10000 --particles mug.npz --plot mug.png
   certpose pose --demo --samples 10000 --method de --plot mug_de.png   # the paper's sampler
+  certpose pose --ycbv ../shared/data/ycbv --frame 0000/000001 0000/000002 \\
+      --object 025_mug 040_large_marker --json poses.json   # 4 pairs, one process
+
+Several --frame and/or --object values pose every (frame, object) pair in one process (frames
+outer), sparing the start-up and the kernel loading of one call per pair: each pair's block is
+printed under a header line naming it, a pair whose object the frame does not list is skipped
+with a message, and --json writes a LIST of the per-pair payloads (one payload, as for a single
+pair, otherwise). The exit code is 1 only when no pair succeeded. --model, --object-model,
+--box, --save-problem, --particles and --plot concern one pair and refuse several.
 """
 
 
@@ -41,10 +50,11 @@ def add_parser(subparsers: Any) -> None:
     src.add_argument("--demo", action="store_true",
                      help="the embedded synthetic scene: a textureless mug, handle hidden")
     src.add_argument("--ycbv", metavar="DIR", help="YCB-Video folder (with <scene>/ and models/)")
-    p.add_argument("--frame", metavar="SCENE/FRAME", default="0000/000001",
-                   help="YCB-Video frame (default: 0000/000001)")
-    p.add_argument("--object", metavar="NAME", default="025_mug",
-                   help="YCB-Video object name (default: 025_mug)")
+    p.add_argument("--frame", metavar="SCENE/FRAME", nargs="+", default=["0000/000001"],
+                   help="YCB-Video frame(s) (default: 0000/000001); with several frames or "
+                        "objects, every pair is posed and --json writes a list of payloads")
+    p.add_argument("--object", metavar="NAME", nargs="+", default=["025_mug"],
+                   help="YCB-Video object name(s) (default: 025_mug)")
     p.add_argument("--model", metavar="POINTS", default=None,
                    help="object model points, metres (default: DIR/models/NAME/points.xyz); the "
                         "model built from them is kept in $CERTPOSE_CACHE_DIR (default "
@@ -118,11 +128,18 @@ def run(args: argparse.Namespace) -> int:
 
     from certpose.cli import CLIError, busy, check_json_output, emit_json, say
     from certpose.estimation.mle import MLEParams
-    from certpose.estimation.pipeline import PoseParams, run_demo, run_ycbv
-    from certpose.io.cache import default_cache_dir
+    from certpose.estimation.pipeline import PoseParams, run_demo
     from certpose.io.output import check_output_path
 
     check_json_output(args)
+    pairs = [(f, o) for f in args.frame for o in args.object]  # frames outer
+    if len(pairs) > 1:
+        if args.demo:
+            raise CLIError("--demo poses one scene: several --frame/--object values need --ycbv")
+        for opt in ("model", "object_model", "box", "save_problem", "particles", "plot"):
+            if getattr(args, opt) is not None:
+                raise CLIError(f"--{opt.replace('_', '-')} concerns one pair: it cannot combine "
+                               f"with {len(pairs)} (frame, object) pairs")
     if args.require_certificate and args.no_certify:
         raise CLIError("--require-certificate and --no-certify exclude each other")
     if args.save_problem is not None:
@@ -167,35 +184,90 @@ def run(args: argparse.Namespace) -> int:
         title = "synthetic mug scene (handle hidden behind an occluder)"
         with busy(args, "certpose pose"):
             result = run_demo(params=params, rng=args.seed)
-    else:
-        root = Path(args.ycbv)
-        if not root.is_dir():
-            raise CLIError(f"--ycbv {root} is not a directory")
-        if args.model is not None and not Path(args.model).is_file():
-            raise CLIError(f"--model {args.model} does not exist")
-        title = f"YCB-Video {args.frame}, {args.object}"
-        if boxed:
-            title += (", best buddies in the box " + ("given" if args.box is not None
-                                                      else "of box.txt") + " (no mask)")
-        built = None
-        if args.object_model is not None:
-            from certpose.geometry.appearance import BuiltObjectModel
-
-            if not Path(args.object_model).is_file():
-                raise CLIError(f"--object-model {args.object_model} does not exist")
-            built = BuiltObjectModel.load(args.object_model)
-            if built.model.name and built.model.name != args.object:
-                raise CLIError(f"--object-model {args.object_model} is a model of "
-                               f"{built.model.name}, not of --object {args.object}")
-            title += f" (appearance model from {', '.join(built.views) or 'unnamed views'})"
+        one = argparse.Namespace(**{**vars(args), "frame": args.frame[0], "object": args.object[0]})
+        code, payload = _report(one, params, title, result)
+        if args.json is not None:
+            emit_json(args, payload)
+        return code
+    root = Path(args.ycbv)
+    if not root.is_dir():
+        raise CLIError(f"--ycbv {root} is not a directory")
+    if args.model is not None and not Path(args.model).is_file():
+        raise CLIError(f"--model {args.model} does not exist")
+    if len(pairs) == 1:
+        one = argparse.Namespace(**{**vars(args), "frame": args.frame[0], "object": args.object[0]})
         try:
-            with busy(args, "certpose pose"):
-                result = run_ycbv(root, args.frame, args.object, args.model, params=params,
-                                  rng=args.seed, object_model=built,
-                                  classifier="best_buddies" if boxed else "mask", box=args.box,
-                                  cache_dir=default_cache_dir())
+            code, payload = _pose_pair(one, params, root)
         except KeyError as exc:
             raise CLIError(str(exc.args[0]) if exc.args else str(exc)) from exc
+        if args.json is not None:
+            emit_json(args, payload)
+        return code
+    for frame in args.frame:  # bad input before any work
+        if not (root / f"{frame}-meta.mat").is_file():
+            raise CLIError(f"--frame {frame}: {root / (frame + '-meta.mat')} does not exist")
+    payloads, codes = [], []
+    for k, (frame, obj) in enumerate(pairs, 1):
+        one = argparse.Namespace(**{**vars(args), "frame": frame, "object": obj})
+        say(args, f"== pair {k}/{len(pairs)}: frame {frame}, object {obj} ==")
+        try:
+            with busy(args, f"certpose pose {k}/{len(pairs)}"):
+                code, payload = _pose_pair(one, params, root, progress=False)
+        except (KeyError, ValueError) as exc:  # e.g. an object the frame's meta.mat does not list
+            msg = str(exc.args[0]) if exc.args else str(exc)
+            sys.stdout.flush()  # the message lands between the blocks it concerns
+            print(f"certpose pose: skipped {frame} {obj}: {msg}", file=sys.stderr)
+            continue
+        payloads.append(payload)
+        codes.append(code)
+    if args.json is not None:
+        emit_json(args, payloads)
+    say(args, f"posed {codes.count(0)} of {len(pairs)} pairs successfully"
+              + (f" ({len(pairs) - len(codes)} skipped)" if len(codes) < len(pairs) else ""))
+    sys.stdout.flush()
+    return 0 if 0 in codes else 1
+
+
+def _pose_pair(args: argparse.Namespace, params: Any, root: Path, *,
+               progress: bool = True) -> tuple[int, dict[str, Any] | None]:
+    """Pose ``args.object`` in the YCB-Video frame ``args.frame`` and print its block; the exit
+    code of this pair and its --json payload (``None`` without --json)."""
+    import contextlib
+
+    from certpose.cli import CLIError, busy
+    from certpose.estimation.pipeline import run_ycbv
+    from certpose.io.cache import default_cache_dir
+
+    boxed = args.classifier == "best-buddies"
+    title = f"YCB-Video {args.frame}, {args.object}"
+    if boxed:
+        title += (", best buddies in the box " + ("given" if args.box is not None
+                                                  else "of box.txt") + " (no mask)")
+    built = None
+    if args.object_model is not None:
+        from certpose.geometry.appearance import BuiltObjectModel
+
+        if not Path(args.object_model).is_file():
+            raise CLIError(f"--object-model {args.object_model} does not exist")
+        built = BuiltObjectModel.load(args.object_model)
+        if built.model.name and built.model.name != args.object:
+            raise CLIError(f"--object-model {args.object_model} is a model of "
+                           f"{built.model.name}, not of --object {args.object}")
+        title += f" (appearance model from {', '.join(built.views) or 'unnamed views'})"
+    with busy(args, "certpose pose") if progress else contextlib.nullcontext():
+        result = run_ycbv(root, args.frame, args.object, args.model, params=params,
+                          rng=args.seed, object_model=built,
+                          classifier="best_buddies" if boxed else "mask", box=args.box,
+                          cache_dir=default_cache_dir())
+    return _report(args, params, title, result)
+
+
+def _report(args: argparse.Namespace, params: Any, title: str,
+            result: Any) -> tuple[int, dict[str, Any] | None]:
+    """Print one pair's block (and write its --save-problem/--particles/--plot files); its exit
+    code and --json payload (``None`` without --json)."""
+    from certpose.cli import say
+
     say(args, f"pose of {title}")
     say(args, f"status: {result.status} ({'success' if result.success else 'FAILED'})")
     say(args, "T_camera_object =")
@@ -240,22 +312,22 @@ def run(args: argparse.Namespace) -> int:
         path = save_problem(args.save_problem, **eq2_problem_data(result, **meta))
         say(args, f"wrote {path} (the eq. (2) problem; ground truth "
                   f"{'included' if result.T_camera_object_gt is not None else 'unknown'})")
+    payload = None
     if args.json is not None:
         payload = {"input": {"demo": bool(args.demo), "ycbv": args.ycbv, "frame": args.frame,
                              "object": args.object, "model": args.model,
                              "object_model": args.object_model, "seed": args.seed,
                              "classifier": args.classifier, "box": args.box},
                    **result.to_dict()}
-        emit_json(args, payload)
     sys.stdout.flush()
     if not result.success:
-        return 1
+        return 1, payload
     if args.require_certificate and not (result.certificate is not None
                                          and result.certificate.certified):
         print("certpose pose: --require-certificate: the eq. (2) solution is not certified "
               f"({result.certificate_message or 'no certificate'})", file=sys.stderr)
-        return 1
-    return 0
+        return 1, payload
+    return 0, payload
 
 
 def _print_distribution(result: object, args: argparse.Namespace) -> None:
