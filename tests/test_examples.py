@@ -294,3 +294,16 @@ def test_bench_arc_with_the_per_pixel_free_space() -> None:
     # Unrefined, the handle's share is charged outside the arc and (nearly) flat inside it.
     rng_in, drop = (float(x) for x in parts[("computed", "handle")][-4:-2])
     assert drop > rng_in > 0, proc.stdout
+
+
+@pytest.mark.slow
+def test_bench_pose_calls_times_both_ways_and_checks_the_poses_agree() -> None:
+    require_data("ycbv", "0000")
+    proc = _run("bench_pose_calls.py", "--scenes", "0000", "--objects", "2")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "2 pairs in 1 frames" in proc.stdout
+    one = [x for x in proc.stdout.splitlines() if " one call " in x]
+    assert len(one) == 2 and all(float(x.split()[-2]) > 0 for x in one), proc.stdout
+    assert "one process" in proc.stdout
+    line = next(x for x in proc.stdout.splitlines() if x.startswith("largest difference"))
+    assert float(line.split(":")[1].split(";")[0]) <= 1e-9, line
