@@ -10,9 +10,9 @@ The poses of the two ways must be equal: the script checks them (largest differe
 4x4 ``T_camera_object`` entries).
 
 Issue #10 item 7: the MLE in <= 1 s median per frame, <= 2 s including scene building. Measured
-2026-11-26, quiet 2-core VM, frame 000001 of scenes 0000, 0002, 0049, 0050 (18 pairs): one call
-per pair, median 1.93 s (``ycbv_eval.py``, 60 pairs of frames 1, 10, 20); one call per frame, 1.2 s
-per pair (multi15's rounds: 22.0-23.4 s for the 18 pairs against 39.5 s).
+2026-11-26, quiet 2-core VM (load 1.2-1.3), ``--rounds 2``, frame 000001 of scenes 0000, 0002, 0049,
+0050 (18 pairs): one call per pair, median 1.94 s (37.1 s a round); one call per frame, 20.9 s a
+round, 1.16 s per pair; the poses of the two ways equal.
 
 usage::
 
