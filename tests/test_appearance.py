@@ -350,6 +350,17 @@ def test_cli_object_build_defaults_are_the_backbones(tmp_path, capsys):
         assert opt in capsys.readouterr().err
 
 
+def _mustard_box_only(root, model_scene: str, frame: str):
+    """The mustard bottle posed box only (best buddies) in ``frame`` with a model built from
+    ``model_scene``'s views (never the frame's own scene): its name and the pipeline's result."""
+    from certpose.estimation.pipeline import run_ycbv
+
+    obj = "006_mustard_bottle"
+    built = _model_from_scene(root, model_scene, obj)
+    assert frame.split("/")[0] not in built.scenes
+    return obj, run_ycbv(root, frame, obj, object_model=built, rng=0, classifier="best_buddies")
+
+
 @pytest.mark.slow
 def test_the_certified_eq2_minimiser_box_only_is_in_the_refined_minimisers_basin(root):
     """Issue 10 item 2, box only (best buddies, no mask): the mustard bottle in 0050/000020,
@@ -357,14 +368,10 @@ def test_the_certified_eq2_minimiser_box_only_is_in_the_refined_minimisers_basin
     began at its raw minimiser and stayed in that basin, 1.06 cm ADD-S from the truth and 20
     degrees from the minimiser as eq. (1) refined it; begun at the refined pose they end next to
     it (measured 0.36 cm). Every hypothesis the MLE refines is now an eq. (2) minimiser's."""
-    from certpose.estimation.pipeline import pose_errors, run_ycbv
+    from certpose.estimation.pipeline import pose_errors
     from solvers.lie import rotation_error_deg
 
-    obj = "006_mustard_bottle"
-    built = _model_from_scene(root, "0002", obj)
-    assert "0050" not in built.scenes
-    res = run_ycbv(root, "0050/000020", obj, object_model=built, rng=0,
-                   classifier="best_buddies")
+    obj, res = _mustard_box_only(root, "0002", "0050/000020")
     mle = res.mle
     assert res.errors.add_s < 0.01
     assert all(h.source.split(":")[0] == "eq2" for h in mle.hypotheses), [
@@ -386,14 +393,10 @@ def test_the_certified_eq2_minimiser_follows_a_winning_turn(root):
     views. Every refined eq. (2) minimiser is the bottle turned by 180 degrees; the winner is
     that pose's near-symmetric turn (the MLE's mode step), and the minimiser certified was the
     turned one (raw ADD-S 1.12 cm). Eq. (2) is now solved again about the winner."""
-    from certpose.estimation.pipeline import pose_errors, run_ycbv
+    from certpose.estimation.pipeline import pose_errors
     from solvers.lie import rotation_error_deg
 
-    obj = "006_mustard_bottle"
-    built = _model_from_scene(root, "0050", obj)
-    assert "0002" not in built.scenes
-    res = run_ycbv(root, "0002/000010", obj, object_model=built, rng=0,
-                   classifier="best_buddies")
+    obj, res = _mustard_box_only(root, "0050", "0002/000010")
     mle = res.mle
     assert res.errors.add_s < 0.01 and res.errors.rotation_deg < 10.0
     raw = mle.eq2_result

@@ -184,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
         title = "synthetic mug scene (handle hidden behind an occluder)"
         with busy(args, "certpose pose"):
             result = run_demo(params=params, rng=args.seed)
-        one = argparse.Namespace(**{**vars(args), "frame": args.frame[0], "object": args.object[0]})
+        one = _for_pair(args, args.frame[0], args.object[0])
         code, payload = _report(one, params, title, result)
         if args.json is not None:
             emit_json(args, payload)
@@ -195,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
     if args.model is not None and not Path(args.model).is_file():
         raise CLIError(f"--model {args.model} does not exist")
     if len(pairs) == 1:
-        one = argparse.Namespace(**{**vars(args), "frame": args.frame[0], "object": args.object[0]})
+        one = _for_pair(args, args.frame[0], args.object[0])
         try:
             code, payload = _pose_pair(one, params, root)
         except KeyError as exc:
@@ -208,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
             raise CLIError(f"--frame {frame}: {root / (frame + '-meta.mat')} does not exist")
     payloads, codes = [], []
     for k, (frame, obj) in enumerate(pairs, 1):
-        one = argparse.Namespace(**{**vars(args), "frame": frame, "object": obj})
+        one = _for_pair(args, frame, obj)
         say(args, f"== pair {k}/{len(pairs)}: frame {frame}, object {obj} ==")
         try:
             with busy(args, f"certpose pose {k}/{len(pairs)}"):
@@ -226,6 +226,11 @@ def run(args: argparse.Namespace) -> int:
               + (f" ({len(pairs) - len(codes)} skipped)" if len(codes) < len(pairs) else ""))
     sys.stdout.flush()
     return 0 if 0 in codes else 1
+
+
+def _for_pair(args: argparse.Namespace, frame: str, obj: str) -> argparse.Namespace:
+    """``args`` with the one (frame, object) pair that a pose block concerns."""
+    return argparse.Namespace(**{**vars(args), "frame": frame, "object": obj})
 
 
 def _pose_pair(args: argparse.Namespace, params: Any, root: Path, *,
