@@ -36,6 +36,12 @@ Reported per scene and method:
   from the true axis line). Issue 11's "right ambiguity" target, for ours at the default
   temperature: ``arc cov`` 1, ``in arc`` >= 0.95, ``axis ok`` >= 0.95 (printed as a verdict
   per frame).
+* ``axis ok`` against the table: the same with the axis's direction measured against the normal
+  of the plane the mug stands on (:func:`support_normal`, fitted to the frame's depth pixels,
+  independent of the ground truth). In scene 0000 the ground truth's axis lies about 2 deg from
+  that normal in every frame (1.9-2.4 deg on frames 1-5, the base 0.1-0.6 mm above the plane),
+  while ours' weighted mean axis lies 0.4-0.7 deg from it (2026-11-26): a flat-bottomed mug
+  standing on the table cannot tilt by 2 deg, so that share of the tilt is the ground truth's.
 * ``cov|arc``: ``arc cov`` of the distribution conditioned on the arc (a bin counts when it
   holds a quarter of a uniform share of the mass *in the arc*): whether the mass that is in the
   arc spreads over all of it, whatever share the scene's other free runs take.
@@ -145,6 +151,36 @@ def ycbv_problem(root: Path, frame: str, seed: int, lparams=None, arc_test: str 
     return lik, seeds_from_mle(mle), T_gt, arc, centre
 
 
+def support_normal(root: Path, frame: str, radius: float = 0.15) -> np.ndarray:
+    """The normal (scene frame, pointing up the mug's axis) of the plane the mug stands on, fitted
+    to the frame's depth pixels that no object's mask covers, within ``radius`` of the mug's base
+    (open3d RANSAC, 4 mm threshold): a reference for the axis's direction independent of the
+    ground-truth pose, eq. (1) and the samplers. The mug's base is flat and square to its axis
+    (``points.xyz``: 0.07 deg), so standing on the table its axis is the plane's normal."""
+    import open3d as o3d
+
+    from certpose.io.ycbv import load_model_points, load_ycbv_frame
+
+    pts = load_model_points(root / "models" / "025_mug" / "points.xyz")
+    yf = load_ycbv_frame(root, f"0000/{frame}")
+    T = yf.poses["025_mug"]  # T_camera_object
+    axis = T[:3, :3] @ AXIS
+    base = T[:3, :3] @ np.array([0.0, 0.0, pts[:, 2].min()]) + T[:3, 3]
+    depth = yf.frame.depth
+    covered = np.zeros(depth.shape, dtype=bool)
+    for name in yf.class_names:
+        covered |= yf.object_mask(name)
+    v, u = np.nonzero((depth > 0) & ~covered)
+    z = depth[v, u]
+    P = (np.linalg.inv(yf.intrinsics.K) @ np.stack([u * z, v * z, z])).T
+    P = P[np.linalg.norm(P - base, axis=1) < radius]
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P))
+    plane, _ = cloud.segment_plane(distance_threshold=0.004, ransac_n=3, num_iterations=2000)
+    n = np.asarray(plane[:3]) / np.linalg.norm(plane[:3])
+    n = n if n @ axis > 0 else -n
+    return yf.frame.T_world_camera[:3, :3] @ n
+
+
 def slice_arc(lik, T_gt: np.ndarray, temperature: float) -> np.ndarray:  # noqa: ANN001
     """Angles (deg, 1 deg grid) about the axis through the truth within 2.3 nats of the best."""
     phi = np.arange(-180.0, 180.0, 1.0)
@@ -167,10 +203,12 @@ def arc_metrics(dist, T_gt: np.ndarray, arc_deg: np.ndarray,  # noqa: ANN001
     return float(np.mean((mass >= share) & (mass > 0))), float(mass.sum())
 
 
-def free_arc_metrics(dist, T_gt: np.ndarray, arc, centre: np.ndarray) -> dict:  # noqa: ANN001
+def free_arc_metrics(dist, T_gt: np.ndarray, arc, centre: np.ndarray,  # noqa: ANN001
+                     up: np.ndarray | None = None) -> dict:
     """Issue 11's "right ambiguity" figures of a distribution against a :class:`FreeSpaceArc`:
     bin coverage of its arc, mass inside it (exact ends) and in its other free runs, and the mass
-    whose axis is within 5 deg and 1 cm of the truth's."""
+    whose axis is within 5 deg and 1 cm of the truth's (and, given the support plane's normal
+    ``up``, within 5 deg of ``up`` and 1 cm of the truth's axis)."""
     from certpose.sampling.plots import axis_angles
 
     grid = np.arange(np.ceil(arc.arc[0]), np.floor(arc.arc[1]) + 1e-9, 1.0)
@@ -192,7 +230,12 @@ def free_arc_metrics(dist, T_gt: np.ndarray, arc, centre: np.ndarray) -> dict:  
     off = c_p - c_gt
     offset = np.linalg.norm(off - np.outer(off @ axis_gt, axis_gt), axis=1)
     ok = (tilt <= 5.0) & (offset <= 0.01)
-    return {"arc_coverage": cov, "arc_coverage_in_arc": cov_in, "mass_in_arc": float(w[inside].sum()),
+    extra = {}
+    if up is not None:
+        tilt_up = np.degrees(np.arccos(np.clip(axis_p @ up, -1.0, 1.0)))
+        extra = {"axis_ok_table": float(w[(tilt_up <= 5.0) & (offset <= 0.01)].sum()),
+                 "gt_axis_vs_table": float(np.degrees(np.arccos(np.clip(axis_gt @ up, -1.0, 1.0))))}
+    return {**extra, "arc_coverage": cov, "arc_coverage_in_arc": cov_in, "mass_in_arc": float(w[inside].sum()),
             "mass_other_free": float(w[other].sum()), "axis_ok": float(w[ok].sum()),
             "union_coverage": cov_union, "mass_in_union": float(w[inside | other].sum())}
 
@@ -223,7 +266,8 @@ def kde_check(lik, res, rng: int = 0) -> dict:  # noqa: ANN001
 
 
 def run_scene(name: str, lik, seeds: np.ndarray, T_gt: np.ndarray, arc, centre: np.ndarray,  # noqa: ANN001
-              seed: int, slice_ref: bool = False, check_kde: bool = False) -> list[dict]:
+              seed: int, slice_ref: bool = False, check_kde: bool = False,
+              up: np.ndarray | None = None) -> list[dict]:
     from certpose.sampling import DEParams, ISParams, MCMCParams, de_sample, mcmc_sample
     from certpose.sampling.chart import to_chart
     from certpose.sampling.sampler import sample_pose_distribution
@@ -251,7 +295,7 @@ def run_scene(name: str, lik, seeds: np.ndarray, T_gt: np.ndarray, arc, centre: 
                  "union_coverage": cov, "mass_in_union": in_arc}
             ends = [float(sliced.min()), float(sliced.max())]
         else:
-            m = free_arc_metrics(d, T_gt, arc, centre)
+            m = free_arc_metrics(d, T_gt, arc, centre, up)
             ends = [float(arc.arc[0]), float(arc.arc[1])]
         lp = d.log_density(T_gt[:3, :3], T_gt[:3, 3])
         rows.append({
@@ -323,7 +367,7 @@ def main() -> None:
             for frame in args.frames:
                 lik, seeds, gt, arc, centre = ycbv_problem(args.ycbv, frame, seed, lparams, args.arc_test)
                 rows += run_scene(f"0000/{frame}", lik, seeds, gt, arc, centre, seed,
-                                  check_kde=args.kde_check)
+                                  check_kde=args.kde_check, up=support_normal(args.ycbv, frame))
     print(f"\nsame target (eq. (1) / default temperature) and wall-clock budget (ours' sampling "
           f"time) per scene; seeds {seeds_run}; {time.perf_counter() - t0:.0f} s in all")
     print(f"{'scene':12s} {'seed':>4s} {'method':13s} {'T':>5s} {'load':>5s} {'s':>5s} {'evals':>6s} "
@@ -356,10 +400,18 @@ def main() -> None:
                                     and r["axis_ok"] >= 0.95)
         r["right_ambiguity_union"] = bool(r["union_coverage"] == 1.0 and r["mass_in_union"] >= 0.95
                                           and r["axis_ok"] >= 0.95)
-    for key, what in (("right_ambiguity", "the free run that holds the truth"),
-                      ("right_ambiguity_union", "every free run (U)")):
-        print(f"right ambiguity, arc = {what} (ours, default temperature: arc covered, >= 95% of the mass "
-              "in it and with the axis within 5 deg and 1 cm): "
+        r["right_ambiguity_union_table"] = bool(r["union_coverage"] == 1.0 and r["mass_in_union"] >= 0.95
+                                                and r.get("axis_ok_table", r["axis_ok"]) >= 0.95)
+    tables = [r for r in ours_rows if "axis_ok_table" in r]
+    if tables:
+        print("axis against the table's normal (ours; the ground truth's axis lies "
+              + ", ".join(f"{r['gt_axis_vs_table']:.1f}" for r in tables) + " deg from it): axis ok "
+              + ", ".join(f"{r['scene']}@{r['seed']} {r['axis_ok_table']:.2f}" for r in tables))
+    for key, what, ref in (("right_ambiguity", "the free run that holds the truth", "the truth's"),
+                           ("right_ambiguity_union", "every free run (U)", "the truth's"),
+                           ("right_ambiguity_union_table", "every free run (U)", "the table's normal")):
+        print(f"right ambiguity, arc = {what}, axis vs {ref} (ours, default temperature: arc covered, "
+              ">= 95% of the mass in it and with the axis within 5 deg and 1 cm): "
               + ", ".join(f"{r['scene']}@{r['seed']} {'yes' if r[key] else 'no'}" for r in ours_rows))
     checked = [r for r in ours_rows if "kde_check" in r]
     if checked:
