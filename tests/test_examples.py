@@ -166,6 +166,7 @@ def test_bench_samplers_demo(tmp_path: Path) -> None:
     for r in rows:
         assert r["ess"] > 0 and math.isfinite(r["log_p_gt"]) and 0 <= r["arc_coverage"] <= 1
         assert 0 <= r["arc_coverage_in_arc"] <= 1 and math.isfinite(r["log_p_gt_target"])
+        assert 0 <= r["union_coverage"] <= 1 and r["mass_in_union"] >= r["mass_in_arc"]
         assert r["log_p_gt_error"] == abs(r["log_p_gt"] - r["log_p_gt_target"])
         # The baselines stop at ours' sampling time (plus at most one batch of evaluations).
         assert r["seconds"] <= budget + 1.0, r
