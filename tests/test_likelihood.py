@@ -44,13 +44,18 @@ def _world(seed: int = 0, shape: tuple[int, int, int] = (12, 10, 9), d: int = 7,
     return rng, scene, cls, obj
 
 
-def _reference(scene, cls, obj, T, params: LikelihoodParams, spread: dict | None = None) -> float:
+def _reference(scene, cls, obj, T, params: LikelihoodParams, spread: dict | None = None,
+               descriptors: dict | None = None) -> float:
     """Eq. (1) point by point, corner by corner, in plain Python (free-space values per voxel
     from :func:`free_space_values`, tested on its own below).
 
     ``spread``: per-voxel classifier terms relative to unobserved space (by voxel index, absent:
     0), added at every corner in place of the occupied voxels' own ``cls.log_p`` (the
     ``field_blur`` option, tests/test_field_blur.py).
+
+    ``descriptors``: per-voxel scene descriptors (by voxel index, absent: 0) at every corner, in
+    place of the occupied voxels' own (the ``descriptor_blur`` option,
+    tests/test_descriptor_blur.py).
 
     With ``free_space_at="point"``: EMPTY corners count as unobserved, and the point pays the
     ramp of its depth, the trilinear blend of scipy's full distance transform (uncapped) minus
@@ -78,16 +83,20 @@ def _reference(scene, cls, obj, T, params: LikelihoodParams, spread: dict | None
                     ijk = i0 + (dx, dy, dz)
                     inside = all(0 <= ijk[a] < scene.shape[a] for a in range(3))
                     s = scene.state[tuple(ijk)] if inside else UNOBSERVED
+                    sim = 0.0
+                    if descriptors is not None and tuple(ijk) in descriptors:
+                        sim = params.beta * float(descriptors[tuple(ijk)] @ z)
                     if s == OCCUPIED:
                         own = cls.log_p[tuple(ijk)] if spread is None else params.log_p_unobserved
-                        v = own + params.beta * float(scene.descriptors[tuple(ijk)] @ z)
+                        v = own + (params.beta * float(scene.descriptors[tuple(ijk)] @ z)
+                                   if descriptors is None else 0.0)
                     elif s == EMPTY:
                         v = background[tuple(ijk)]
                         if at_point:
                             depth += w * D[tuple(ijk)]
                     else:
                         v = params.log_p_unobserved
-                    term += w * (v + (0.0 if spread is None else spread.get(tuple(ijk), 0.0)))
+                    term += w * (v + sim + (0.0 if spread is None else spread.get(tuple(ijk), 0.0)))
         if at_point:
             over = depth - 0.5 * scene.voxel_size - params.free_space_tolerance
             ramp = params.free_space_ramp
