@@ -162,6 +162,61 @@ frame 4's drop stays at 10-16 nats. Cheaper, 2 deg, tolerance 3.5 mm at the poin
 points (``--density 4``) 0.32 1.09 0.47 0.53 0.32 (mean 0.54, body 4.1-6.6 nats); a 10-mm blur
 at the default density 0.50 0.94 0.61 1.36 0.39 (mean 0.76, body 6.3-9.4).
 
+Which term carries the body's range (2026-11-26, the option set above: ``--free-space-at point
+--field-blur 0.0075 --tolerance 0.0035 --ramp 0.0025``, 2 deg). The body's share at the refined
+poses is split into the descriptor similarity (``body.desc``: eq. (1) minus its beta = 0 value),
+the free-space charge (``body.free``: beta = 0 minus beta = 0 without a charge, ``c_empty`` =
+``log_p_unobserved``) and the classifier's term with its blurred spread (``body.cls``). At the
+default density the body's range inside the arc (7.6-10.2 nats) is a slow drift along the arc
+(mean step 0.5-0.9 nats), not step-to-step noise; the classifier's term carries 56-80% of its
+variance (range 5.8-7.8 nats), the similarity 19-47% (3.2-6.5), free space none (range 0.4-1.6, share -3..+1%). It is
+the model's sampling around the axis: with the body replaced by eight turns of itself
+(``--symmetrise-body 8``, 5 deg, frames 1 / 2 / 4) the body varies by 1.9 / 1.8 / 1.5 nats (was
+7.9 / 7.0 / 10.1), its classifier term by 0.9 / 1.9 / 0.8, and eq. (1)'s ratio is 0.12 / 0.37 /
+0.44. Denser points remove the classifier's part first: at ``density`` 8 (5 deg) it varies by
+0.8-3.0 nats and the similarity (2.2-4.4) carries 73-100% of the body's variance; at 32 (5 deg,
+16 times eq. (1)'s cost) classifier 2.1-3.0, similarity 3.3-6.8, ratio mean 0.47 (density 8:
+0.32). The scene descriptors blurred too (``LikelihoodParams.descriptor_blur``,
+``--descriptor-blur``) flatten the similarity, but a wider blur also lowers the drop: outside
+the arc the refinement hides the handle more cheaply when the body's similarity falls off more
+slowly across the surface. Range inside / drop per frame 1-5 (nats), ratio; ranges inside the
+arc of the body, its similarity and its classifier term:
+
+==========================  ===============================================  =====================  ====================
+option set above and ...    range inside / drop                              ratio (mean)           body / desc / cls
+==========================  ===============================================  =====================  ====================
+(nothing)                   11.4/18.2 16.0/17.9 10.3/14.8 9.6/5.3 10.2/21.7  0.63 0.90 0.69 1.82    7.6-10.2 / 3.2-6.5 /
+                                                                             0.47 (0.90)            5.8-7.8
+descriptor blur 2.5 mm      9.3/18.6 14.6/16.1 10.3/15.9 7.6/5.0 8.2/19.5    0.50 0.91 0.65 1.50    7.2-9.0 / 3.4-4.8 /
+                                                                             0.42 (0.80)            5.5-8.8
+descriptor blur 3.5 mm      7.9/18.8 12.5/14.6 11.0/14.5 6.5/5.0 7.5/17.6    0.42 0.86 0.76 1.29    6.9-8.3 / 2.1-3.9 /
+                                                                             0.43 (0.75)            5.8-7.7
+descriptor blur 5 mm        8.3/12.2 11.3/9.4 11.3/12.5 6.2/4.9 7.1/15.1     0.68 1.20 0.90 1.25    6.6-9.4 / 1.8-2.9 /
+                                                                             0.47 (0.90)            4.9-9.1
+descriptor blur 7.5 mm      8.6/8.2 10.6/5.8 9.4/10.2 5.8/3.9 6.8/12.1       1.05 1.84 0.92 1.49    6.5-8.1 / 1.5-3.3 /
+                                                                             0.57 (1.17)            5.2-7.8
+density 4                   6.2/19.2 18.6/17.1 7.0/15.0 4.9/9.3 5.5/17.3     0.32 1.09 0.47 0.53    4.1-6.6 / 2.8-5.7 /
+                                                                             0.32 (0.54)            2.2-5.3
+density 4, blur 3.5 mm      3.6/17.1 15.1/16.0 6.8/13.6 4.9/8.0 4.5/14.2     **0.21** 0.94 0.50     3.3-4.9 / 2.0-3.0 /
+                                                                             0.62 0.32 (0.52)       2.1-5.5
+density 4, blur 7.5 mm      3.7/10.5 15.8/8.0 7.2/10.0 3.9/6.0 3.5/11.8      0.35 1.99 0.72 0.65    3.2-7.9 / 1.3-3.4 /
+                                                                             0.30 (0.80)            2.1-5.5
+density 8                   3.8/21.4 18.7/20.6 5.9/16.4 4.9/9.8 4.1/18.2     **0.18** 0.91 0.36     2.5-7.0 / 2.3-6.8 /
+                                                                             0.50 **0.22** (0.43)   0.9-4.9
+density 8, blur 3.5 mm      3.1/18.0 15.1/18.3 4.5/15.5 3.2/8.8 3.1/15.8     **0.17** 0.83 0.29     1.9-4.7 / 1.7-3.0 /
+                                                                             0.37 **0.20** (0.37)   1.2-4.3
+==========================  ===============================================  =====================  ====================
+
+(``density``: ``--sampling surface --density``, twice / four times eq. (1)'s cost.) The
+descriptor blur alone (voxel-centre free space, no field blur) leaves the default's shape:
+3.5 mm 36.3/11.6 30.7/8.1 44.7/-2.8 28.9/2.6 21.5/22.1 (body 22-34 nats), 7.5 mm similar. At
+5 deg the best set with the descriptor blur 7.5 mm: mean 1.11 (without 0.68), 5 mm 0.73; at
+density 8, 3.5 / 5 / 7.5 mm: 0.28 / 0.32 / 0.40 (without 0.32). The object's own descriptors
+averaged over their model neighbours (a Gaussian of 7.5 / 15 mm; prototype, 5 deg): mean 0.77 /
+1.93 (they are nearly equal along the wall already: mean norm 0.96 after averaging). What is
+left at density 8 with the blur: frame 2's handle near its arc's far end (11.3 of its 15.1 nats)
+and frame 4's drop (8.8 nats).
+
 The axis is the body's: a circle fitted to the model points of the body (handle excluded) in
 the model's xy plane; it sits about 3.3 mm from the model origin along -x, so turning about the
 model's own z axis through the origin would move the body and roughen the profile by itself.
@@ -169,8 +224,10 @@ model's own z axis through the origin would move the body and roughen the profil
 Printed per frame: the range of eq. (1) inside the arc, the drop from the inside's mean to the
 best value outside (outside: at least ``--guard`` degrees beyond the arc's ends), their ratio
 (issue #10's target: <= 1/4), the mean absolute step between neighbouring angles (roughness),
-and the same for the part of eq. (1) without the descriptor similarity (beta = 0), and for the
-body's and the handle's shares of eq. (1) at the refined poses.
+and the same for the part of eq. (1) without the descriptor similarity (beta = 0), for the
+body's and the handle's shares of eq. (1) at the refined poses, and for the body's share split
+into its descriptor similarity, free-space charge and classifier term (``body.desc``,
+``body.free``, ``body.cls``; ``--json`` writes them per angle as ``body_parts``).
 
 usage::
 
@@ -183,6 +240,8 @@ usage::
     python examples/bench_arc.py --free-space pixels --arc-free-space pixels --arc-max-violations 10
     python examples/bench_arc.py --field-blur 0.0075              # the classifier's term spread
     python examples/bench_arc.py --free-space-at point            # free space charged at the point
+    python examples/bench_arc.py --free-space-at point --field-blur 0.0075 --tolerance 0.0035 \
+        --ramp 0.0025 --descriptor-blur 0.0035                    # the scene descriptors spread too
 """
 
 from __future__ import annotations
@@ -275,6 +334,9 @@ def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine:
         obj, weights = symmetrised_body(obj, C, symmetrise)
     lik1 = PoseLikelihood(scene, cls, obj, params=lp)
     lik01 = PoseLikelihood(scene, cls, obj, params=replace(lp, beta=0.0))
+    # beta = 0 and no free-space charge (c_empty = the unobserved prior): the classifier's term
+    # alone (with its blurred spread), for the body's per-term split at the refined poses.
+    lik_cls = lik01.with_object(obj, params=replace(lp, beta=0.0, c_empty=lp.log_p_unobserved))
 
     def weighted(L):  # noqa: ANN001, ANN202
         return L if weights is None else (lambda T: float(weights @ L.point_terms(T)))
@@ -286,7 +348,7 @@ def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine:
 
     scale = np.array([0.05, 0.05, 0.005, 0.005, 0.005])
     handle = obj.points[:, 0] >= 0.045
-    full, geo, hand = [], [], []
+    full, geo, hand, parts = [], [], [], []
     for a in angles:
         x = np.zeros(5)
         if refine:
@@ -296,9 +358,12 @@ def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine:
         T = pose(a, x)
         full.append(float(lik(T)))
         geo.append(float(lik0(T)))
+        terms = [L.point_terms(T)[~handle].sum() for L in (lik1, lik01, lik_cls)]
         hand.append(float(lik1.point_terms(T)[handle].sum()))
+        # The body's share split: descriptor similarity, free-space charge, classifier.
+        parts.append((terms[0] - terms[1], terms[1] - terms[2], terms[2]))
     full, hand = np.asarray(full), np.asarray(hand)
-    return full, np.asarray(geo), full - hand, hand, arc
+    return full, np.asarray(geo), full - hand, hand, arc, np.asarray(parts)
 
 
 def regions(angles: np.ndarray, arc, guard: float) -> dict:  # noqa: ANN001
@@ -401,6 +466,8 @@ def main() -> None:
                     help="free_space_arc: an angle is free with at most K points beyond tolerance")
     ap.add_argument("--field-blur", type=float, default=None, metavar="M",
                     help="LikelihoodParams.field_blur (metres; Gaussian blur of the per-voxel terms)")
+    ap.add_argument("--descriptor-blur", type=float, default=None, metavar="M",
+                    help="LikelihoodParams.descriptor_blur (metres; Gaussian blur of the scene descriptors)")
     ap.add_argument("--log-p-unobserved", type=float, default=None, metavar="V",
                     help="LikelihoodParams.log_p_unobserved")
     ap.add_argument("--symmetrise-body", type=int, default=0, metavar="M",
@@ -428,7 +495,8 @@ def main() -> None:
         overrides["free_space_ramp"] = args.ramp
     if args.free_space_from is not None:
         overrides["free_space_from"] = args.free_space_from
-    for opt in ("free_space_at", "free_space", "depth_tolerance", "depth_ramp", "depth_window", "field_blur"):
+    for opt in ("free_space_at", "free_space", "depth_tolerance", "depth_ramp", "depth_window", "field_blur",
+                "descriptor_blur"):
         if getattr(args, opt) is not None:
             overrides[opt] = getattr(args, opt)
     arc_options = {"free_space": args.arc_free_space, "window": args.arc_window,
@@ -445,7 +513,7 @@ def main() -> None:
     ratios: dict[str, list[float]] = {"computed": [], "stated": []}
     dump = []
     for f in args.frames.split(","):
-        full, geo, body, hand, arc = profile(args.data, f"0000/{f}", angles, overrides, not args.no_refine,
+        full, geo, body, hand, arc, parts = profile(args.data, f"0000/{f}", angles, overrides, not args.no_refine,
                                              args.symmetrise_body, sampling, args.arc_tolerance,
                                              arc_options)
         reg = regions(angles, arc, args.guard)
@@ -471,7 +539,9 @@ def main() -> None:
             if not inside.any() or not outside.any():
                 print(f"{f:<8} {which:<9} (no {'inside' if not inside.any() else 'outside'} angle)")
                 continue
-            for name, v in (("eq. (1)", full), ("beta = 0", geo), ("body", body), ("handle", hand)):
+            for name, v in (("eq. (1)", full), ("beta = 0", geo), ("body", body), ("handle", hand),
+                            ("body.desc", parts[:, 0]), ("body.free", parts[:, 1]),
+                            ("body.cls", parts[:, 2])):
                 s = arc_stats(v, inside, outside)
                 print(f"{f:<8} {which:<9} {name:<9} {s['range_in']:>9.1f} {s['drop']:>8.1f} "
                       f"{s['ratio']:>7.2f} {s['step']:>12.1f}", flush=True)
@@ -479,7 +549,7 @@ def main() -> None:
                     ratios[which].append(s["ratio"])
         dump.append({"frame": f, "arc": arc.arc, "arcs": arc.arcs, "tolerance": arc.tolerance,
                      "eq1": full.tolist(), "beta0": geo.tolist(), "body": body.tolist(),
-                     "handle": hand.tolist()})
+                     "handle": hand.tolist(), "body_parts": parts.tolist()})
     print()
     for which, rs in ratios.items():
         if rs:

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.conftest import DATA_DIR, require_data
@@ -251,9 +252,9 @@ def test_bench_eq2_on_a_real_frame(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_bench_arc_reports_the_ratio_per_frame_and_part(tmp_path: Path) -> None:
     require_data("ycbv", "0000")
-    png = tmp_path / "arc.png"
+    png, dump = tmp_path / "arc.png", tmp_path / "arc.json"
     proc = _run("bench_arc.py", "--frames", "000001", "--step", "10", "--no-refine",  # defaults
-                "--plot", str(png))
+                "--plot", str(png), "--json", str(dump))
     assert proc.returncode == 0, proc.stdout + proc.stderr
     from PIL import Image
 
@@ -268,7 +269,14 @@ def test_bench_arc_reports_the_ratio_per_frame_and_part(tmp_path: Path) -> None:
     assert "other free runs" in line
     rows = [x.split() for x in proc.stdout.splitlines() if x.startswith("000001 ")]
     parts = {(r[1], r[2] if r[2] != "eq." else "eq1"): r for r in rows}
-    assert {(a, p) for a in ("computed", "stated") for p in ("eq1", "body", "handle")} <= set(parts), proc.stdout
+    assert {(a, p) for a in ("computed", "stated")
+            for p in ("eq1", "body", "handle", "body.desc", "body.free", "body.cls")} <= set(parts), proc.stdout
+    # The body's split per term (descriptor similarity, free-space charge, classifier) adds up
+    # to its share; the similarity and the classifier's term both vary along the circle.
+    frame = json.loads(dump.read_text())["frames"][0]
+    split = np.asarray(frame["body_parts"])
+    np.testing.assert_allclose(split.sum(axis=1), frame["body"], rtol=0, atol=1e-6)
+    assert np.ptp(split[:, 0]) > 1.0 and np.ptp(split[:, 2]) > 1.0, split
     assert "computed arc: eq. (1) ratio over 1 frames" in proc.stdout
     assert "stated arc: eq. (1) ratio over 1 frames" in proc.stdout
     # On the stated arc the handle is hidden inside most of it and emerges outside: its share
