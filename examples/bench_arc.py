@@ -174,7 +174,7 @@ the model's sampling around the axis: with the body replaced by eight turns of i
 (``--symmetrise-body 8``, 5 deg, frames 1 / 2 / 4) the body varies by 1.9 / 1.8 / 1.5 nats (was
 7.9 / 7.0 / 10.1), its classifier term by 0.9 / 1.9 / 0.8, and eq. (1)'s ratio is 0.12 / 0.37 /
 0.44. Denser points remove the classifier's part first: at ``density`` 8 (5 deg) it varies by
-0.8-3.0 nats and the similarity (2.2-4.4) carries 73-100% of the body's variance; at 32 (5 deg,
+0.8-3.0 nats and the similarity (2.2-4.4) carries 73% or more of the body's variance; at 32 (5 deg,
 16 times eq. (1)'s cost) classifier 2.1-3.0, similarity 3.3-6.8, ratio mean 0.47 (density 8:
 0.32). The scene descriptors blurred too (``LikelihoodParams.descriptor_blur``,
 ``--descriptor-blur``) flatten the similarity, but a wider blur also lowers the drop: outside
