@@ -201,17 +201,18 @@ def test_cli_object_build_then_pose(root, tmp_path, capsys):
 def test_cross_scene_appearance_model_tells_the_flip(root):
     """The potted-meat can, model from scene 0002, evaluated on scene 0049 (never on 0002).
 
-    Without appearance eq. (1) prefers the can turned by about 180 degrees (by about 20 nats
-    in 0049/000001; the search and its turns find that mode); the printed label tells them
-    apart.
+    Without appearance eq. (1) prefers the can turned by about 180 degrees (by about 17 nats
+    in 0049/000010; the search and its turns find that mode); the printed label tells them
+    apart. (On 0049/000001, the frame used before the models' Voronoi areas of 2026-11-26, the
+    geometry-only model now gets the can right: 4.7 deg.)
     """
     from certpose.estimation.pipeline import run_ycbv
 
     obj = "010_potted_meat_can"
     built = build_ycbv_object_model(root, ["0002/000001", "0002/000010", "0002/000020"], obj)
     assert "0049" not in built.scenes
-    geo = run_ycbv(root, "0049/000001", obj, rng=0)
-    app = run_ycbv(root, "0049/000001", obj, object_model=built, rng=0)
+    geo = run_ycbv(root, "0049/000010", obj, rng=0)
+    app = run_ycbv(root, "0049/000010", obj, object_model=built, rng=0)
     assert geo.errors.add_s < 0.01 and geo.errors.rotation_deg > 150.0  # flipped
     assert app.errors.add_s < 0.01 and app.errors.rotation_deg < 10.0
     diameter = 0.144  # of the box around the model points

@@ -684,13 +684,15 @@ def test_the_search_finds_the_can_that_a_bleeding_mask_pulled_away_from():
 
 @pytest.mark.slow
 def test_a_flip_that_ties_reports_the_truth_among_the_modes():
-    """Issue 10 item 4 on a real frame (YCB-Video 0050/000001, mustard bottle, geometry-only
+    """Issue 10 item 4 on a real frame (YCB-Video 0050/000010, mustard bottle, geometry-only
     model): eq. (1) prefers the bottle turned by about 180 degrees by less than the mode window
-    over the locally refined truth. The truth's basin must then be among the reported modes; its
-    turn used to stall 6 nats below the polished winner and was left out."""
+    over the locally refined truth (3.9 nats). The truth's basin must then be among the reported
+    modes; on 0050/000001 its turn used to stall 6 nats below the polished winner and was left
+    out (there the flip leads by 6.1 nats, beyond the window, since the models' Voronoi areas of
+    2026-11-26)."""
     from certpose.estimation.pipeline import pose_errors
 
-    setup, T_gt, ll_ref, res, params = _ycbv_mle_case("0050/000001", "006_mustard_bottle")
+    setup, T_gt, ll_ref, res, params = _ycbv_mle_case("0050/000010", "006_mustard_bottle")
     window = params.mle.mode_window
     assert ll_ref >= res.log_likelihood - window  # the premise: a tie
     rot = [pose_errors(m.T_scene_object, T_gt, setup.model_points).rotation_deg for m in res.modes]

@@ -105,7 +105,7 @@ def test_samples_are_even_where_the_input_is_not():
     band = _wall(pts, R_OUT)
     raw = np.histogram(np.arctan2(pts[band, 1], pts[band, 0]), bins=12, range=(-np.pi, np.pi))[0]
     assert raw.max() / raw.min() > 2.0  # the input is uneven
-    p, n, areas = sample_surface(pts, voxel_size=VS, density=2.0, rng=0)
+    p, n, areas = sample_surface(pts, voxel_size=VS, density=2.0, rng=0, area_weights="equal")
     density = _sector_density(p, areas, R_OUT)
     assert density.min() > 0.85 and density.max() < 1.15, density
     # The area each sample stands for: equal, summing to the surface's area.
@@ -117,7 +117,7 @@ def test_samples_are_even_where_the_input_is_not():
 
     assert 0.4 * VS < np.median(cKDTree(p).query(p, k=2)[0][:, 1]) < 0.9 * VS
     # Denser sampling: twice the points, the same area.
-    p4, _, a4 = sample_surface(pts, voxel_size=VS, density=4.0, rng=0)
+    p4, _, a4 = sample_surface(pts, voxel_size=VS, density=4.0, rng=0, area_weights="equal")
     assert len(p4) == pytest.approx(2 * len(p), rel=0.05)
     assert a4.sum() == pytest.approx(areas.sum(), rel=0.02)
 
@@ -141,8 +141,8 @@ def test_voronoi_areas_weigh_each_region_by_its_area(seed):
     # seeds 0 / 1); each sample's Voronoi cell on the mesh evens them out (2.0% / 2.1%: what
     # is left is the reconstructed surface's own).
     pts = _cup_points(np.random.default_rng(seed), 5000, parts=("outer", "bottom_out"), uneven=True)
-    p, _, equal = sample_surface(pts, voxel_size=VS, density=2.0, rng=seed)
-    q, _, cells = sample_surface(pts, voxel_size=VS, density=2.0, rng=seed, area_weights="voronoi")
+    p, _, equal = sample_surface(pts, voxel_size=VS, density=2.0, rng=seed, area_weights="equal")
+    q, _, cells = sample_surface(pts, voxel_size=VS, density=2.0, rng=seed)  # the default
     np.testing.assert_array_equal(p, q)  # the same samples, other weights
     assert np.all(cells > 0) and 0.1 < cells.std() / cells.mean() < 0.3
     assert cells.sum() == pytest.approx(equal.sum(), rel=0.01)
@@ -188,6 +188,8 @@ def test_bad_input_gives_a_clear_error():
         object_from_points(good, FPFHBackbone(), voxel_size=VS, area_weights="delaunay")
     with pytest.raises(ValueError, match="area_weights.*surface"):
         object_from_points(good, FPFHBackbone(), voxel_size=VS, sampling="voxel", area_weights="voronoi")
+    with pytest.raises(ValueError, match="area_weights.*surface"):
+        object_from_points(good, FPFHBackbone(), voxel_size=VS, sampling="voxel", area_weights="equal")
 
 
 def test_object_model_areas_are_validated_and_kept_by_subsample():

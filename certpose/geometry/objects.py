@@ -221,7 +221,7 @@ def sample_surface(
     voxel_size: float,
     density: float = 2.0,
     rng: np.random.Generator | int | None = 0,
-    area_weights: str = "equal",
+    area_weights: str = "voronoi",
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Points spread evenly over the surface the model points sample, with their areas.
 
@@ -231,11 +231,12 @@ def sample_surface(
     sampled by Poisson-disk elimination (open3d, Yuksel 2015) at ``density`` points per
     ``voxel_size**2`` of its area. Samples farther than ``voxel_size`` from every input point
     lie on surface the Poisson fit invented (e.g. the bulge it puts past a mug's open rim) and
-    are dropped. With ``area_weights="equal"`` (default) every kept sample stands for the same
-    area, ``mesh area / samples drawn``; with ``"voronoi"`` for the part of the mesh nearer to it
-    than to any other sample (its Voronoi cell on the surface: the mesh's triangles cut into
-    parts of at most ``1 / VORONOI_PARTS`` of a sample's area, each given to its nearest
-    sample; parts farther than ``voxel_size`` from every input point left out as above). Poisson-disk samples are even only on average: their cells vary by
+    are dropped. With ``area_weights="voronoi"`` (default) every kept sample stands for the
+    part of the mesh nearer to it than to any other sample (its Voronoi cell on the surface:
+    the mesh's triangles cut into parts of at most ``1 / VORONOI_PARTS`` of a sample's area,
+    each given to its nearest sample; parts farther than ``voxel_size`` from every input point
+    left out as above); with ``"equal"`` (the default before 2026-11-26) for the same area,
+    ``mesh area / samples drawn``. Poisson-disk samples are even only on average: their cells vary by
     18-23% (YCB-Video's mug, cracker box, power drill), and a region of a few hundred samples
     holds a few percent more or fewer samples than its area (the halves of a synthetic
     cylinder's band: 3.4-5.4%, with the cells 2.0-2.1%, tests/test_surface_sampling.py); the
@@ -253,10 +254,10 @@ def sample_surface(
     non-symmetric rotation <= 10 deg 15 -> 21 of 46 (the mug on 0000 frames 2-5: 64.9 / 133.8
     / 73.1 / 80.0 -> 9.9 / 4.4 / 5.4 / 10.5 deg; the potted meat can twice from a flip to 3-5
     deg), flips 20 -> 18; worse: the tomato soup can on 0050/000001, turned about its axis
-    51.6 -> 133.6 deg (ADD-S 0.32 -> 0.25 cm). Not the default: with it the importance sampler
-    on the mug 0000/000003 (``examples/bench_calibration.py``, 1000 draws) keeps an effective
-    sample size of 22.6 instead of 138.2 (the truth's credible level 0.54 instead of 0.77);
-    the sampler's side of the change is open (branch ``shape16-voronoi-default`` flips it).
+    51.6 -> 133.6 deg (ADD-S 0.32 -> 0.25 cm). With it eq. (1) rates the mug's other hiding
+    places (its handle behind the foam brick, or over pixels without depth) closer to the
+    arc, and the importance sampler needed components born at lighter stray draws
+    (``ISParams.birth_weight`` 0.05 -> 0.02, the same change).
 
     Thin walls: nothing is averaged per voxel, so no wall is merged in some places and not in
     others. A wall sampled on both sides keeps both when the input is denser than the wall is
@@ -281,8 +282,8 @@ def sample_surface(
         voxel apart.
     rng : numpy.random.Generator or int or None, optional
         Seeds open3d's sampler (its global generator).
-    area_weights : {"equal", "voronoi"}, optional
-        The area each sample stands for (above).
+    area_weights : {"voronoi", "equal"}, optional
+        The area each sample stands for (above; default ``"voronoi"``).
 
     Returns
     -------
@@ -354,7 +355,7 @@ def object_from_points(
     sampling: str = "surface",
     density: float = 2.0,
     rng: np.random.Generator | int | None = 0,
-    area_weights: str = "equal",
+    area_weights: str | None = None,
 ) -> ObjectModel:
     """Build an object model from model points (e.g. YCB-Video's ``points.xyz``).
 
@@ -402,8 +403,9 @@ def object_from_points(
         Samples per ``voxel_size**2`` of surface with ``"surface"``.
     rng : numpy.random.Generator or int or None, optional
         Seeds the ``"surface"`` sampling.
-    area_weights : {"equal", "voronoi"}, optional
-        With ``"surface"``: the area each sample stands for (:func:`sample_surface`).
+    area_weights : {"voronoi", "equal"} or None, optional
+        With ``"surface"``: the area each sample stands for (:func:`sample_surface`; None:
+        ``"voronoi"``). Not for ``"voxel"`` (its points weigh 1 each).
 
     Returns
     -------
@@ -413,15 +415,15 @@ def object_from_points(
 
     if sampling not in ("voxel", "surface"):
         raise ValueError(f"`sampling` must be 'voxel' or 'surface', got {sampling!r}.")
-    if area_weights not in ("equal", "voronoi"):
+    if area_weights not in (None, "equal", "voronoi"):
         raise ValueError(f"`area_weights` must be 'equal' or 'voronoi', got {area_weights!r}.")
-    if sampling == "voxel" and area_weights != "equal":
+    if sampling == "voxel" and area_weights is not None:
         raise ValueError("`area_weights` applies to sampling='surface' (voxel points weigh 1 each).")
     pts = check_points(points, "points", min_points=3)
     vs = _check_voxel_size(voxel_size)
     if sampling == "surface":
         p, normals, areas = sample_surface(pts, voxel_size=vs, density=density, rng=rng,
-                                           area_weights=area_weights)
+                                           area_weights=area_weights or "voronoi")
         cols = None
         if colors is not None:
             from scipy.spatial import cKDTree
