@@ -46,6 +46,22 @@ def mug_on_0000(frame: str = "000001"):
     return s, s.frame.poses["025_mug"], body_axis_offset(s.model_points), turned_pose
 
 
+def mug_body(obj):  # noqa: ANN001, ANN201
+    """The mug's model without its handle (points with x < 45 mm in the model frame)."""
+    return obj.select(np.flatnonzero(obj.points[:, 0] < 0.045))
+
+
+def refined_turn(lik, G: np.ndarray, C: np.ndarray, turned_pose, angle: float) -> np.ndarray:  # noqa: ANN001
+    """``G`` turned by ``angle`` deg about the body axis through ``C``, the other five degrees of
+    freedom refined on ``lik`` (Powell, the settings of examples/bench_arc.py): the pose (4, 4)."""
+    from scipy.optimize import minimize
+
+    scale = np.array([0.05, 0.05, 0.005, 0.005, 0.005])
+    x = minimize(lambda u: -float(lik(turned_pose(G, C, angle, u * scale))), np.zeros(5), method="Powell",
+                 options={"xtol": 1e-2, "ftol": 1e-4, "maxfev": 400}).x
+    return turned_pose(G, C, angle, x * scale)
+
+
 def strict_json(text: str) -> object:
     """Parse JSON as the standard says: ``NaN`` and ``Infinity`` (which Python writes and reads by
     default) are errors."""

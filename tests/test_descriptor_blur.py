@@ -15,7 +15,7 @@ from certpose.model.grid import EMPTY, OCCUPIED
 from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 from certpose.model.scene import SceneField
 from solvers.lie import make_transform
-from tests.conftest import mug_on_0000
+from tests.conftest import mug_body, mug_on_0000, refined_turn
 from tests.test_field_blur import _gauss, _spread, _world
 from tests.test_likelihood import _reference
 
@@ -141,13 +141,8 @@ def test_descriptor_blur_flattens_the_similarity_of_the_mug_body_along_its_arc()
     # body varied by 3.0 nats; with the descriptors blurred by 7.5 mm as well, by 1.0 (every
     # 5 deg over -20..70 deg; examples/bench_arc.py has the whole arc and its split per term,
     # where the drop outside the arc falls with it).
-    from scipy.optimize import minimize
-
     s, G, C, turned_pose = mug_on_0000("000001")
-    obj = s.object_model
-    body = obj.select(np.flatnonzero(obj.points[:, 0] < 0.045))
-    scale = np.array([0.05, 0.05, 0.005, 0.005, 0.005])
-
+    body = mug_body(s.object_model)
     ranges = {}
     for blur in (0.0, 0.0075):
         params = LikelihoodParams(field_blur=0.0075, descriptor_blur=blur)
@@ -155,9 +150,7 @@ def test_descriptor_blur_flattens_the_similarity_of_the_mug_body_along_its_arc()
         geo = lik.with_object(body, params=LikelihoodParams(field_blur=0.0075, beta=0.0))
         sim = []
         for a in np.arange(-20.0, 71.0, 5.0):
-            x = minimize(lambda u, a=a, lik=lik: -float(lik(turned_pose(G, C, a, u * scale))), np.zeros(5),
-                         method="Powell", options={"xtol": 1e-2, "ftol": 1e-4, "maxfev": 400}).x
-            T = turned_pose(G, C, a, x * scale)
+            T = refined_turn(lik, G, C, turned_pose, a)
             sim.append(float(lik(T)) - float(geo(T)))
         ranges[blur] = float(np.ptp(sim))
     assert ranges[0.0075] < 1.75 < ranges[0.0], ranges

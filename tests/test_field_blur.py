@@ -15,7 +15,7 @@ from certpose.model.grid import EMPTY, OCCUPIED, UNOBSERVED
 from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 from certpose.model.scene import SceneField
 from solvers.lie import make_transform
-from tests.conftest import mug_on_0000
+from tests.conftest import mug_body, mug_on_0000, refined_turn
 from tests.test_likelihood import _reference
 
 
@@ -130,22 +130,11 @@ def test_field_blur_flattens_the_mug_body_along_its_hidden_handle_arc():
     # favourably on the one-voxel-thick shell of classifier terms. Spread over 1.5 voxels the
     # shell is smoother than the points' spacing (measured every 10 deg over -20..70 deg:
     # 28.6 nats unblurred, 6.7 with field_blur=7.5 mm; examples/bench_arc.py has the whole arc).
-    from scipy.optimize import minimize
-
     s, G, C, turned_pose = mug_on_0000("000001")
-    obj = s.object_model
-    body = obj.select(np.flatnonzero(obj.points[:, 0] < 0.045))
-    scale = np.array([0.05, 0.05, 0.005, 0.005, 0.005])
-
-    def pose(theta: float, x: np.ndarray) -> np.ndarray:
-        return turned_pose(G, C, theta, x)
-
+    body = mug_body(s.object_model)
     ranges = {}
     for blur in (0.0, 0.0075):
         lik = PoseLikelihood(s.scene, s.classification, body, params=LikelihoodParams(field_blur=blur))
-        best = [-minimize(lambda u, a=a, lik=lik: -float(lik(pose(a, u * scale))), np.zeros(5),
-                          method="Powell",
-                          options={"xtol": 1e-2, "ftol": 1e-4, "maxfev": 400}).fun
-                for a in np.arange(-20.0, 71.0, 10.0)]
+        best = [float(lik(refined_turn(lik, G, C, turned_pose, a))) for a in np.arange(-20.0, 71.0, 10.0)]
         ranges[blur] = float(np.ptp(best))
     assert ranges[0.0075] < 10.0 < ranges[0.0], ranges

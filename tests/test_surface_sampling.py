@@ -14,7 +14,7 @@ from certpose.geometry.objects import (
     object_from_points,
     sample_surface,
 )
-from tests.conftest import mug_on_0000
+from tests.conftest import mug_body, mug_on_0000, refined_turn
 
 VS = 0.005
 # A mug without handle: 4-mm wall (outer radius 40 mm, inner 36 mm), 80 mm tall, closed 4-mm
@@ -262,22 +262,16 @@ def test_voronoi_areas_flatten_the_mug_body_along_its_hidden_handle_arc():
     # the body's value drifts along the arc by 7.1 nats (the samples' count per region varies by
     # a few percent), with the samples' Voronoi cells by 2.6 (every 5 deg over -20..70 deg;
     # examples/bench_arc.py has the whole arc).
-    from scipy.optimize import minimize
-
     from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 
     s, G, C, turned_pose = mug_on_0000("000001")
     params = LikelihoodParams(beta=0.0, field_blur=0.0075, free_space_at="point",
                               free_space_tolerance=0.0035, free_space_ramp=0.0025)
-    scale = np.array([0.05, 0.05, 0.005, 0.005, 0.005])
     ranges = {}
     for weights in ("equal", "voronoi"):
         obj = object_from_points(s.model_points, FPFHBackbone(), voxel_size=s.scene.voxel_size,
                                  area_weights=weights)
-        body = obj.select(np.flatnonzero(obj.points[:, 0] < 0.045))
-        lik = PoseLikelihood(s.scene, s.classification, body, params=params)
-        best = [-minimize(lambda u, a=a, lik=lik: -float(lik(turned_pose(G, C, a, u * scale))), np.zeros(5),
-                          method="Powell", options={"xtol": 1e-2, "ftol": 1e-4, "maxfev": 400}).fun
-                for a in np.arange(-20.0, 71.0, 5.0)]
+        lik = PoseLikelihood(s.scene, s.classification, mug_body(obj), params=params)
+        best = [float(lik(refined_turn(lik, G, C, turned_pose, a))) for a in np.arange(-20.0, 71.0, 5.0)]
         ranges[weights] = float(np.ptp(best))
     assert ranges["voronoi"] < 4.5 < ranges["equal"], ranges
