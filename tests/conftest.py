@@ -115,3 +115,24 @@ def _object_cache_in_tmp(tmp_path_factory: pytest.TempPathFactory):
         os.environ.pop("CERTPOSE_CACHE_DIR", None)
     else:
         os.environ["CERTPOSE_CACHE_DIR"] = old
+
+
+def observed_plane(shape: tuple[int, int, int]):  # noqa: ANN201
+    """A hand-built scene for the blur tests: an observed plane (``k = 0``, 5-mm voxels) of one
+    descriptor ``[1, 0]`` and classifier positives (log 0.9) under free space; returns the
+    scene, its classification and a model of three points at one place with that descriptor."""
+    import math
+
+    from certpose.geometry.objects import ObjectModel
+    from certpose.model.classifier import ClassifierStatus, ObjectClassification
+    from certpose.model.grid import EMPTY, OCCUPIED
+    from certpose.model.scene import SceneField
+
+    state = np.full(shape, EMPTY, dtype=np.int8)
+    state[:, :, 0] = OCCUPIED
+    desc = np.zeros((*shape, 2))
+    desc[:, :, 0, 0] = 1.0
+    scene = SceneField(0.005, np.zeros(3), shape, desc, state)
+    cls = ObjectClassification(np.where(state == OCCUPIED, math.log(0.9), -5.0), state == OCCUPIED,
+                               -5.0, "t", ClassifierStatus.OK, "")
+    return scene, cls, ObjectModel(np.zeros((3, 3)), np.tile([1.0, 0.0], (3, 1)))

@@ -10,12 +10,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from certpose.geometry.objects import ObjectModel
-from certpose.model.classifier import ClassifierStatus, ObjectClassification
-from certpose.model.grid import EMPTY, OCCUPIED
+from certpose.model.grid import OCCUPIED
 from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 from certpose.model.scene import SceneField
 from solvers.lie import make_transform
-from tests.conftest import mug_body, mug_on_0000, refined_turn
+from tests.conftest import mug_body, mug_on_0000, observed_plane, refined_turn
 from tests.test_field_blur import _gauss, _spread, _world
 from tests.test_likelihood import _reference
 
@@ -85,15 +84,7 @@ def test_descriptor_blur_spreads_the_surface_similarity():
     # a point k voxels above it has the similarity beta * w[k] (the in-plane weights sum to 1),
     # summed over the heights it is the unblurred similarity, and deep free space still costs
     # exactly c_empty.
-    shape = (11, 11, 12)
-    state = np.full(shape, EMPTY, dtype=np.int8)
-    state[:, :, 0] = OCCUPIED
-    desc = np.zeros((*shape, 2))
-    desc[:, :, 0, 0] = 1.0
-    scene = SceneField(0.005, np.zeros(3), shape, desc, state)
-    cls = ObjectClassification(np.where(state == OCCUPIED, math.log(0.9), -5.0), state == OCCUPIED,
-                               -5.0, "t", ClassifierStatus.OK, "")
-    one = ObjectModel(np.zeros((3, 3)), np.tile([1.0, 0.0], (3, 1)))  # three points at one place
+    scene, cls, one = observed_plane((11, 11, 12))  # three points at one place
     other = ObjectModel(np.zeros((3, 3)), np.tile([0.0, 1.0], (3, 1)))  # an orthogonal descriptor
 
     def at(k: float, params: LikelihoodParams, obj: ObjectModel = one) -> float:

@@ -15,7 +15,7 @@ from certpose.model.grid import EMPTY, OCCUPIED, UNOBSERVED
 from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 from certpose.model.scene import SceneField
 from solvers.lie import make_transform
-from tests.conftest import mug_body, mug_on_0000, refined_turn
+from tests.conftest import mug_body, mug_on_0000, observed_plane, refined_turn
 from tests.test_likelihood import _reference
 
 
@@ -90,15 +90,7 @@ def test_field_blur_spreads_the_surface_evidence_and_keeps_deep_free_space():
     # An observed plane (k = 0) of positives under free space: a point one voxel above it earns
     # part of the surface's reward, one on it less than the full reward, and deep free space
     # (beyond the blur's reach) still costs exactly c_empty.
-    shape = (9, 9, 12)
-    state = np.full(shape, EMPTY, dtype=np.int8)
-    state[:, :, 0] = OCCUPIED
-    desc = np.zeros((*shape, 2))
-    desc[:, :, 0, 0] = 1.0
-    scene = SceneField(0.005, np.zeros(3), shape, desc, state)
-    cls = ObjectClassification(np.where(state == OCCUPIED, math.log(0.9), -5.0), state == OCCUPIED,
-                               -5.0, "t", ClassifierStatus.OK, "")
-    one = ObjectModel(np.zeros((3, 3)), np.tile([1.0, 0.0], (3, 1)))  # three points at one place
+    scene, cls, one = observed_plane((9, 9, 12))  # three points at one place
 
     def at(k: float, params: LikelihoodParams) -> float:
         T = make_transform(np.eye(3), np.array([4.5, 4.5, k + 0.5]) * scene.voxel_size)
