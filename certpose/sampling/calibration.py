@@ -43,6 +43,12 @@ out once. The truth lies inside the 90% / 50% regions in (target 0.80-1.00 / 0.3
 * per scene 0000 0.87 / 0.67, 0002 0.96 / 0.74, 0049 0.67 / 0.33, 0050 0.81 / 0.19
   (the folds fit 1.58-1.66 deg, 1.06-1.37 mm, t with 3 dof, basin temperature 50-100).
 
+With the Voronoi-area object models (the default since 2026-11-26; the figures above and the
+default constants below are the equal-area models'), ``--loso``: all 78 pairs 0.83 / 0.60;
+geometry-only 0.80 / 0.57, appearance 0.94 / 0.72; per scene 0000 1.00 / 0.87, 0002 0.89 / 0.81,
+0049 0.60 / 0.53, 0050 0.81 / 0.19 (the folds fit 1.67-2.00 deg, 1.12-1.37 mm, t with 3-5 dof,
+basin temperature 30-50).
+
 Two scenes against two (``--fit 0000,0002`` and the swap) give 0.53 / 0.08 on 0049+0050 and
 0.90 / 0.74 on 0000+0002: the scenes differ more than a fit on two of them can know. Right-basin
 offsets are larger in 0049/0050 (median translation 2.2 / 3.0 mm against 1.5 / 1.7 mm in
