@@ -356,8 +356,8 @@ def main() -> None:
     lparams = None
     if args.likelihood:
         fields = dict(item.split("=", 1) for item in args.likelihood)
-        lparams = LikelihoodParams(**{k: (v if k in ("free_space_from", "free_space") else float(v))
-                                      for k, v in fields.items()})
+        # Each value takes the type of the field's default (the string options stay strings).
+        lparams = LikelihoodParams(**{k: type(getattr(LikelihoodParams(), k))(v) for k, v in fields.items()})
         print(f"likelihood: {lparams}")
     seeds_run = args.seeds if args.seeds else [args.seed]
     use_ycbv = not args.no_ycbv and args.ycbv.is_dir()
