@@ -34,20 +34,19 @@ The truth's credible level under the result is exact up to Monte Carlo error
 were fitted: :func:`fit_calibration` (the model error's scales from the median offset of the
 truth from its nearest basin, then the basin temperature and ``dof`` on a grid by the training
 pairs' coverage) on the 78 frame-object pairs (60 geometry-only, 18 cross-scene appearance
-models) of the four shared YCB-Video scenes, eq. (1) with its default graded free space
-(``examples/bench_calibration.py --appearance --calibrated --fit 0000,0002,0049,0050``). The
-honest figure is held out: ``--loso`` fits on three scenes and scores the fourth, every pair held
-out once. The truth lies inside the 90% / 50% regions in (target 0.80-1.00 / 0.35-0.65):
+models) of the four shared YCB-Video scenes, eq. (1) with its default graded free space and the
+Voronoi-area object models (``examples/bench_calibration.py --appearance --calibrated --fit
+0000,0002,0049,0050``, 2026-11-26). The honest figure is held out: ``--loso`` fits on three
+scenes and scores the fourth, every pair held out once. The truth lies inside the 90% / 50%
+regions in (target 0.80-1.00 / 0.35-0.65):
 
-* all 78 pairs 0.85 / 0.50; geometry-only 0.82 / 0.45, appearance 0.94 / 0.67;
-* per scene 0000 0.87 / 0.67, 0002 0.96 / 0.74, 0049 0.67 / 0.33, 0050 0.81 / 0.19
-  (the folds fit 1.58-1.66 deg, 1.06-1.37 mm, t with 3 dof, basin temperature 50-100).
+* all 78 pairs 0.83 / 0.60; geometry-only 0.80 / 0.57, appearance 0.94 / 0.72;
+* per scene 0000 1.00 / 0.87, 0002 0.89 / 0.81, 0049 0.60 / 0.53, 0050 0.81 / 0.19
+  (the folds fit 1.67-2.00 deg, 1.12-1.37 mm, t with 3-5 dof, basin temperature 30-50).
 
-With the Voronoi-area object models (the default since 2026-11-26; the figures above and the
-default constants below are the equal-area models'), ``--loso``: all 78 pairs 0.83 / 0.60;
-geometry-only 0.80 / 0.57, appearance 0.94 / 0.72; per scene 0000 1.00 / 0.87, 0002 0.89 / 0.81,
-0049 0.60 / 0.53, 0050 0.81 / 0.19 (the folds fit 1.67-2.00 deg, 1.12-1.37 mm, t with 3-5 dof,
-basin temperature 30-50).
+With the equal-area object models of before (the default until 2026-11-26) the same held-out
+figures were 0.85 / 0.50 (geometry-only 0.82 / 0.45, appearance 0.94 / 0.67) and the defaults
+1.63 deg, 1.26 mm, basin temperature 100.
 
 Two scenes against two (``--fit 0000,0002`` and the swap) give 0.53 / 0.08 on 0049+0050 and
 0.90 / 0.74 on 0000+0002: the scenes differ more than a fit on two of them can know. Right-basin
@@ -98,12 +97,13 @@ class CalibrationParams:
     """Knobs of :func:`calibrated_distribution` (fitted: see the module docstring).
 
     Defaults: :func:`fit_calibration` on all 78 pairs of the four shared YCB-Video scenes, eq. (1)
-    with its graded free space (``examples/bench_calibration.py --appearance --calibrated --fit
-    0000,0002,0049,0050``): model error 1.63 deg and 1.26 mm per axis (from the median offset of
-    the truth from its basin over the 71 pairs whose basin was found; Student t with 3 dof),
-    basin temperature 100 nats (the lowest of the grid whose training coverage, 0.87 / 0.51
-    inside the 90% / 50% regions, is within 0.03 of the best). Held out, one scene at a time
-    (``--loso``): 0.85 / 0.50 over the 78 pairs; see the module docstring for the splits.
+    with its graded free space and Voronoi-area object models (``examples/bench_calibration.py
+    --appearance --calibrated --fit 0000,0002,0049,0050``, 2026-11-26): model error 1.65 deg and
+    1.26 mm per axis (from the median offset of the truth from its basin over the 74 pairs whose
+    basin was found; Student t with 3 dof), basin temperature 30 nats (the lowest of the grid
+    whose training fit is tied with the best; training coverage 0.88 / 0.50 inside the 90% / 50%
+    regions). Held out, one scene at a time (``--loso``): 0.83 / 0.60 over the 78 pairs; see the
+    module docstring for the splits.
 
     Attributes
     ----------
@@ -121,9 +121,9 @@ class CalibrationParams:
         Add the MLE's half turns about the model's principal axes as basins.
     """
 
-    rotation_sigma: float = math.radians(1.63)
+    rotation_sigma: float = math.radians(1.65)
     translation_sigma: float = 0.00126
-    basin_temperature: float = 100.0
+    basin_temperature: float = 30.0
     dof: float = 3.0
     flips: bool = True
 
