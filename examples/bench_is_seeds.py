@@ -4,7 +4,18 @@ For every seed and scene (the demo mug, and YCB-Video 0000 frames 1-5 with the m
 ground-truth mask classifier, as ``examples/bench_samplers.py``) the MLE runs with that seed and
 the sampler (``ISParams(resample=10_000)``, default temperature) with the same seed; nothing else
 runs (no baselines). ``--cache DIR`` keeps each (scene, seed)'s MLE seeds in ``DIR`` so that
-sampler variants are compared on the same seeds (the MLE is then not rerun).
+sampler variants are compared on the same seeds (the MLE is then not rerun). ``--likelihood``
+sets eq. (1)'s constants for the MLE and the target (as ``bench_samplers.py --likelihood``; its
+cached seeds are kept apart from the defaults').
+
+The arc's option set (``LikelihoodParams.field_blur``) as the target, with the Voronoi-area models
+(2026-11-26, seeds 0-4, frames 1-2): ESS >= 1000 in 8/10 (least 439, 0000/000002 seed 0, where the
+defaults give 2475) and the mug's axis within 5 deg / 1 cm 0.63-0.67 of the mass (defaults
+0.90-0.91); without its field blur 10/10 (least 1065) and 0.88-0.89; the blur alone (voxel-centre
+free space) 10/10 (least 1607) and 0.70-0.71::
+
+    python examples/bench_is_seeds.py --no-demo --frames 000001 000002 --likelihood \
+        free_space_at=point field_blur=0.0075 free_space_tolerance=0.0035 free_space_ramp=0.0025
 
 Printed per run: final ESS (Kish, of the 10,000 weighted draws), status, seconds of sampling,
 the arc figures of ``bench_samplers.free_arc_metrics`` (arc coverage, mass in the arc, mass in
@@ -15,6 +26,7 @@ usage::
     PYTHONPATH=. python examples/bench_is_seeds.py --seeds 0 1 2 3 4 [--no-ycbv] [--frames 000001]
                                                    [--cache /tmp/is_cache] [--json OUT]
                                                    [--param rounds=10 sweep_rounds=()]
+                                                   [--likelihood field_blur=0.0075 ...]
 """
 
 from __future__ import annotations
@@ -30,7 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
-def _demo(seed: int, cache: Path | None):  # noqa: ANN202
+def _demo(seed: int, cache: Path | None, lparams=None, tag: str = ""):  # noqa: ANN001, ANN202
     from bench_samplers import AXIS
 
     from certpose.data.synthetic import make_mug_scene
@@ -38,13 +50,17 @@ def _demo(seed: int, cache: Path | None):  # noqa: ANN202
     from certpose.geometry.features import FPFHBackbone
     from certpose.model.arc import free_space_arc
 
-    f = cache / f"demo_{seed}.npz" if cache else None
+    f = cache / f"demo_{seed}{tag}.npz" if cache else None
     if f is not None and f.exists():
+        from dataclasses import replace
+
         from certpose.geometry.objects import object_from_views
         from certpose.model.classifier import classify_from_mask
         from certpose.model.likelihood import PoseLikelihood
 
         params, bb, gen = PoseParams(), FPFHBackbone(), np.random.default_rng(seed)
+        if lparams is not None:
+            params = replace(params, likelihood=lparams)
         sc = make_mug_scene(rng=gen)
         scene = _scene_for(sc.frame, sc.object_mask, params, bb)
         obj = object_from_views(sc.render_object_views(4), bb, voxel_size=params.voxel_size, name="mug")
@@ -57,7 +73,7 @@ def _demo(seed: int, cache: Path | None):  # noqa: ANN202
 
         from certpose.sampling.sampler import seeds_from_mle
 
-        lik, mle, gt = build_demo(seed)
+        lik, mle, gt = build_demo(seed, lparams)
         seeds = seeds_from_mle(mle)
         if f is not None:
             np.savez(f, seeds=seeds)
@@ -67,16 +83,17 @@ def _demo(seed: int, cache: Path | None):  # noqa: ANN202
     return lik, seeds, gt, arc, np.zeros(3)
 
 
-def _ycbv(root: Path, frame: str, seed: int, cache: Path | None):  # noqa: ANN202
-    f = cache / f"ycbv_{frame}_{seed}.npz" if cache else None
+def _ycbv(root: Path, frame: str, seed: int, cache: Path | None, lparams=None,  # noqa: ANN001, ANN202
+          tag: str = ""):
+    f = cache / f"ycbv_{frame}_{seed}{tag}.npz" if cache else None
     if f is not None and f.exists():
         from bench_samplers import ycbv_mug
 
-        _, _, _, lik, T_gt, arc, centre, _, _ = ycbv_mug(root, frame)
+        _, _, _, lik, T_gt, arc, centre, _, _ = ycbv_mug(root, frame, lparams)
         return lik, np.load(f)["seeds"], T_gt, arc, centre
     from bench_samplers import ycbv_problem
 
-    lik, seeds, T_gt, arc, centre = ycbv_problem(root, frame, seed)
+    lik, seeds, T_gt, arc, centre = ycbv_problem(root, frame, seed, lparams)
     if f is not None:
         np.savez(f, seeds=seeds)
     return lik, seeds, T_gt, arc, centre
@@ -94,6 +111,9 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--param", nargs="+", default=[], metavar="NAME=VALUE",
                     help="ISParams fields other than the defaults (Python literals), e.g. rounds=10")
+    ap.add_argument("--likelihood", nargs="+", default=[], metavar="NAME=VALUE",
+                    help="LikelihoodParams fields other than the defaults (MLE and target), e.g. "
+                         "field_blur=0.0075 free_space_at=point")
     args = ap.parse_args()
     if args.cache is not None:
         args.cache.mkdir(parents=True, exist_ok=True)
@@ -108,6 +128,17 @@ def main() -> None:
                                           (item.split("=", 1) for item in args.param)})
     if args.param:
         print(f"sampler: {params}")
+    lparams, tag = None, ""
+    if args.likelihood:
+        import hashlib
+
+        from certpose.model.likelihood import LikelihoodParams
+
+        fields = dict(item.split("=", 1) for item in args.likelihood)
+        # Each value takes the type of the field's default (the string options stay strings).
+        lparams = LikelihoodParams(**{k: type(getattr(LikelihoodParams(), k))(v) for k, v in fields.items()})
+        tag = "_" + hashlib.sha1(repr(lparams).encode()).hexdigest()[:8]  # the cache's seeds per eq. (1)
+        print(f"likelihood: {lparams}")
 
     scenes = ([] if args.no_demo else ["demo"]) + ([] if args.no_ycbv else [f"0000/{f}" for f in args.frames])
     rows, warm = [], False
@@ -116,9 +147,10 @@ def main() -> None:
     for name in scenes:
         for seed in args.seeds:
             if name == "demo":
-                lik, seeds, gt, arc, centre = _demo(seed, args.cache)
+                lik, seeds, gt, arc, centre = _demo(seed, args.cache, lparams, tag)
             else:
-                lik, seeds, gt, arc, centre = _ycbv(args.ycbv, name.split("/")[1], seed, args.cache)
+                lik, seeds, gt, arc, centre = _ycbv(args.ycbv, name.split("/")[1], seed, args.cache,
+                                                    lparams, tag)
             if not warm:  # numba warm-up, not timed
                 sample_pose_distribution(lik, seeds, params=ISParams(draws=500, rounds=1), rng=0)
                 warm = True

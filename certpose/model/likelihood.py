@@ -179,7 +179,21 @@ class LikelihoodParams:
         46, flips 20 -> 24 -> 25 (the potted meat can twice, within 2.2 nats of its refined
         truth; the tuna can crossing 150 deg); the mug's rotation error on frames 1-4 9.5 /
         72.6 / 140.9 / 73.2 -> 59.9 / 46.9 / 20.2 / 22.4 deg with 7.5 mm. Eq. (1) takes about
-        5-9% longer (more cells need the 8-corner blend).
+        5-9% longer (more cells need the 8-corner blend). With the Voronoi-area models, the
+        arc's option set (7.5 mm with ``free_space_at="point"``, tolerance 3.5 mm, ramp 2.5 mm)
+        as the default was measured against today's defaults (2026-11-26, branch
+        ``defset17-default``) and not adopted: the poses hold (``ycbv_eval.py``, 60 pairs:
+        ADD-S <= 1 cm 60 -> 59, the wood block 0.91-1.02 cm where it was at most 0.68;
+        non-symmetric rotation <= 10 deg 21 -> 21, flips 18 -> 16, median rotation error
+        11.8 -> 15.5 deg; ``bench_basins.py`` 60/60; ``bench_box.py`` unchanged) and the arc's
+        mean ratio falls from inf (sampling seed 0: 1.35-6.27 on four frames, inf on the
+        fifth) to 0.67 / 0.55 / 0.46 over sampling seeds 0 / 1 / 2, but the importance sampler loses: ``examples/bench_is_seeds.py`` ESS >= 1000 in
+        28 of 30 runs (least 439, 0000/000002, where the defaults give 2475) and the mug's
+        axis within 5 deg / 1 cm of the truth's for 0.63-0.71 of the mass instead of about
+        0.90; it is the blur that moves the axis (the blur alone 0.70, the point ramp alone
+        0.88-0.89). A whole ``certpose pose`` call per frame took 27-32% longer (interleaved
+        with the defaults, ``examples/bench_pose_calls.py``: 27.4 / 27.7 against 21.6 / 21.0 s
+        a round; one call per pair median 2.24 / 2.29 against 2.12 / 1.90 s).
     descriptor_blur : float
         Metres (>= 0, default 0: off). Standard deviation of a Gaussian that spreads the fused
         scene descriptors ``f_v`` of the occupied voxels over their neighbours before the
