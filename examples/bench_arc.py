@@ -526,6 +526,8 @@ def main() -> None:
                     help="object_from_points' density with --sampling surface (per voxel_size**2)")
     ap.add_argument("--area-weights", choices=("equal", "voronoi"), default=None,
                     help="object_from_points' area_weights with --sampling surface (the default sampling)")
+    ap.add_argument("--revolution", choices=("auto",), default=None,
+                    help="object_from_points' revolution: the body sampled with its axial symmetry")
     ap.add_argument("--sampling-seed", type=int, default=None, metavar="S",
                     help="object_from_points' rng (the surface sampling's seed; default its default, 0)")
     ap.add_argument("--no-refine", action="store_true", help="raw poses (no 5-DOF refinement)")
@@ -552,7 +554,8 @@ def main() -> None:
     arc_options = {"free_space": args.arc_free_space, "window": args.arc_window,
                    "max_violations": args.arc_max_violations}
     sampling = {k: v for k, v in (("sampling", args.sampling), ("density", args.density),
-                                  ("area_weights", args.area_weights), ("rng", args.sampling_seed))
+                                  ("area_weights", args.area_weights), ("rng", args.sampling_seed),
+                                  ("revolution", args.revolution))
                 if v is not None}
     angles = np.arange(-180.0, 180.0 - 1e-9, args.step)
     print(f"load average {os.getloadavg()[0]:.2f}; stated arc {ARC} deg, guard {args.guard} deg, "

@@ -345,6 +345,30 @@ def sample_surface(
     return sp, sn, areas
 
 
+def _revolution_resample(
+    pts: NDArray[np.float64], p: NDArray[np.float64], normals: NDArray[np.float64], areas: NDArray[np.float64],
+    spacing: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """``object_from_points(revolution="auto")``: the samples on a surface of revolution of
+    ``pts`` replaced by turned copies of one wedge of them (unchanged when there is none)."""
+    from scipy.spatial import cKDTree
+
+    from certpose.geometry.revolution import find_revolution_axis, revolution_part, wedge_resample
+
+    gap = cKDTree(pts).query(pts, k=2)[0][:, 1]
+    tol = 2.5 * float(np.median(gap))
+    axis = find_revolution_axis(pts, tolerance=tol)
+    if axis is None:
+        return p, normals, areas
+    part = revolution_part(p, pts, axis, tolerance=tol)
+    if not part.any():
+        return p, normals, areas
+    rel = p[part] - axis.point
+    radius = float(np.linalg.norm(rel - np.outer(rel @ axis.direction, axis.direction), axis=1).max())
+    wedges = max(8, int(round(2 * math.pi * radius / (2 * spacing))))
+    return wedge_resample(p, normals, areas, part, axis, wedges=wedges)
+
+
 def object_from_points(
     points: ArrayLike,
     backbone: Any,
@@ -356,6 +380,7 @@ def object_from_points(
     density: float = 2.0,
     rng: np.random.Generator | int | None = 0,
     area_weights: str | None = None,
+    revolution: str | None = None,
 ) -> ObjectModel:
     """Build an object model from model points (e.g. YCB-Video's ``points.xyz``).
 
@@ -406,6 +431,15 @@ def object_from_points(
     area_weights : {"voronoi", "equal"} or None, optional
         With ``"surface"``: the area each sample stands for (:func:`sample_surface`; None:
         ``"voronoi"``). Not for ``"voxel"`` (its points weigh 1 each).
+    revolution : {"auto"} or None, optional
+        With ``"surface"``: ``"auto"`` looks for an axis of revolution of the points' surface
+        (:func:`certpose.geometry.revolution.find_revolution_axis`, tolerance 2.5 times the
+        input's median spacing) and samples the part of the surface it holds with its symmetry:
+        one wedge of the samples turned about the axis (:func:`~certpose.geometry.revolution.
+        wedge_resample`, wedges about two sample spacings wide at the part's largest radius),
+        so that eq. (1) hardly changes when the model turns about the axis (the module
+        docstring of :mod:`certpose.geometry.revolution` says why and what it measured).
+        Samples off that surface (a mug's handle) are kept. None (default): no change.
 
     Returns
     -------
@@ -419,11 +453,17 @@ def object_from_points(
         raise ValueError(f"`area_weights` must be 'equal' or 'voronoi', got {area_weights!r}.")
     if sampling == "voxel" and area_weights is not None:
         raise ValueError("`area_weights` applies to sampling='surface' (voxel points weigh 1 each).")
+    if revolution not in (None, "auto"):
+        raise ValueError(f"`revolution` must be 'auto' or None, got {revolution!r}.")
+    if sampling == "voxel" and revolution is not None:
+        raise ValueError("`revolution` applies to sampling='surface'.")
     pts = check_points(points, "points", min_points=3)
     vs = _check_voxel_size(voxel_size)
     if sampling == "surface":
         p, normals, areas = sample_surface(pts, voxel_size=vs, density=density, rng=rng,
                                            area_weights=area_weights or "voronoi")
+        if revolution == "auto":
+            p, normals, areas = _revolution_resample(pts, p, normals, areas, vs / math.sqrt(float(density)))
         cols = None
         if colors is not None:
             from scipy.spatial import cKDTree

@@ -34,7 +34,8 @@ log = logging.getLogger(__name__)
 #: Bumped when the file layout changes.
 _FORMAT = "certpose-object-cache-1"
 # Modules whose code decides the built model.
-_SOURCES = ("certpose.geometry.objects", "certpose.geometry.features", "certpose.geometry.rgbd")
+_SOURCES = ("certpose.geometry.objects", "certpose.geometry.features", "certpose.geometry.rgbd",
+            "certpose.geometry.revolution")
 
 
 def default_cache_dir() -> Path | None:

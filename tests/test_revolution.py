@@ -1,0 +1,190 @@
+"""Surfaces of revolution: the axis found, the part marked, the wedge sampling's symmetry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from certpose.geometry.revolution import (
+    RevolutionAxis,
+    find_revolution_axis,
+    revolution_part,
+    wedge_resample,
+)
+
+R_TRUE = Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix()
+C_TRUE = np.array([0.012, -0.007, 0.02])
+
+
+def _cup(n: int, rng: np.random.Generator, handle: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Random points on a closed cylinder (radius 40 mm, height 80 mm) with a handle (a half
+    torus at +x), posed by (R_TRUE, C_TRUE); and which of them are on the handle."""
+    r, h = 0.04, 0.08
+    areas = np.array([2 * np.pi * r * h, np.pi * r**2, np.pi * r**2])
+    kind = rng.choice(3, size=n, p=areas / areas.sum())
+    phi = rng.uniform(0, 2 * np.pi, n)
+    z = np.where(kind == 0, rng.uniform(-h / 2, h / 2, n), np.where(kind == 1, -h / 2, h / 2))
+    rad = np.where(kind == 0, r, r * np.sqrt(rng.uniform(0, 1, n)))
+    pts = np.c_[rad * np.cos(phi), rad * np.sin(phi), z]
+    on_handle = np.zeros(n, dtype=bool)
+    if handle:
+        m = n // 8
+        u = rng.uniform(-np.pi / 2, np.pi / 2, m)  # along the half ring
+        v = rng.uniform(0, 2 * np.pi, m)  # around the tube
+        ring = 0.025 + 0.006 * np.cos(v)
+        hp = np.c_[r + ring * np.cos(u), 0.006 * np.sin(v), ring * np.sin(u)]
+        pts = np.vstack([pts, hp])
+        on_handle = np.r_[on_handle, np.ones(m, dtype=bool)]
+    return pts @ R_TRUE.T + C_TRUE, on_handle
+
+
+def _tolerance(pts: np.ndarray) -> float:
+    return 2.5 * float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
+
+
+def test_finds_the_axis_of_a_cup_with_a_handle():
+    pts, _ = _cup(6000, np.random.default_rng(0))
+    ax = find_revolution_axis(pts, tolerance=_tolerance(pts))
+    assert ax is not None
+    d_true = R_TRUE[:, 2]
+    assert np.degrees(np.arccos(min(1.0, abs(ax.direction @ d_true)))) < 1.0
+    # The axis passes within 1 mm of the cylinder's centre.
+    off = (C_TRUE - ax.point) - ((C_TRUE - ax.point) @ ax.direction) * ax.direction
+    assert np.linalg.norm(off) < 1e-3
+    assert 0.6 < ax.fraction < 0.98  # the handle is not on it
+
+
+def test_no_axis_for_a_box():
+    rng = np.random.default_rng(1)
+    side = rng.integers(0, 6, 5000)
+    u = rng.uniform(-1, 1, (5000, 2))
+    pts = np.zeros((5000, 3))
+    for s in range(6):
+        k = side == s
+        ax = s // 2
+        others = [i for i in range(3) if i != ax]
+        pts[k, ax] = 1.0 if s % 2 else -1.0
+        pts[np.ix_(k, others)] = u[k]
+    pts *= np.array([0.08, 0.05, 0.02])
+    assert find_revolution_axis(pts, tolerance=_tolerance(pts)) is None
+
+
+def test_revolution_part_leaves_out_the_handle():
+    pts, on_handle = _cup(6000, np.random.default_rng(2))
+    tol = _tolerance(pts)
+    ax = find_revolution_axis(pts, tolerance=tol)
+    part = revolution_part(pts, pts, ax, tolerance=tol)
+    assert np.mean(part[on_handle]) < 0.1  # the roots touch the body (within the tolerance)
+    assert np.mean(part[~on_handle]) > 0.8
+
+
+def _turned_sums(samples: np.ndarray, areas: np.ndarray, ax: RevolutionAxis, angles: np.ndarray) -> np.ndarray:
+    # A smooth field fixed in space (bumps of 6 mm), summed over the turned samples by area.
+    bumps = np.random.default_rng(5).uniform(-0.05, 0.05, (40, 3)) + C_TRUE
+    out = []
+    for a in angles:
+        R, t = ax.rotation(a)
+        q = samples @ R.T + t
+        d2 = ((q[:, None, :] - bumps[None]) ** 2).sum(-1)
+        out.append(float(areas @ np.exp(-d2 / (2 * 0.006**2)).sum(1)))
+    return np.array(out)
+
+
+def test_wedge_sampling_is_symmetric_and_turn_invariant():
+    rng = np.random.default_rng(3)
+    pts, on_handle = _cup(3000, rng, handle=False)
+    normals = np.zeros_like(pts)
+    normals[:, 0] = 1.0
+    areas = rng.uniform(0.8, 1.2, len(pts)) * 1e-5
+    ax = RevolutionAxis(C_TRUE, R_TRUE[:, 2], 1.0)
+    part = np.ones(len(pts), dtype=bool)
+    K = 30
+    s, n, a = wedge_resample(pts, normals, areas, part, ax, wedges=K)
+    assert a.sum() == pytest.approx(areas.sum(), rel=1e-12)
+    assert abs(len(s) - len(pts)) < 0.1 * len(pts)
+    # Invariant under a turn by 2 pi / K: every turned sample lands on a sample.
+    R, t = ax.rotation(2 * np.pi / K)
+    assert cKDTree(s).query(s @ R.T + t)[0].max() < 1e-9
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0)
+    # The point of it: a smooth field's area-weighted sum hardly moves when the samples turn.
+    angles = np.radians(np.arange(0, 360, 7.0))
+    before = np.ptp(_turned_sums(pts, areas, ax, angles))
+    after = np.ptp(_turned_sums(s, a, ax, angles))
+    assert after < 0.2 * before, (before, after)
+
+
+def test_wedge_resample_keeps_the_samples_off_the_part():
+    rng = np.random.default_rng(4)
+    pts, on_handle = _cup(3000, rng)
+    normals = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    areas = np.full(len(pts), 1e-5)
+    ax = RevolutionAxis(C_TRUE, R_TRUE[:, 2], 1.0)
+    s, _, a = wedge_resample(pts, normals, areas, ~on_handle, ax, wedges=24)
+    np.testing.assert_array_equal(s[: on_handle.sum()], pts[on_handle])
+    assert a.sum() == pytest.approx(areas.sum())
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(wedges=1), "wedges"),
+    (dict(wedges=2.5), "wedges"),
+    (dict(areas=np.ones(3)), "areas"),
+])
+def test_wedge_resample_validation(kw, match):
+    pts = np.random.default_rng(0).normal(size=(10, 3))
+    args = dict(samples=pts, normals=pts, areas=np.ones(10), part=np.ones(10, dtype=bool),
+                axis=RevolutionAxis(np.zeros(3), np.array([0.0, 0.0, 1.0]), 1.0), wedges=8)
+    args.update(kw)
+    with pytest.raises(ValueError, match=match):
+        wedge_resample(**args)
+
+
+def test_find_axis_validation():
+    pts = np.random.default_rng(0).normal(size=(50, 3))
+    with pytest.raises(ValueError, match="tolerance"):
+        find_revolution_axis(pts, tolerance=0.0)
+    with pytest.raises(ValueError, match="min_fraction"):
+        find_revolution_axis(pts, tolerance=0.1, min_fraction=0.0)
+    with pytest.raises(ValueError, match="points"):
+        find_revolution_axis(np.full((50, 3), np.nan), tolerance=0.1)
+
+
+@pytest.mark.slow
+def test_object_from_points_revolution_on_the_ycbv_mug():
+    from certpose.geometry.features import FPFHBackbone
+    from certpose.geometry.objects import object_from_points
+    from certpose.io.ycbv import load_model_points
+    from tests.conftest import require_data
+
+    pts = load_model_points(require_data("ycbv", "models", "025_mug", "points.xyz"))
+    plain = object_from_points(pts, FPFHBackbone(), voxel_size=0.005)
+    sym = object_from_points(pts, FPFHBackbone(), voxel_size=0.005, revolution="auto")
+    assert sym.areas.sum() == pytest.approx(plain.areas.sum(), rel=1e-9)
+    assert abs(len(sym) - len(plain)) < 0.05 * len(plain)
+    tol = _tolerance(pts)
+    ax = find_revolution_axis(pts, tolerance=tol)
+    # The mug's axis is its model z axis, through its body's centre (3-4 mm off the origin).
+    assert abs(ax.direction[2]) > np.cos(np.radians(1.0))
+    assert np.linalg.norm(ax.point[:2] - [-0.0033, 0.0007]) < 1e-3
+    # The handle's samples are kept as they were; the rest is symmetric under a turn of one wedge.
+    kept = ~revolution_part(plain.points, pts, ax, tolerance=tol)
+    assert 50 < kept.sum() < 0.2 * len(plain)
+    assert cKDTree(sym.points).query(plain.points[kept])[0].max() < 1e-9
+    body = revolution_part(sym.points, pts, ax, tolerance=tol) & (cKDTree(plain.points[kept]).query(sym.points)[0] > 0)
+    assert body.sum() > 0.7 * len(plain)
+    # The body's samples are K turned copies of one wedge, for some K.
+    turned = [cKDTree(sym.points).query(sym.points[body] @ R.T + t)[0]
+              for R, t in [ax.rotation(2 * np.pi / k) for k in range(8, 80)]]
+    assert min(np.median(d) for d in turned) < 1e-9
+
+
+@pytest.mark.parametrize("kw, match", [(dict(revolution="yes"), "revolution"),
+                                       (dict(revolution="auto", sampling="voxel"), "revolution")])
+def test_object_from_points_revolution_validation(kw, match):
+    from certpose.geometry.features import FPFHBackbone
+    from certpose.geometry.objects import object_from_points
+
+    pts, _ = _cup(500, np.random.default_rng(0))
+    with pytest.raises(ValueError, match=match):
+        object_from_points(pts, FPFHBackbone(), voxel_size=0.005, **kw)
