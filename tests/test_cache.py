@@ -58,3 +58,18 @@ def test_default_cache_dir(monkeypatch, tmp_path) -> None:
     monkeypatch.delenv("CERTPOSE_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     assert default_cache_dir() == tmp_path / "certpose"
+
+
+def test_cached_revolution_model_has_its_own_key(tmp_path) -> None:
+    from tests.test_revolution import _cup
+
+    pts, _ = _cup(4000, np.random.default_rng(2))
+    plain = object_from_points_cached(pts, FPFHBackbone(), voxel_size=0.005, cache_dir=tmp_path)
+    sym = object_from_points_cached(pts, FPFHBackbone(), voxel_size=0.005, cache_dir=tmp_path,
+                                    revolution="auto")
+    assert len(list((tmp_path / "objects").glob("*.npz"))) == 2
+    _same(sym, object_from_points(pts, FPFHBackbone(), voxel_size=0.005, revolution="auto"))
+    _same(object_from_points_cached(pts, FPFHBackbone(), voxel_size=0.005, cache_dir=tmp_path,
+                                    revolution="auto"), sym)
+    assert not np.array_equal(plain.points, sym.points)
+    assert _key(pts, FPFHBackbone(), 0.005, "", 0) != _key(pts, FPFHBackbone(), 0.005, "", 0, "auto")

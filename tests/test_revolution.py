@@ -210,3 +210,32 @@ def test_revolution_flattens_the_mug_body_along_its_hidden_handle_arc():
         ranges[rev] = float(np.ptp(best))
     # Measured: 14.5 -> 4.0 nats (every 10 deg over -20..70 deg).
     assert ranges["auto"] < 0.6 * ranges[None], ranges
+
+
+@pytest.mark.slow
+def test_cli_pose_with_revolution(tmp_path, capsys):
+    # The option end to end on the mug: the model's body sampled with its symmetry, the pose
+    # still on the mug (its rotation about the axis is what the option lets go).
+    from certpose.cli import main
+    from certpose.io.ycbv import load_ycbv_frame
+    from tests.conftest import require_data, strict_json
+
+    root = require_data("ycbv")
+    out = tmp_path / "pose.json"
+    code = main(["pose", "--ycbv", str(root), "--frame", "0000/000001", "--object", "025_mug",
+                 "--revolution", "--no-certify", "--json", str(out)])
+    assert code == 0, capsys.readouterr().err
+    T = np.asarray(strict_json(out.read_text())["T_camera_object"])
+    G = load_ycbv_frame(root, "0000/000001").poses["025_mug"]
+    # The body's centre (on the axis, 3 mm off the model origin) within 1 cm, the axis within 5 deg.
+    c = np.array([-0.0033, 0.0007, 0.0])
+    assert np.linalg.norm((T[:3, :3] @ c + T[:3, 3]) - (G[:3, :3] @ c + G[:3, 3])) < 0.01
+    assert np.degrees(np.arccos(np.clip(T[:3, 2] @ G[:3, 2], -1, 1))) < 5.0
+
+
+@pytest.mark.parametrize("extra", [["--demo"], ["--ycbv", ".", "--object-model", "m.npz"]])
+def test_cli_revolution_refuses_models_from_views(extra, capsys):
+    from certpose.cli import main
+
+    assert main(["pose", *extra, "--revolution"]) == 2
+    assert "--revolution" in capsys.readouterr().err

@@ -80,6 +80,10 @@ def add_parser(subparsers: Any) -> None:
                    help="where eq. (1) reads observed free space: the scene grid's EMPTY voxels or "
                         "each pixel of the depth image (LikelihoodParams.free_space; default: "
                         "the library's)")
+    p.add_argument("--revolution", action="store_true",
+                   help="geometry-only model: sample a surface of revolution (a can, a mug's body) "
+                        "with its symmetry, so that eq. (1) is flat along a turn about its axis "
+                        "(object_from_points revolution='auto'; not the default, see README)")
     p.add_argument("--no-certify", action="store_true", help="skip the eq. (2) certificate")
     p.add_argument("--require-certificate", action="store_true",
                    help="exit with code 1 unless the eq. (2) solution is certified")
@@ -167,7 +171,10 @@ def run(args: argparse.Namespace) -> int:
         raise CLIError("--classifier best-buddies needs --ycbv (the demo has no 2-D box)")
     if args.box_margin is not None and not (math.isfinite(args.box_margin) and args.box_margin >= 0):
         raise CLIError(f"--box-margin must be >= 0 pixels, got {args.box_margin}")
-    params = PoseParams(voxel_size=args.voxel_size)
+    if args.revolution and (args.demo or args.object_model is not None):
+        raise CLIError("--revolution applies to geometry-only models from model points "
+                       "(not --demo or --object-model)")
+    params = PoseParams(voxel_size=args.voxel_size, model_revolution=args.revolution)
     if args.box_margin is not None:
         params = replace(params, classifier=replace(params.classifier, box_margin=args.box_margin))
     if args.free_space is not None:

@@ -95,6 +95,11 @@ class PoseParams:
         default rule) with the evaluation budget the importance sampler would use
         (``draws + (rounds - 1) * pilot draws``); DE searches around the MLE with the seeds
         suggested first, the MCMC chains start at the seeds.
+    model_revolution : bool
+        Geometry-only models built from model points (:func:`run_ycbv`, :func:`ycbv_setup`):
+        sample a surface of revolution with its symmetry
+        (:func:`~certpose.geometry.objects.object_from_points` ``revolution="auto"``: eq. (1)
+        flat along a mug's hidden-handle arc; not the default, README).
     """
 
     voxel_size: float = 0.005
@@ -104,6 +109,7 @@ class PoseParams:
     roi_margin: float | None = 0.1
     sampler: Any = None
     sampling_method: str = "is"
+    model_revolution: bool = False
 
     def __post_init__(self) -> None:
         if self.sampling_method not in ("is", "de", "mcmc", "calibrated"):
@@ -391,7 +397,8 @@ def ycbv_setup(root: str | Path, frame: str, object_name: str, *,
     mask = yf.object_mask(object_name)
     points = load_model_points(root / "models" / object_name / "points.xyz")
     scene = _scene_for(yf.frame, mask, params, backbone)
-    obj = object_from_points(points, backbone, voxel_size=params.voxel_size, name=object_name)
+    obj = object_from_points(points, backbone, voxel_size=params.voxel_size, name=object_name,
+                             revolution="auto" if params.model_revolution else None)
     cls = classify_from_mask(scene, yf.frame.with_mask(mask), params=params.classifier)
     return YCBVSetup(yf, mask, points, scene, obj, cls)
 
@@ -758,7 +765,8 @@ def run_ycbv(
         obj = object_model.model
     else:
         obj = object_from_points_cached(model_points, backbone, voxel_size=params.voxel_size,
-                                        name=object_name, cache_dir=cache_dir)
+                                        name=object_name, cache_dir=cache_dir,
+                                        revolution="auto" if params.model_revolution else None)
     t_obj = time.perf_counter() - t
     result = estimate_pose(
         scene, obj, classifier=classifier,

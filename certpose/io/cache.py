@@ -66,7 +66,8 @@ def _source_digest() -> bytes:
     return h.digest()
 
 
-def _key(points: np.ndarray, backbone: Any, voxel_size: float, name: str, rng: int) -> str:
+def _key(points: np.ndarray, backbone: Any, voxel_size: float, name: str, rng: int,
+         revolution: str | None = None) -> str:
     h = hashlib.sha256()
     h.update(_FORMAT.encode())
     h.update(_source_digest())
@@ -75,6 +76,8 @@ def _key(points: np.ndarray, backbone: Any, voxel_size: float, name: str, rng: i
     # Frozen dataclasses: the repr holds every parameter.
     h.update(f"{type(backbone).__module__}.{type(backbone).__qualname__}|{backbone!r}".encode())
     h.update(f"|{float(voxel_size)!r}|{name}|{int(rng)}".encode())
+    if revolution is not None:  # absent from the keys of the models built before the option
+        h.update(f"|revolution={revolution}".encode())
     return h.hexdigest()[:32]
 
 
@@ -119,6 +122,7 @@ def object_from_points_cached(
     name: str = "",
     rng: int = 0,
     cache_dir: str | os.PathLike[str] | None = None,
+    revolution: str | None = None,
 ) -> ObjectModel:
     """:func:`~certpose.geometry.objects.object_from_points` (surface sampling), read from
     ``cache_dir`` when built there before with the same inputs and code.
@@ -137,6 +141,8 @@ def object_from_points_cached(
         Seed of the surface sampling (an int: a generator would make the build irreproducible).
     cache_dir : path, optional
         Where models are kept; ``None`` builds without caching.
+    revolution : {"auto"} or None, optional
+        :func:`~certpose.geometry.objects.object_from_points`' option (part of the key).
 
     Returns
     -------
@@ -151,7 +157,7 @@ def object_from_points_cached(
     path = None
     if cache_dir is not None:
         try:
-            key = _key(pts, backbone, voxel_size, name, int(rng))
+            key = _key(pts, backbone, voxel_size, name, int(rng), revolution)
             path = Path(cache_dir) / "objects" / f"{key}.npz"
         except OSError as exc:
             log.debug("object cache off: %s", exc)
@@ -160,7 +166,8 @@ def object_from_points_cached(
         if model is not None:
             log.info("object model %r read from the cache (%s)", name, path)
             return model
-    model = object_from_points(pts, backbone, voxel_size=voxel_size, name=name, rng=int(rng))
+    model = object_from_points(pts, backbone, voxel_size=voxel_size, name=name, rng=int(rng),
+                               revolution=revolution)
     if path is not None:
         _write(path, model)
     return model
