@@ -111,7 +111,8 @@ def demo_problem(seed: int, lparams=None):  # noqa: ANN001, ANN201
 PIXEL_ARC = {"free_space": "pixels", "window": 15, "tolerance": 0.01, "max_violations": 10}
 
 
-def ycbv_mug(root: Path, frame: str, lparams=None, arc_test: str = "voxels"):  # noqa: ANN001, ANN201
+def ycbv_mug(root: Path, frame: str, lparams=None, arc_test: str = "voxels",  # noqa: ANN001, ANN201
+             revolution: str | None = None):
     """Scene 0000's mug without the MLE: scene, classification (ground-truth mask), object model,
     likelihood, ground truth (scene frame), the free-space arc about the body's axis, the axis's
     centre (object frame) and the parameters."""
@@ -131,7 +132,7 @@ def ycbv_mug(root: Path, frame: str, lparams=None, arc_test: str = "voxels"):  #
     if lparams is not None:
         params = replace(params, likelihood=lparams)
     pts = load_model_points(root / "models" / "025_mug" / "points.xyz")
-    obj = object_from_points(pts, bb, voxel_size=params.voxel_size, name="025_mug")
+    obj = object_from_points(pts, bb, voxel_size=params.voxel_size, name="025_mug", revolution=revolution)
     yf = load_ycbv_frame(root, f"0000/{frame}")
     mask = yf.object_mask("025_mug")
     scene = build_scene_field(yf.frame, bb, voxel_size=params.voxel_size, roi_mask=mask,
@@ -144,13 +145,14 @@ def ycbv_mug(root: Path, frame: str, lparams=None, arc_test: str = "voxels"):  #
     return scene, cls, obj, lik, T_gt, arc, centre, yf.frame.T_world_camera, params
 
 
-def ycbv_problem(root: Path, frame: str, seed: int, lparams=None, arc_test: str = "voxels"):  # noqa: ANN001, ANN201
+def ycbv_problem(root: Path, frame: str, seed: int, lparams=None, arc_test: str = "voxels",  # noqa: ANN001, ANN201
+                 revolution: str | None = None):
     """Scene 0000's mug: likelihood (ground-truth mask classifier), seeds, ground truth (scene
     frame), the free-space arc about the body's axis and the axis's centre (object frame)."""
     from certpose.estimation.mle import estimate_mle
     from certpose.sampling.sampler import seeds_from_mle
 
-    scene, cls, obj, lik, T_gt, arc, centre, T_wc, params = ycbv_mug(root, frame, lparams, arc_test)
+    scene, cls, obj, lik, T_gt, arc, centre, T_wc, params = ycbv_mug(root, frame, lparams, arc_test, revolution)
     mle = estimate_mle(scene, cls, obj, params=params.mle, likelihood_params=params.likelihood,
                        viewpoint=T_wc[:3, 3], rng=seed)
     return lik, seeds_from_mle(mle), T_gt, arc, centre
@@ -338,6 +340,9 @@ def main() -> None:
     ap.add_argument("--likelihood", nargs="+", default=[], metavar="NAME=VALUE",
                     help="LikelihoodParams fields other than the defaults (MLE and target), e.g. "
                          "free_space_tolerance=0.0075 free_space_from=boundary")
+    ap.add_argument("--revolution", choices=("auto",), default=None,
+                    help="YCB-Video mug: object_from_points' revolution (the body sampled with its "
+                         "axial symmetry; the MLE and the target)")
     ap.add_argument("--arc-test", choices=("voxels", "pixels"), default="voxels",
                     help="the free-space arc's test: EMPTY voxels (default) or the per-pixel depth "
                          "test (window 15 px, tolerance 1 cm, at most 10 points beyond it)")
@@ -377,7 +382,8 @@ def main() -> None:
                           check_kde=args.kde_check, temperature_scale=args.temperature_scale)
         if use_ycbv:
             for frame in args.frames:
-                lik, seeds, gt, arc, centre = ycbv_problem(args.ycbv, frame, seed, lparams, args.arc_test)
+                lik, seeds, gt, arc, centre = ycbv_problem(args.ycbv, frame, seed, lparams, args.arc_test,
+                                                              args.revolution)
                 rows += run_scene(f"0000/{frame}", lik, seeds, gt, arc, centre, seed,
                                   check_kde=args.kde_check, up=support_normal(args.ycbv, frame),
                                   temperature_scale=args.temperature_scale)
