@@ -47,6 +47,12 @@ Reported per scene and method:
   0.84-0.95, ``cov U`` 0.82-0.87; ``--temperature-scale 0.5``: 0.95-0.99, 0.79-0.98 but ``cov U``
   0.51-0.71; 0.25: 0.99-1.00, 0.72-1.00, ``cov U`` 0.23-0.39. Sharper targets uncover eq. (1)'s
   unevenness along the arc (issue 10 item 5).
+  With the mug's body sampled with its axial symmetry (``--revolution auto``, 2026-11-26, seed
+  0): at the default rule ``cov U`` 0.90-0.98, ``in U`` 0.90-0.95, ``axis ok`` (truth) 0.78-0.91,
+  the true arc holding 0.60-0.66 (more in the other free runs); at ``--temperature-scale 0.5``
+  ``in U`` 0.95-0.99 and ``axis ok`` 0.90-0.99 (table 0.94-0.99) but ``cov U`` 0.79-0.87 (the run
+  behind the foam brick, where the handle's points fall in the brick's own surface voxels, is
+  not covered evenly): still no verdict.
 * ``cov|arc``: ``arc cov`` of the distribution conditioned on the arc (a bin counts when it
   holds a quarter of a uniform share of the mass *in the arc*): whether the mass that is in the
   arc spreads over all of it, whatever share the scene's other free runs take.
