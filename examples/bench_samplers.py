@@ -50,9 +50,8 @@ Reported per scene and method:
   With the mug's body sampled with its axial symmetry (``--revolution auto``, 2026-11-26, seed
   0): at the default rule ``cov U`` 0.90-0.98, ``in U`` 0.90-0.95, ``axis ok`` (truth) 0.78-0.91,
   the true arc holding 0.60-0.66 (more in the other free runs); at ``--temperature-scale 0.5``
-  ``in U`` 0.95-0.99 and ``axis ok`` 0.90-0.99 (table 0.94-0.99) but ``cov U`` 0.79-0.87 (the run
-  behind the foam brick, where the handle's points fall in the brick's own surface voxels, is
-  not covered evenly): still no verdict.
+  ``in U`` 0.95-0.99 and ``axis ok`` 0.90-0.99 (table 0.94-0.99) but ``cov U`` 0.79-0.87 (some bins
+  of the other free runs hold less than a quarter of a uniform share): still no verdict.
 * ``cov|arc``: ``arc cov`` of the distribution conditioned on the arc (a bin counts when it
   holds a quarter of a uniform share of the mass *in the arc*): whether the mass that is in the
   arc spreads over all of it, whatever share the scene's other free runs take.
