@@ -23,7 +23,10 @@ Reported per scene and method:
   candidate, several times an evaluation of eq. (1)).
 * ``arc cov``: the fraction of the reference arc of rotations about the mug's axis (relative
   to the ground truth) that gets mass: the arc is cut in 5 deg bins and a bin counts when it
-  holds at least a quarter of a uniform share of the mass (0.25 / bins). The reference arc is
+  holds at least a quarter of the mass a uniform distribution over the arc would put in it (a
+  bin the arc covers for 1 deg of its 5 is asked for a fifth of a full bin's share; until
+  2026-11-26 every bin was asked for a full bin's, which a uniform distribution fails at ends
+  that cover under 1.25 deg of their bin). The reference arc is
   issue 11's: the arc of angles about the mug's axis through the ground truth on which no
   model point stands in observed free space (:func:`certpose.model.arc.free_space_arc`, brute
   force on a 0.5 deg grid with its default one-voxel tolerance, independent of eq. (1) and of
@@ -208,14 +211,21 @@ def slice_arc(lik, T_gt: np.ndarray, temperature: float) -> np.ndarray:  # noqa:
 
 def arc_metrics(dist, T_gt: np.ndarray, arc_deg: np.ndarray,  # noqa: ANN001
                 conditional: bool = False) -> tuple[float, float]:
-    """(fraction of the arc's 5 deg bins with >= 0.25 / bins of the mass, mass in those bins);
-    ``conditional``: of the mass in those bins (the distribution conditioned on the arc)."""
+    """(fraction of the arc's 5 deg bins holding at least a quarter of the mass a uniform
+    distribution over the arc puts in them, mass in those bins); ``conditional``: of the mass in
+    those bins (the distribution conditioned on the arc).
+
+    ``arc_deg`` is the arc as a grid of angles (deg, 1 deg apart): a bin's uniform share is its
+    count of grid angles over their total, so a bin the arc only touches (an end 1 deg into it)
+    is asked for a fifth of a full bin's share; a uniform distribution over the arc scores 1.
+    """
     from certpose.sampling.plots import axis_angles
 
     a = np.degrees(axis_angles(dist.rotations, AXIS, T_gt))
-    bins = np.unique(np.floor(arc_deg / 5.0))  # 5 deg bins [5 b, 5 b + 5) holding arc angles
+    arc_bins = np.floor(np.asarray(arc_deg, dtype=np.float64) / 5.0)  # bins [5 b, 5 b + 5)
+    bins, counts = np.unique(arc_bins, return_counts=True)
     mass = np.array([dist.weights[np.floor(a / 5.0) == b].sum() for b in bins])
-    share = 0.25 / len(bins) * (mass.sum() if conditional else 1.0)
+    share = 0.25 * counts / counts.sum() * (mass.sum() if conditional else 1.0)
     return float(np.mean((mass >= share) & (mass > 0))), float(mass.sum())
 
 

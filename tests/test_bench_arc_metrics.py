@@ -1,0 +1,63 @@
+"""The arc-coverage reading of examples/bench_samplers.py (issue 11's right-ambiguity figures)."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from certpose.sampling.distribution import PoseDistribution
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+from bench_samplers import AXIS, arc_metrics  # noqa: E402
+
+T_REF = np.eye(4)
+T_REF[:3, :3] = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+T_REF[:3, 3] = [0.1, -0.05, 0.8]
+
+
+def _about_axis(angles_deg: np.ndarray, weights: np.ndarray | None = None) -> PoseDistribution:
+    R = T_REF[:3, :3] @ Rotation.from_rotvec(np.radians(angles_deg)[:, None] * AXIS).as_matrix()
+    w = np.full(len(angles_deg), 1.0 / len(angles_deg)) if weights is None else weights / weights.sum()
+    return PoseDistribution(rotations=R, translations=np.tile(T_REF[:3, 3], (len(angles_deg), 1)), weights=w)
+
+
+# An arc like scene 0000's (-26..80.5 deg): its low end covers 1 deg of the bin [-30, -25).
+LO, HI = -26.0, 80.5
+GRID = np.arange(np.ceil(LO), np.floor(HI) + 1e-9, 1.0)
+
+
+def test_uniform_distribution_over_the_arc_covers_it_all():
+    d = _about_axis(np.linspace(LO, HI, 20_001))
+    cov, mass = arc_metrics(d, T_REF, GRID)
+    assert cov == 1.0
+    assert mass == pytest.approx(1.0, abs=2e-3)
+    # The rule before 2026-11-26 asked every bin for a full bin's share (0.25 / bins): this
+    # uniform distribution holds 1 / 106.5 of its mass in the end bin, under that share.
+    bins = np.unique(np.floor(GRID / 5.0))
+    a = np.linspace(LO, HI, 20_001)
+    end_mass = d.weights[np.floor(a / 5.0) == np.floor(LO / 5.0)].sum()
+    assert 0 < end_mass < 0.25 / len(bins)
+
+
+def test_an_empty_or_thin_bin_is_not_covered():
+    a = np.linspace(LO, HI, 20_001)
+    gap = (a >= 30.0) & (a < 35.0)
+    cov, _ = arc_metrics(_about_axis(a[~gap]), T_REF, GRID)
+    assert cov == pytest.approx(1.0 - 1.0 / len(np.unique(np.floor(GRID / 5.0))))
+    # A full bin holding a fifth of its uniform share (under the quarter asked) fails; a third passes.
+    for factor, expected in ((0.2, False), (1.0 / 3.0, True)):
+        w = np.where(gap, factor, 1.0)
+        cov, _ = arc_metrics(_about_axis(a, w), T_REF, GRID)
+        assert (cov == 1.0) is expected, (factor, cov)
+
+
+def test_conditional_coverage_ignores_mass_outside_the_arc():
+    inside = np.linspace(LO, HI, 10_001)
+    outside = np.linspace(120.0, 160.0, 90_001)  # nine tenths of the mass elsewhere
+    d = _about_axis(np.r_[inside, outside])
+    cov, mass = arc_metrics(d, T_REF, GRID)
+    cov_in, _ = arc_metrics(d, T_REF, GRID, conditional=True)
+    assert mass == pytest.approx(0.1, abs=2e-3)
+    assert cov == 0.0 and cov_in == 1.0
