@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -306,6 +307,31 @@ def test_dask_gives_the_rows_of_the_in_process_run(tmp_path, cluster):
     run_benchmark(config, progress=False, out_dir=tmp_path / "dask", resume=True,
                   scheduler=cluster.scheduler_address, batch_size=2)
     assert _rows(path).equals(a)
+
+
+@pytest.mark.slow  # starts a 2-process LocalCluster
+def test_dask_runs_suites_without_protocol_shapes(tmp_path, cluster):
+    # A run of problem files only has no shapes to send to the workers; Dask cannot scatter an
+    # empty dict, and `certpose bench --problems DIR` (also --suite 3dmatch, eq2) failed on it.
+    from certpose.data.instances import make_instance
+    from certpose.io.points import synthetic_shape
+    from certpose.io.problems import save_problem
+
+    folder = tmp_path / "probs"
+    folder.mkdir()
+    for k in range(3):
+        inst = make_instance(synthetic_shape(), 40, 0.5, noise=0.01, rng=k)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = inst.rotation, inst.translation
+        save_problem(folder / f"p{k}.npz", inst.source, inst.target,
+                     noise_bound=inst.noise_bound, T_target_source=T)
+    config = BenchConfig(problems=(str(folder),), solvers=("gnc", "gnc-only"))
+    run_benchmark(config, progress=False, out_dir=tmp_path / "local", workers=0)
+    run_benchmark(config, progress=False, out_dir=tmp_path / "dask",
+                  scheduler=cluster.scheduler_address)
+    a, b = _rows(tmp_path / "local" / "trials.csv"), _rows(tmp_path / "dask" / "trials.csv")
+    assert len(a) == 3 * 2 and a.equals(b)
+    assert set(a["success"]) == {"True"}
 
 
 @pytest.mark.slow  # a LocalCluster run with one worker killed in the middle

@@ -835,7 +835,9 @@ def _run_dask(
             batches = _batches(tasks, batch_size)
         else:
             batches = _batches(tasks, 50, n_protocol=n_protocol, slots=n_slots)
-        shapes_f = client.scatter(shapes, broadcast=True)
+        # Only protocol suites have shapes; distributed cannot scatter an empty dict (3dmatch,
+        # eq2 and --problems runs failed on it).
+        shapes_f = client.scatter(shapes, broadcast=True) if shapes else {}
 
         def submit(batch: Sequence[_Task]) -> Any:
             return client.submit(_run_batch, list(batch), shapes_f, noise, pure=False,
