@@ -119,7 +119,10 @@ def test_find_basins_on_the_demo_finds_the_flips():
 
     from certpose.sampling.sampler import seeds_from_mle
 
-    lik, mle, gt = build_demo(seed=0)
+    # The voxel-averaged model (no axial resampling): its eq. (1) has basins along the hidden
+    # handle's arc; with the flat arc of the demo's default model the truth is at some angle
+    # of a ridge that no set of basins covers (0.95 credible level, measured 2026-11-26).
+    lik, mle, gt = build_demo(seed=0, revolution=None)
     seeds = seeds_from_mle(mle)
     b = find_basins(lik, seeds)
     assert len(b.poses) >= 1 and b.poses.shape[1:] == (4, 4)

@@ -173,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         raise CLIError(f"--box-margin must be >= 0 pixels, got {args.box_margin}")
     if args.revolution and (args.demo or args.object_model is not None):
         raise CLIError("--revolution applies to geometry-only models from model points "
-                       "(not --demo or --object-model)")
+                       "(not --object-model; --demo models its mug with the symmetry already)")
     params = PoseParams(voxel_size=args.voxel_size, model_revolution=args.revolution)
     if args.box_margin is not None:
         params = replace(params, classifier=replace(params.classifier, box_margin=args.box_margin))

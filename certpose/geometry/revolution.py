@@ -143,7 +143,8 @@ def find_revolution_axis(
     *,
     tolerance: float,
     min_fraction: float = 0.6,
-    max_points: int = 1500,
+    max_points: int = 600,
+    search_points: int = 500,
     rng: np.random.Generator | int | None = 0,
 ) -> RevolutionAxis | None:
     """The axis of revolution of the largest part of the surface that ``points`` sample, if any.
@@ -164,7 +165,10 @@ def find_revolution_axis(
     min_fraction : float, optional
         Least share of the points on the surface of revolution (in ``(0, 1]``).
     max_points : int, optional
-        The search runs on at most this many of the points (a random subset).
+        The refinement runs on at most this many of the points (a random subset).
+    search_points : int, optional
+        The search from the principal directions runs on at most this many (a random subset;
+        it only has to place the axis within the refinement's reach).
     rng : numpy.random.Generator or int or None, optional
         Draws that subset.
 
@@ -181,7 +185,9 @@ def find_revolution_axis(
         raise ValueError(f"Expected `min_fraction` in (0, 1], got {min_fraction}.")
     tree = cKDTree(pts)
     gen = resolve_rng(rng)
-    sub = pts if pts.shape[0] <= max_points else pts[gen.choice(pts.shape[0], max_points, replace=False)]
+    if int(search_points) < 10 or int(max_points) < 10:
+        raise ValueError(f"Expected `search_points` and `max_points` >= 10, got {search_points}, {max_points}.")
+    sub = pts if pts.shape[0] <= search_points else pts[gen.choice(pts.shape[0], int(search_points), replace=False)]
     centre = pts.mean(axis=0)
     _, _, vt = np.linalg.svd(pts - centre, full_matrices=False)
     scale = float(np.ptp(pts, axis=0).max())
