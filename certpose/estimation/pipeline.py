@@ -340,8 +340,13 @@ its minimiser is not the true pose)."""
 def build_eq2_demo(
     *, rng: np.random.Generator | int | None = 0, params: PoseParams | None = None,
     num_views: int = 4,
+    revolution: str | None = None,
 ) -> dict[str, Any]:
     """The eq. (2) problem of the synthetic mug scene drawn from ``rng``, without solving it.
+
+    ``revolution`` is :func:`~certpose.geometry.objects.object_from_views`' option; None (the
+    voxel-averaged model, as before :func:`run_demo` turned it on) keeps the benchmark suite's
+    problems what they were.
 
     Returns keyword arguments of :func:`certpose.io.problems.save_problem` (see
     :func:`eq2_problem_data`).
@@ -358,7 +363,7 @@ def build_eq2_demo(
     sc = make_mug_scene(rng=gen)
     scene = _scene_for(sc.frame, sc.object_mask, params, backbone)
     obj = object_from_views(sc.render_object_views(num_views), backbone,
-                            voxel_size=params.voxel_size, name="mug")
+                            voxel_size=params.voxel_size, name="mug", revolution=revolution)
     cls = classify_from_mask(scene, sc.frame.with_mask(sc.object_mask), params=params.classifier)
     eq2 = build_eq2_problem(scene, cls, obj, params=params.mle.eq2,
                             likelihood_params=params.likelihood, rng=gen)
