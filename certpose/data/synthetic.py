@@ -199,6 +199,8 @@ class SyntheticScene:
         Points sampled uniformly on the mug surface, object frame, metres.
     T_table_camera : ndarray, shape (4, 4)
         Camera pose in the table frame (table plane ``z = 0``, ``+z`` up).
+    surroundings : dict of str to open3d TriangleMesh
+        The table and the occluder, table frame (:meth:`hidden_handle_arc` renders them).
     """
 
     frame: RGBDFrame
@@ -207,10 +209,93 @@ class SyntheticScene:
     object_mask: NDArray[np.bool_]
     model_points: NDArray[np.float64]
     T_table_camera: NDArray[np.float64] = field(repr=False)
+    surroundings: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def model_mesh(self) -> Any:
         """The mug as an open3d ``TriangleMesh`` in the object frame."""
         return _mug_mesh()
+
+    def hidden_handle_arc(self, *, step: float = 0.5) -> Any:
+        """The exact arc of turns of the mug about its axis that keep its handle out of sight.
+
+        The mug at angle ``a`` is the ground truth turned by ``a`` about its own axis (the
+        model's z axis through the origin): ``T_camera_object @ Rz(a)``. Its body is a surface
+        of revolution, so the image at ``a`` equals the scene's wherever the handle is not
+        seen: every angle is rendered (ray casting against the body, the table, the occluder
+        and the turned handle, the rays of the pixels the handle can reach at any angle) and
+        is free when no pixel sees the handle first. This is the set of poses that explain the
+        image exactly, without any voxel or tolerance: the known answer for the rotation about
+        the axis (eq. (1) can do no better than be flat on it and lower off it).
+
+        Parameters
+        ----------
+        step : float
+            Degrees between grid angles (> 0, at most 10; ``360 / step`` is rounded).
+
+        Returns
+        -------
+        FreeSpaceArc
+            ``violations`` counts the handle's pixels at each angle, ``depth`` is 0 and
+            ``tolerance`` 0.
+        """
+        import math
+
+        import open3d as o3d
+
+        from certpose.model.arc import FreeSpaceArc, _runs
+
+        step = float(step)
+        if not (math.isfinite(step) and 0 < step <= 10):
+            raise ValueError(f"`step` must be in (0, 10] degrees, got {step}.")
+        if not self.surroundings:
+            raise ValueError("This scene keeps no surroundings to render (built outside make_mug_scene).")
+        m = int(round(360.0 / step))
+        angles = -180.0 + np.arange(m) * (360.0 / m)
+        parts = mug_parts()
+        T_table_object = self.T_table_camera @ self.T_camera_object
+        hv = np.asarray(parts["handle"].vertices)
+        c, s_ = np.cos(np.radians(angles)), np.sin(np.radians(angles))
+        Rz = np.zeros((m, 3, 3))
+        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s_, s_, c, 1.0
+        # The pixels the handle can reach at any angle (its vertices' projections, a margin).
+        T_cam_obj = self.T_camera_object
+        q = np.einsum("ij,mjk,nk->mni", T_cam_obj[:3, :3], Rz, hv).reshape(-1, 3) + T_cam_obj[:3, 3]
+        K = self.intrinsics
+        u = K.fx * q[:, 0] / q[:, 2] + K.cx
+        v = K.fy * q[:, 1] / q[:, 2] + K.cy
+        u0, u1 = max(int(np.floor(u.min())) - 2, 0), min(int(np.ceil(u.max())) + 2, K.width - 1)
+        v0, v1 = max(int(np.floor(v.min())) - 2, 0), min(int(np.ceil(v.max())) + 2, K.height - 1)
+        vv, uu = np.mgrid[v0:v1 + 1, u0:u1 + 1].astype(np.float64)
+        d_cam = np.stack([(uu - K.cx) / K.fx, (vv - K.cy) / K.fy, np.ones_like(uu)], -1).reshape(-1, 3)
+        R, t = self.T_table_camera[:3, :3], self.T_table_camera[:3, 3]
+        rays = o3d.core.Tensor(np.hstack([np.broadcast_to(t, d_cam.shape), d_cam @ R.T]).astype(np.float32))
+        body = o3d.t.geometry.TriangleMesh.from_legacy(
+            o3d.geometry.TriangleMesh(parts["body"]).transform(T_table_object))
+        fixed = [body] + [o3d.t.geometry.TriangleMesh.from_legacy(mesh) for mesh in self.surroundings.values()]
+        visible = np.zeros(m, dtype=np.int64)
+        for k in range(m):
+            T = np.eye(4)
+            T[:3, :3] = Rz[k]
+            handle = o3d.geometry.TriangleMesh(parts["handle"]).transform(T_table_object @ T)
+            scene = o3d.t.geometry.RaycastingScene()
+            for mesh in fixed:
+                scene.add_triangles(mesh)
+            hid = scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(handle))
+            ans = scene.cast_rays(rays)
+            hit = np.isfinite(ans["t_hit"].numpy())
+            visible[k] = int(np.count_nonzero(hit & (ans["geometry_ids"].numpy() == hid)))
+        free = visible == 0
+        arcs = _runs(angles, free, 360.0 / m)
+        i0 = int(np.argmin(np.abs(angles)))
+        arc = None
+        if free[i0]:
+            arc = next(r for r in arcs if r[0] - 1e-9 <= angles[i0] <= r[1] + 1e-9
+                       or r[0] - 1e-9 <= angles[i0] + 360.0 <= r[1] + 1e-9)
+            status, message = "ok", f"handle hidden over {arc[0]:.1f}..{arc[1]:.1f} deg"
+        else:
+            status, message = "reference_in_free_space", f"the handle shows in {visible[i0]} pixels at angle 0"
+        return FreeSpaceArc(angles, np.zeros(m), visible, free, arcs, arc, 0.0, 360.0 / m, arc is not None,
+                            status, message)
 
     def render_object_views(
         self,
@@ -333,7 +418,8 @@ def make_mug_scene(
     T_camera_object = T_camera_table @ T_table_object
     model_points = _model_points(n_model_points, rng)
     frame = RGBDFrame(color, depth, intrinsics)
-    return SyntheticScene(frame, intrinsics, T_camera_object, mask, model_points, T_table_camera)
+    return SyntheticScene(frame, intrinsics, T_camera_object, mask, model_points, T_table_camera,
+                          {"table": table, "occluder": occ})
 
 
 def _model_points(n: int, rng: np.random.Generator) -> NDArray[np.float64]:
