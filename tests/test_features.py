@@ -184,3 +184,101 @@ def test_check_descriptors_rules():
     # Raw histograms and plain containers opt out of the norm (and dimension) rule.
     assert check_descriptors([[1.0, 1.0]], "h", unit_norm=False).shape == (1, 2)
     assert check_descriptors(np.zeros((2, 0)), "d", min_dim=0, unit_norm=False).shape == (2, 0)
+
+
+def _open3d_fpfh(points, *, normals=None, viewpoint=(0.0, 0.0, 0.0), radius=0.025, max_nn=40,
+                 normal_radius=0.0125):
+    """open3d's normals (towards ``viewpoint``) and raw FPFH (N, 33), as FPFHBackbone used them."""
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points)))
+    if normals is None:
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius, max_nn=30))
+        pcd.orient_normals_towards_camera_location(np.asarray(viewpoint, dtype=np.float64))
+    else:
+        pcd.normals = o3d.utility.Vector3dVector(np.array(normals))
+    f = o3d.pipelines.registration.compute_fpfh_feature(
+        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
+    return np.asarray(pcd.normals), np.asarray(f.data).T
+
+
+def _scene_voxel_points():
+    """The voxel-averaged camera-frame points the scene field of YCB-Video 0002/000001 describes
+    (the banana's mask box + 10 cm, and the FPFH's context around it), and which are kept."""
+    from certpose.io.ycbv import load_ycbv_frame
+    from certpose.model import scene as S
+    from tests.conftest import require_data
+
+    require_data("ycbv", "0002", "000001-meta.mat")
+    yf = load_ycbv_frame(require_data("ycbv"), "0002/000001")
+    mask = yf.object_mask("011_banana")
+    p_cam, px = yf.frame.backproject(mask=False)
+    lo, hi = S.bounds_from_points(p_cam[mask[px[:, 0], px[:, 1]]], margin=0.1)
+    shape = tuple(int(s) for s in np.maximum(np.ceil((hi - lo) / 0.005 - 1e-9), 1).astype(int))
+    grid = S.GridSpec(lo, 0.005, shape, S.VOXEL_CENTRE_OFFSET)
+    v = S._frame_voxels(yf.frame, FPFHBackbone(), p_cam, p_cam, px, grid)
+    return v.points, v.keep
+
+
+def test_fpfh_kernels_compute_open3d_s_normals_and_fpfh():
+    """The numba normals (towards the viewpoint) and FPFH are open3d's numbers: on a noisy
+    synthetic surface every bit; on a real scene's voxel points every bit but for the points
+    with two neighbours at exactly one distance (listed in another order: 1e-16 relative),
+    and the float32 descriptors the scene stores are equal."""
+    from solvers.jit import compiled
+
+    k = compiled("certpose.geometry._fpfh_kernels")
+    rng = np.random.default_rng(7)
+    p = _sphere(3000, rng, radius=0.05) + rng.normal(scale=5e-4, size=(3000, 3)) + [0, 0, 0.6]
+    vp = np.array([0.01, -0.02, 0.0])
+    n_ref, f_ref = _open3d_fpfh(p, viewpoint=vp, radius=0.02, normal_radius=0.01)
+    n = k.normals_towards(p, 0.01, 30, 0.01, vp)
+    assert np.array_equal(n, n_ref)
+    f = k.fpfh(p, n, 0.02, 40, 0.01, np.arange(3000, dtype=np.int64))
+    assert np.array_equal(f, f_ref)
+    rows = np.array([5, 0, 2999, 17], dtype=np.int64)
+    assert np.array_equal(k.fpfh(p, n, 0.02, 40, 0.01, rows), f_ref[rows])
+
+    pts, keep = _scene_voxel_points()
+    n_ref, f_ref = _open3d_fpfh(pts)
+    bb = FPFHBackbone()
+    n = k.normals_towards(pts, 0.0125, 30, 0.0125, np.zeros(3))
+    f = k.fpfh(pts, n_ref, 0.025, 40, 0.0125, np.arange(len(pts), dtype=np.int64))
+    assert (n != n_ref).any(axis=1).sum() <= 5 and np.abs(n - n_ref).max() < 1e-10
+    assert (f != f_ref).any(axis=1).sum() <= 5 and np.abs(f - f_ref).max() < 1e-12
+    h_ref = f_ref.reshape(-1, 3, 11) / f_ref.reshape(-1, 3, 11).sum(axis=2, keepdims=True)
+    d_ref = bb.finish(np.sqrt(h_ref).reshape(-1, 33)).astype(np.float32)
+    assert np.array_equal(bb.describe(pts).astype(np.float32), d_ref)
+    # Only the kept voxels' rows: the same rows.
+    d_keep = bb.describe(pts, rows=np.flatnonzero(keep))
+    assert np.array_equal(d_keep.astype(np.float32), d_ref[keep])
+
+
+def test_fpfh_given_normals_and_rows():
+    rng = np.random.default_rng(3)
+    p = _sphere(800, rng)
+    n = _sphere_normals(p)
+    bb = FPFHBackbone(radius=0.02)
+    _, f_ref = _open3d_fpfh(p, normals=n, radius=0.02)
+    h = f_ref.reshape(-1, 3, 11)
+    h_ref = np.sqrt(h / h.sum(axis=2, keepdims=True)).reshape(-1, 33)
+    assert np.array_equal(bb.histograms(p, normals=n), h_ref)
+    full = bb.describe(p, normals=n, colors=rng.uniform(size=(800, 3)))
+    rows = [3, 1, 799]
+    np.testing.assert_array_equal(bb.describe(p, normals=n, rows=rows,
+                                              colors=rng.uniform(size=(800, 3))).shape, (3, 33))
+    assert np.array_equal(bb.describe(p, normals=n, rows=rows), full[rows])
+    with pytest.raises(ValueError, match="rows"):
+        bb.histograms(p, rows=[800])
+
+
+def test_sum_by_group_equals_add_at():
+    from certpose.geometry.rgbd import group_voxels, sum_by_group
+
+    rng = np.random.default_rng(0)
+    keys = rng.integers(-3, 4, size=(5000, 3))
+    _, inverse, counts = group_voxels(keys)
+    values = rng.normal(size=(5000, 7)) * rng.uniform(1e-3, 1e3, size=(5000, 1))
+    ref = np.zeros((counts.size, 7))
+    np.add.at(ref, inverse, values)
+    assert np.array_equal(sum_by_group(inverse, values, counts.size), ref)

@@ -3,7 +3,8 @@
 Every backbone returns rows of unit length (or zero, for points it cannot describe), so the
 inner product of two descriptors is a similarity in ``[-1, 1]``, as eq. (1) of the paper assumes.
 
-* :class:`FPFHBackbone` (offline default): open3d's FPFH geometric descriptor, optionally joined
+* :class:`FPFHBackbone` (offline default): open3d's FPFH geometric descriptor (computed by
+  :mod:`certpose.geometry._fpfh_kernels`, open3d's numbers without its import), optionally joined
   with colour.
 * :class:`ArrayBackbone`: descriptors the user already has (per point or per pixel).
 * :class:`DinoBackbone`: a DINO vision transformer loaded from a local TorchScript file (optional
@@ -149,37 +150,60 @@ class FPFHBackbone:
         """Descriptor dimension: 33, plus 3 with colour."""
         return _FPFH_BLOCKS * _FPFH_BINS + (3 if self.color_weight > 0 else 0)
 
-    def histograms(self, points: ArrayLike, *, normals: ArrayLike | None = None) -> NDArray[np.float64]:
-        """Square-rooted, normalised FPFH histograms, shape ``(N, 33)`` (steps 1-2 above)."""
-        import open3d as o3d
+    def histograms(self, points: ArrayLike, *, normals: ArrayLike | None = None,
+                   rows: ArrayLike | None = None) -> NDArray[np.float64]:
+        """Square-rooted, normalised FPFH histograms, shape ``(N, 33)`` (steps 1-2 above).
 
-        p = check_points(points, "points", min_points=5)
+        ``rows`` (indices into ``points``): only those points' histograms, shape
+        ``(len(rows), 33)``, still over all the points' neighbourhoods (the same values as the
+        full result's rows; the cost of the skipped rows' final step is saved).
+
+        Normals oriented towards ``viewpoint`` and the FPFH are computed by
+        :mod:`certpose.geometry._fpfh_kernels` (open3d's computation, without its import);
+        ``viewpoint=None`` orients the normals with open3d's tangent-plane graph.
+        """
+        from solvers.jit import compiled
+
+        p = np.ascontiguousarray(check_points(points, "points", min_points=5), dtype=np.float64)
         n = p.shape[0]
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
-        if normals is None:
-            nr = self.normal_radius if self.normal_radius is not None else self.radius / 2
-            pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=nr, max_nn=30))
-            if self.viewpoint is None:
-                pcd.orient_normals_consistent_tangent_plane(10)
-                nm = np.asarray(pcd.normals)
-                # The propagation fixes the orientation up to one global sign: point outwards.
-                if np.sum(nm * (p - p.mean(axis=0))) < 0:
-                    pcd.normals = o3d.utility.Vector3dVector(-nm)
-            else:
-                pcd.orient_normals_towards_camera_location(np.asarray(self.viewpoint))
-        else:
+        sel = np.arange(n, dtype=np.int64) if rows is None else np.asarray(rows, dtype=np.int64).reshape(-1)
+        if sel.size and (sel.min() < 0 or sel.max() >= n):
+            raise ValueError(f"`rows` must index the {n} points, got values in [{sel.min()}, {sel.max()}].")
+        kernels = compiled("certpose.geometry._fpfh_kernels")
+        nr = self.normal_radius if self.normal_radius is not None else self.radius / 2
+        if normals is not None:
             nm = check_points(normals, "normals")
             if nm.shape != p.shape:
                 raise ValueError(f"Expected `normals` to have shape {p.shape}, got {nm.shape}.")
-            pcd.normals = o3d.utility.Vector3dVector(normalize_rows(nm))
-        fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=self.radius, max_nn=int(self.max_nn))
-        )
-        h = np.asarray(fpfh.data, dtype=np.float64).T.reshape(n, _FPFH_BLOCKS, _FPFH_BINS)
+            nm = normalize_rows(nm)
+        elif self.viewpoint is not None:
+            # Neighbour grid cells of the normals' radius (the FPFH's reaches two cells).
+            nm = kernels.normals_towards(p, float(nr), 30, float(nr),
+                                         np.asarray(self.viewpoint, dtype=np.float64))
+        else:
+            nm = self._consistent_normals(p, nr)
+        h = kernels.fpfh(p, np.ascontiguousarray(nm, dtype=np.float64), float(self.radius),
+                         int(self.max_nn), float(nr), np.ascontiguousarray(sel))
+        h = h.reshape(sel.size, _FPFH_BLOCKS, _FPFH_BINS)
         total = h.sum(axis=2, keepdims=True)
         # Isolated points get an all-zero histogram: they stay zero (similar to nothing).
         h = np.sqrt(np.divide(h, total, out=np.zeros_like(h), where=total > 0))
-        return h.reshape(n, -1)
+        return h.reshape(sel.size, -1)
+
+    @staticmethod
+    def _consistent_normals(p: NDArray[np.float64], radius: float) -> NDArray[np.float64]:
+        """open3d's normals oriented along its tangent-plane graph, pointing away from the
+        centroid on the whole (model clouds without a camera)."""
+        import open3d as o3d
+
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
+        pcd.orient_normals_consistent_tangent_plane(10)
+        nm = np.asarray(pcd.normals)
+        # The propagation fixes the orientation up to one global sign: point outwards.
+        if np.sum(nm * (p - p.mean(axis=0))) < 0:
+            nm = -nm
+        return np.array(nm)
 
     def fit_center(self, histograms: ArrayLike) -> FPFHBackbone:
         """A copy whose ``center`` is the mean of ``histograms`` (from :meth:`histograms`)."""
@@ -222,6 +246,7 @@ class FPFHBackbone:
         *,
         colors: ArrayLike | None = None,
         normals: ArrayLike | None = None,
+        rows: ArrayLike | None = None,
     ) -> NDArray[np.float64]:
         """FPFH(+colour) descriptors, shape ``(N, dim)``, rows L2-normalised.
 
@@ -233,8 +258,14 @@ class FPFHBackbone:
             RGB in ``[0, 1]``; used when ``color_weight > 0``.
         normals : array_like, shape (N, 3), optional
             Normals; estimated when omitted.
+        rows : array_like of int, optional
+            Describe only these points (shape ``(len(rows), dim)``; ``colors`` stays (N, 3)),
+            over all the points' neighbourhoods (see :meth:`histograms`).
         """
-        return self.finish(self.histograms(points, normals=normals), colors=colors)
+        h = self.histograms(points, normals=normals, rows=rows)
+        if colors is not None and rows is not None:
+            colors = np.asarray(colors)[np.asarray(rows, dtype=np.int64).reshape(-1)]
+        return self.finish(h, colors=colors)
 
 
 class ArrayBackbone:

@@ -110,8 +110,12 @@ def group_voxels(
 
 def sum_by_group(inverse: NDArray[np.int64], values: NDArray[np.floating], m: int) -> NDArray[np.float64]:
     """Row sums of ``values`` (N, d) per group ``inverse`` (N,) of :func:`group_voxels`, shape (m, d)."""
-    out = np.zeros((m, values.shape[1]))
-    np.add.at(out, inverse, values)
+    vals = np.asarray(values, dtype=np.float64)
+    out = np.empty((m, vals.shape[1]))
+    # One bincount per column: the same sums in the same order as np.add.at (each group's
+    # values added one by one in input order), several times faster.
+    for j in range(vals.shape[1]):
+        out[:, j] = np.bincount(inverse, weights=vals[:, j], minlength=m)
     return out
 
 

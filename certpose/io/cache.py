@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 _FORMAT = "certpose-object-cache-1"
 # Modules whose code decides the built model.
 _SOURCES = ("certpose.geometry.objects", "certpose.geometry.features", "certpose.geometry.rgbd",
-            "certpose.geometry.revolution")
+            "certpose.geometry.revolution", "certpose.geometry._fpfh_kernels")
 
 
 def default_cache_dir() -> Path | None:

@@ -479,18 +479,19 @@ def build_scene_field(
         and all(b is shared for b in backbones)
     ):
         hists = [
-            shared.histograms(v.points) if v.points is not None else np.zeros((0, 33))
+            shared.histograms(v.points, rows=np.flatnonzero(v.keep)) if v.points is not None
+            else np.zeros((0, 33))
             for v in per_frame
         ]
-        grid_hists = np.concatenate([h[v.keep] for h, v in zip(hists, per_frame, strict=True)])
-        shared = shared.fit_center(grid_hists)
+        shared = shared.fit_center(np.concatenate(hists))
         backbones = [shared] * len(frames)
-        descs = [shared.finish(h, colors=v.colors) for h, v in zip(hists, per_frame, strict=True)]
+        descs = [shared.finish(h, colors=None if v.colors is None else v.colors[v.keep])
+                 for h, v in zip(hists, per_frame, strict=True)]
     else:
         descs = [v.describe(b) for v, b in zip(per_frame, backbones, strict=True)]
     keys_all, sums_all, counts_all = [], [], []
     for v, desc in zip(per_frame, descs, strict=True):
-        desc = check_descriptors(desc, "descriptors", v.keep.shape[0])[v.keep]
+        desc = check_descriptors(desc, "descriptors", int(np.count_nonzero(v.keep)))
         keys_all.append(v.keys[v.keep])
         sums_all.append(desc * v.counts[v.keep, None])
         counts_all.append(v.counts[v.keep])
@@ -567,9 +568,14 @@ class _FrameVoxels:
     descriptors: NDArray[np.float64] | None = None  # for image backbones
 
     def describe(self, backbone: Any) -> NDArray[np.float64]:
+        """Descriptors of the kept voxels, shape ``(keep.sum(), d)``."""
         if self.descriptors is not None:
-            return self.descriptors
-        return backbone.describe(self.points, colors=self.colors)
+            return check_descriptors(self.descriptors, "descriptors", self.keep.shape[0])[self.keep]
+        if isinstance(backbone, FPFHBackbone):
+            # Only the kept voxels' FPFH: the context voxels serve as their neighbours.
+            return backbone.describe(self.points, colors=self.colors, rows=np.flatnonzero(self.keep))
+        desc = backbone.describe(self.points, colors=self.colors)
+        return check_descriptors(desc, "descriptors", self.keep.shape[0])[self.keep]
 
 
 def _frame_voxels(
