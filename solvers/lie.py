@@ -11,6 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "so3_exp",
+    "so3_exp_batch",
     "so3_log",
     "se3_exp",
     "se3_log",
@@ -33,6 +34,17 @@ def so3_exp(omega: ArrayLike) -> NDArray[np.float64]:
     from scipy.spatial.transform import Rotation  # scipy.spatial: not on `import solvers`
 
     return Rotation.from_rotvec(np.asarray(omega, dtype=np.float64).reshape(3)).as_matrix()
+
+
+def so3_exp_batch(omegas: ArrayLike) -> NDArray[np.float64]:
+    """Rotation matrices (n, 3, 3) of the rotation vectors ``omegas`` (n, 3), radians: the same
+    numbers as ``Rotation.from_rotvec(omegas).as_matrix()``, compiled
+    (:func:`solvers._linalg_kernels.rotvec_matrices`; for the many small batches of a local
+    search, where scipy's per-call overhead is most of the time)."""
+    from solvers.jit import compiled
+
+    v = np.ascontiguousarray(np.asarray(omegas, dtype=np.float64).reshape(-1, 3))
+    return compiled("solvers._linalg_kernels").rotvec_matrices(v)
 
 
 def so3_log(R: ArrayLike) -> NDArray[np.float64]:

@@ -114,3 +114,16 @@ def test_so3_log_rejects_bad_shapes():
 
     with pytest.raises(ValueError, match=r"`R` to have shape \(\.\.\., 3, 3\), got \(3, 2\)"):
         lie.so3_log(np.zeros((3, 2)))
+
+
+@given(st.integers(0, 2**31 - 1))
+def test_so3_exp_batch_is_scipys_bits(seed):
+    """The compiled batch gives scipy's very numbers (the refinements' poses depend on them):
+    angles from 0 (the small-angle series below 1e-3 rad) to past pi."""
+    rng = np.random.default_rng(seed)
+    w = rng.normal(size=(64, 3)) * rng.choice([0.0, 1e-7, 1e-4, 1e-3, 0.02, 0.3, 1.0, 2.5], size=(64, 1))
+    assert np.array_equal(lie.so3_exp_batch(w), Rotation.from_rotvec(w).as_matrix())
+    # Non-contiguous input (the columns of a twist) and an empty batch.
+    x = rng.normal(scale=0.1, size=(5, 6))
+    assert np.array_equal(lie.so3_exp_batch(x[:, 3:]), Rotation.from_rotvec(x[:, 3:]).as_matrix())
+    assert lie.so3_exp_batch(np.zeros((0, 3))).shape == (0, 3, 3)

@@ -125,7 +125,8 @@ def kernels(argv: list[str]) -> tuple[str, ...]:
 
     certify = () if "--no-certify" in argv else CERTIFY_KERNELS
     return (PRUNED_SOLVE_KERNELS[0], *certify, "solvers.registration._kernels:max_clique_bnb",
-            *PRUNED_SOLVE_KERNELS[1:], "certpose.model._kernels:eq1_batch",
+            *PRUNED_SOLVE_KERNELS[1:], "solvers._linalg_kernels:rotvec_matrices",
+            "certpose.model._kernels:eq1_batch",
             "certpose.geometry._fpfh_kernels:fpfh", "certpose.geometry._fpfh_kernels:normals_towards")
 
 

@@ -53,12 +53,12 @@ def twists_to_poses(T0: NDArray[np.float64], X: NDArray[np.float64], scale: floa
     -------
     (H, M, 4, 4) ndarray
     """
-    from scipy.spatial.transform import Rotation
+    from solvers.lie import so3_exp_batch
 
     H, M = X.shape[:2]
     D = np.zeros((H * M, 4, 4))
     flat = X.reshape(-1, 6)
-    D[:, :3, :3] = Rotation.from_rotvec(flat[:, 3:]).as_matrix()
+    D[:, :3, :3] = so3_exp_batch(flat[:, 3:])  # scipy's numbers, without its call overhead
     D[:, :3, 3] = flat[:, :3] * scale
     D[:, 3, 3] = 1.0
     return np.matmul(T0[:, None], D.reshape(H, M, 4, 4))  # 2-4x faster than einsum here
