@@ -126,3 +126,43 @@ def test_depth_noise_is_applied():
     diff = noisy.frame.depth[valid] - clean.frame.depth[valid]
     assert 0.0015 < diff.std() < 0.0025
     np.testing.assert_array_equal(noisy.frame.depth[~valid], 0.0)
+
+
+def _turned(scene, angle_deg):
+    """The ground truth turned by ``angle_deg`` about the mug's own axis (object z)."""
+    from scipy.spatial.transform import Rotation
+
+    T = scene.T_camera_object.copy()
+    T[:3, :3] = T[:3, :3] @ Rotation.from_rotvec([0.0, 0.0, np.radians(angle_deg)]).as_matrix()
+    return T
+
+
+def _handle_shows(scene, angle_deg):
+    handle = _cast([mug_parts()["handle"]], scene.intrinsics, _turned(scene, angle_deg))
+    seen = np.isfinite(handle)
+    depth = scene.frame.depth[seen]
+    return bool(np.any((depth == 0) | (handle[seen] < depth - 1e-4)))
+
+
+@pytest.mark.slow
+def test_hidden_handle_arc_against_independent_casts(scene):
+    arc = scene.hidden_handle_arc(step=1.0)
+    assert arc.success and arc.contains(0.0)
+    lo, hi = arc.arc
+    assert hi - lo > 60.0  # the occluder hides a wide arc; the check means something
+    assert np.all(arc.violations[arc.free] == 0) and np.all(arc.violations[~arc.free] > 0)
+    # Its ends, cast alone against the scene's own depth image: hidden at the ends, seen two
+    # degrees beyond them (the image would change).
+    for a in (lo, hi, 0.5 * (lo + hi)):
+        assert not _handle_shows(scene, a), a
+    for a in (lo - 2.0, hi + 2.0):
+        assert _handle_shows(scene, a), a
+
+
+def test_hidden_handle_arc_validation(scene):
+    from dataclasses import replace
+
+    with pytest.raises(ValueError, match="step"):
+        scene.hidden_handle_arc(step=0.0)
+    with pytest.raises(ValueError, match="surroundings"):
+        replace(scene, surroundings={}).hidden_handle_arc()
