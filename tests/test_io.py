@@ -154,6 +154,37 @@ def test_read_points_bad_files(tmp_path):
         assert "\n" not in msg, msg
 
 
+def test_read_points_refuses_truncated_pcd_files(tmp_path, points):
+    # Open3D reads a cut ASCII body as uninitialised rows and a header without POINTS as a
+    # huge allocation (std::bad_alloc): both are refused with the file named, as for PLY.
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    for name, ascii_, compressed in (("a", True, False), ("b", False, False), ("c", False, True)):
+        whole = tmp_path / f"{name}.pcd"
+        assert o3d.io.write_point_cloud(str(whole), cloud, write_ascii=ascii_,
+                                        compressed=compressed)
+        np.testing.assert_allclose(read_points(whole), points, rtol=0, atol=1e-6)
+        raw = whole.read_bytes()
+        cut = tmp_path / f"{name}_cut.pcd"
+        cut.write_bytes(raw[: len(raw) - 40])
+        with pytest.raises(ValueError, match="not a valid PCD file: truncated") as info:
+            read_points(cut, name="source")
+        assert "source file" in str(info.value) and cut.name in str(info.value)
+    # An ASCII body cut inside its last row (every row present, the last one short).
+    text = (tmp_path / "a.pcd").read_text()
+    (tmp_path / "short_row.pcd").write_text(text.rstrip("\n").rsplit(" ", 1)[0] + "\n")
+    with pytest.raises(ValueError, match="row 25 of the body holds 2 values, not 3"):
+        read_points(tmp_path / "short_row.pcd")
+    (tmp_path / "header.pcd").write_text("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\n")
+    with pytest.raises(ValueError, match="no DATA line"):
+        read_points(tmp_path / "header.pcd")
+    (tmp_path / "nopoints.pcd").write_text("VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\n"
+                                           "COUNT 1 1 1\nDATA ascii\n1 2 3\n")
+    with pytest.raises(ValueError, match="no POINTS line"):
+        read_points(tmp_path / "nopoints.pcd")
+
+
 def test_read_points_directory(tmp_path):
     with pytest.raises(OSError, match="not a regular file"):
         read_points(tmp_path)

@@ -127,9 +127,76 @@ def _read_ply(p: Path, what: str) -> NDArray[np.float64]:
     return np.column_stack([np.asarray(vertex[axis], dtype=np.float64) for axis in "xyz"])
 
 
+_PCD_KEYS = ("FIELDS", "SIZE", "COUNT", "POINTS", "DATA")
+
+
+def _check_pcd(p: Path, what: str) -> int:
+    """Check a PCD file's header against its body; the number of points it declares.
+
+    Open3D reads a truncated ASCII body as uninitialised rows and a header without ``POINTS``
+    as a huge allocation, so both are refused here first.
+    """
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise OSError(f"cannot read {what} file '{p}': {exc.strerror or exc}.") from None
+
+    def bad(reason: str) -> ValueError:
+        return ValueError(f"{what} file '{p}' is not a valid PCD file: {reason}")
+
+    header: dict[str, list[str]] = {}
+    pos = 0
+    while "DATA" not in header:
+        end = raw.find(b"\n", pos)
+        if end < 0:
+            raise bad("the header has no DATA line.")
+        line = raw[pos:end].decode("ascii", errors="replace").split("#", 1)[0].split()
+        pos = end + 1
+        if line:
+            header[line[0].upper()] = line[1:]
+    missing = [k for k in _PCD_KEYS if k not in header]
+    if missing:
+        raise bad(f"the header has no {', '.join(missing)} line.")
+    fields = header["FIELDS"]
+    if not all(axis in fields for axis in "xyz"):
+        raise bad(f"no x, y, z fields (found {' '.join(fields)}).")
+    try:
+        n = int(header["POINTS"][0])
+        row_bytes = sum(int(s) * int(c) for s, c in zip(header["SIZE"], header["COUNT"],
+                                                        strict=True))
+    except (ValueError, IndexError):
+        raise bad("malformed POINTS, SIZE or COUNT line.") from None
+    if n < 0 or len(header["SIZE"]) != len(fields):
+        raise bad("malformed POINTS, SIZE or COUNT line.")
+    body = raw[pos:]
+    kind = (header["DATA"] or [""])[0].lower()
+    if kind == "ascii":
+        rows = [ln.split() for ln in body.splitlines() if ln.split(b"#", 1)[0].strip()]
+        if len(rows) < n:
+            raise bad(f"truncated: the header declares {n} points, the body holds {len(rows)} "
+                      "rows.")
+        values = sum(int(c) for c in header["COUNT"])
+        short = next((k for k, r in enumerate(rows[:n]) if len(r) != values), None)
+        if short is not None:
+            raise bad(f"row {short + 1} of the body holds {len(rows[short])} values, not "
+                      f"{values}.")
+    elif kind == "binary":
+        if len(body) < n * row_bytes:
+            raise bad(f"truncated: {n} points of {row_bytes} bytes need {n * row_bytes} bytes, "
+                      f"the body holds {len(body)}.")
+    elif kind == "binary_compressed":
+        size = int.from_bytes(body[:4], "little") if len(body) >= 4 else -1
+        if size < 0 or len(body) < 8 + size:
+            raise bad("truncated compressed body.")
+    else:
+        raise bad(f"unknown DATA type {kind!r}.")
+    return n
+
+
 def _read_open3d(p: Path, what: str) -> NDArray[np.float64]:
     import open3d as o3d  # heavy: imported on demand
 
+    declared = _check_pcd(p, what) if p.suffix.lower() == ".pcd" else None
     # Open3D reports read failures as console warnings and an empty cloud; silence the
     # warning and raise instead.
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
@@ -139,6 +206,9 @@ def _read_open3d(p: Path, what: str) -> NDArray[np.float64]:
         raise ValueError(
             f"{what} file '{p}' holds no points (empty, or not a valid {p.suffix} point cloud)."
         )
+    if declared is not None and pts.shape[0] != declared:
+        raise ValueError(f"{what} file '{p}' declares {declared} points but {pts.shape[0]} "
+                         "were read.")
     return pts.reshape(-1, 3)
 
 
