@@ -125,6 +125,14 @@ def test_load_refuses_other_files(tmp_path):
     garbage.write_text("not a zip file")
     with pytest.raises(ValueError, match="Cannot read"):
         BuiltObjectModel.load(garbage)
+    # A .npy file and a cut archive are not object models either (np.load returned a bare
+    # array for the first: "does not support the context manager protocol").
+    np.save(tmp_path / "points.npy", np.zeros((5, 3)))
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(other.read_bytes()[:100])
+    for bad in (tmp_path / "points.npy", cut):
+        with pytest.raises(ValueError, match=f"Cannot read .*{bad.name} as an object model: not a .npz"):
+            BuiltObjectModel.load(bad)
 
 
 def test_bad_views_give_clear_errors(root):

@@ -1,5 +1,8 @@
 """PoseDistribution: weights, ESS, Pareto-k, resampling, tangent moments, .npz round trip."""
 
+import gc
+import warnings
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -78,6 +81,17 @@ def test_npz_round_trip(tmp_path):
         np.testing.assert_array_equal(getattr(e, name), getattr(d, name))
     with pytest.raises(ValueError, match="Cannot read"):
         PoseDistribution.load(tmp_path / "missing.npz")
+    # A .npy file (np.load gives a bare array) and a cut archive (BadZipFile, the file left
+    # open): the same one-line ValueError naming the file.
+    np.save(tmp_path / "p.npy", R)
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes((tmp_path / "p.npz").read_bytes()[:300])
+    for bad in (tmp_path / "p.npy", cut):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", ResourceWarning)
+            with pytest.raises(ValueError, match=f"Cannot read particle file .*{bad.name}.*not a .npz"):
+                PoseDistribution.load(bad)
+            gc.collect()  # an unclosed file warns when collected
 
 
 @pytest.mark.parametrize(

@@ -299,6 +299,11 @@ def test_save_and_load_round_trip(tmp_path):
     (tmp_path / "bad.npz").write_bytes(b"garbage")
     with pytest.raises(ValueError, match="bad.npz"):
         SceneField.load(tmp_path / "bad.npz")
+    np.save(tmp_path / "state.npy", scene.state)  # np.load gives a bare array: no TypeError
+    (tmp_path / "cut.npz").write_bytes(path.read_bytes()[:400])  # no BadZipFile
+    for name in ("state.npy", "cut.npz"):
+        with pytest.raises(ValueError, match=f"{name}: not a .npz archive"):
+            SceneField.load(tmp_path / name)
 
 
 def test_grid_spec_is_the_scene_geometry():

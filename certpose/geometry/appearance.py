@@ -472,6 +472,11 @@ class BuiltObjectModel:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"The object model file {path} does not exist.")
+        import zipfile
+
+        if not zipfile.is_zipfile(path):  # np.load would return a bare array for a .npy file
+            raise ValueError(f"Cannot read {path} as an object model: not a .npz archive "
+                             "(truncated, or another format).")
         try:
             with np.load(path, allow_pickle=False) as data:
                 d = {k: data[k] for k in data.files}

@@ -283,6 +283,11 @@ class SceneField:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"The scene field file {path} does not exist.")
+        import zipfile
+
+        if not zipfile.is_zipfile(path):  # np.load would return a bare array for a .npy file
+            raise ValueError(f"Cannot read a scene field from {path}: not a .npz archive "
+                             "(truncated, or another format).")
         try:
             with np.load(path, allow_pickle=False) as data:
                 backbone = None
@@ -300,7 +305,7 @@ class SceneField:
                     float(data["voxel_size"]), data["origin"], state.shape, data["descriptors"], state,
                     backbone=backbone, frames=tuple(frames),
                 )
-        except (OSError, KeyError, ValueError) as exc:
+        except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
             raise ValueError(f"Cannot read a scene field from {path}: {exc}") from exc
 
     def to_open3d(self) -> Any:

@@ -497,9 +497,23 @@ class PoseDistribution:
 
     @classmethod
     def load(cls, path: str | Path) -> PoseDistribution:
-        """Read a distribution written by :meth:`save`."""
+        """Read a distribution written by :meth:`save`.
+
+        Raises
+        ------
+        ValueError
+            The file is missing, not a ``.npz`` archive (e.g. truncated), lacks a key, or holds
+            invalid particles.
+        """
+        import zipfile
+
         try:
-            data = np.load(path)
+            # np.load returns a bare array for .npy files and leaves a cut archive open.
+            if not Path(path).is_file():
+                raise ValueError("no such file")
+            if not zipfile.is_zipfile(path):
+                raise ValueError("not a .npz archive (truncated, or another format)")
+            data = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as exc:
             raise ValueError(f"Cannot read particle file {str(path)!r}: {exc}") from exc
         with data:
