@@ -195,6 +195,11 @@ def test_cli_pose_demo_baseline_and_plot(tmp_path, capsys, method, label):  # ty
     assert len(PoseDistribution.load(out)) == 300
     data = png.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and struct.unpack(">II", data[16:24]) == (1200, 600)
+    # The demo's exact hidden-handle arc is shaded (light green) on the axis panel.
+    import matplotlib.image
+
+    img = matplotlib.image.imread(str(png))[..., :3]
+    assert np.count_nonzero((img[..., 1] > img[..., 0] + 0.04) & (img[..., 1] > img[..., 2] + 0.04)) > 1000
 
 
 @pytest.mark.slow

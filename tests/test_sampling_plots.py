@@ -100,3 +100,26 @@ def test_bad_input(tmp_path):
         marginal_kde([0.0, np.nan], [1.0, 1.0], [0.0])
     with pytest.raises(ValueError, match="non-empty"):
         marginal_kde([], [], [0.0])
+
+
+def _greenish(path):
+    import matplotlib.image
+
+    img = matplotlib.image.imread(str(path))[..., :3]
+    return int(np.count_nonzero((img[..., 1] > img[..., 0] + 0.04) & (img[..., 1] > img[..., 2] + 0.04)))
+
+
+def test_plot_shades_the_arcs(tmp_path):
+    d, _ = _dist()
+    plain = plot_marginals(d, tmp_path / "plain.png", axis=(0, 0, 1), T_gt=T0)
+    # One arc inside the panel and one across +-180 deg (ending above 180).
+    shaded = plot_marginals(d, tmp_path / "arc.png", axis=(0, 0, 1), T_gt=T0,
+                            arcs=[(-30.0, 20.0), (170.0, 200.0)], arcs_label="handle hidden")
+    assert _greenish(plain) == 0
+    assert _greenish(shaded) > 1000
+    with pytest.raises(ValueError, match="axis"):
+        plot_marginals(d, tmp_path / "x.png", arcs=[(-30.0, 20.0)])
+    with pytest.raises(ValueError, match=r"arcs\[1\]"):
+        plot_marginals(d, tmp_path / "x.png", axis=(0, 0, 1), arcs=[(-30.0, 20.0), (10.0, -10.0)])
+    with pytest.raises(ValueError, match=r"arcs\[0\]"):
+        plot_marginals(d, tmp_path / "x.png", axis=(0, 0, 1), arcs=[(np.nan, 20.0)])

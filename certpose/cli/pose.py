@@ -373,7 +373,17 @@ def _print_distribution(result: object, args: argparse.Namespace) -> None:
         gt = result.T_camera_object_gt  # type: ignore[attr-defined]
         title = (f"{'demo mug' if args.demo else f'{args.frame} {args.object}'}: {method}, "
                  f"{len(dist)} particles" + ("" if gt is None else ", ground truth in red"))
-        plot_marginals(dist, args.plot, axis=axis, T_gt=gt,
+        arcs = None
+        if args.demo:
+            import numpy as np
+
+            from certpose.data.synthetic import make_mug_scene
+
+            # The demo's scene again (the same seed draws it first): its exact hidden arc.
+            sc = make_mug_scene(rng=args.seed)
+            if gt is not None and np.allclose(sc.T_camera_object, gt):
+                arcs = sc.hidden_handle_arc(step=1.0).arcs
+        plot_marginals(dist, args.plot, axis=axis, T_gt=gt, arcs=arcs, arcs_label="handle hidden",
                        T_ref=gt if gt is not None else result.T_camera_object,  # type: ignore[attr-defined]
                        title=title, notes=[f"{ess_kind.split(' of')[0]}: {info['ess']:.0f}",
                                            f"Pareto-k: {_fmt(k, 1, '', 2)}",

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -247,12 +248,17 @@ def plot_marginals(
     notes: list[str] | None = None,
     size: tuple[float, float] = (12.0, 6.0),
     dpi: int = 100,
+    arcs: Sequence[tuple[float, float]] | None = None,
+    arcs_label: str = "hidden arc",
 ) -> Path:
     """Write the marginals of :func:`marginals` as a PNG (``size`` inches at ``dpi``).
 
     Rotation marginals on the top row, translation on the bottom; the ground truth (when
     given) as a red line; with ``axis``, a text panel lists ``notes`` (e.g. the sampler's ESS),
-    the particle count and the modes' masses. Returns the path written.
+    the particle count and the modes' masses, and ``arcs`` (``(start, end)`` pairs, degrees of
+    rotation about ``axis`` from the same reference as the panel, e.g. a
+    :class:`~certpose.model.arc.FreeSpaceArc`'s ``arcs``) are shaded on the axis panel with
+    ``arcs_label``. Returns the path written.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -262,6 +268,15 @@ def plot_marginals(
         raise OSError(f"cannot write plot '{p}': folder '{p.parent}' does not exist.")
     if len(size) != 2 or not all(math.isfinite(s) and s > 0 for s in size):
         raise ValueError(f"Expected `size` to be two positive numbers (inches), got {size}.")
+    spans = []
+    for k, arc in enumerate(arcs or ()):
+        lo, hi = (float(v) for v in arc)
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+            raise ValueError(f"Expected `arcs[{k}]` to be finite degrees (start <= end), got {arc}.")
+        # A run across +-180 deg ends above 180: shade both of its pieces.
+        spans += [(lo, min(hi, 180.0))] + ([(-180.0, hi - 360.0)] if hi > 180.0 else [])
+    if spans and axis is None:
+        raise ValueError("`arcs` are angles about `axis`; give `axis` too.")
     ms = marginals(dist, axis=axis, T_ref=T_ref, T_gt=T_gt)
     ncol = 4 if axis is not None else 3
     fig = Figure(figsize=size, dpi=int(dpi))
@@ -274,6 +289,11 @@ def plot_marginals(
         ax.plot(m.grid, m.density, lw=1.2)
         if m.truth is not None:
             ax.axvline(m.truth, color="red", lw=1.2, label="ground truth")
+        if (r, c) == (0, 3):
+            for k, (lo, hi) in enumerate(spans):
+                ax.axvspan(lo, hi, color="green", alpha=0.15, lw=0, label=arcs_label if k == 0 else None)
+            if spans:
+                ax.legend(loc="upper right", fontsize=8)
         ax.set_xlabel(f"{m.name} ({m.unit})")
         ax.set_yticks([])
     if T_gt is not None:
