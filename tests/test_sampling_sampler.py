@@ -344,3 +344,29 @@ def test_ycbv_mug_mass_in_the_arc_does_not_hang_on_the_seed():
     assert abs(a["mass_in_arc"] - b["mass_in_arc"]) < 0.1, figures
     assert abs(a["mass_other_free"] - b["mass_other_free"]) < 0.1, figures
     assert min(a["mass_in_arc"], b["mass_in_arc"]) > 0.4, figures
+
+
+@pytest.mark.slow
+def test_demo_marginal_about_the_axis_is_uniform_on_the_exact_hidden_arc():
+    # The demo (its mug sampled by its axial symmetry): every turn about the axis that keeps the
+    # handle out of sight gives the scene's image exactly (SyntheticScene.hidden_handle_arc,
+    # rendered), so the rotation about the axis should be uniform on that arc. Measured
+    # 2026-11-26, seeds 0-4: total variation (5 deg bins) 0.060-0.109, 0.89-0.96 of the mass in
+    # the arc (eq. (1) does not see the handle's first 10-15 deg out of hiding, a few mm in
+    # front of the surface behind it); Nevergrad DE 0.42-0.86, MCMC 0.16-0.23. The voxel-averaged
+    # model (object_from_views(revolution=None)) gives seed 1 a TV of 0.48 and covers 0.55 of it.
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    from bench_samplers import demo_problem, free_arc_metrics, tv_uniform
+
+    from certpose.sampling.sampler import sample_pose_distribution
+
+    lik, seeds, gt, arc, centre = demo_problem(1)
+    assert arc.success and arc.arc[1] - arc.arc[0] > 150.0
+    res = sample_pose_distribution(lik, seeds, params=ISParams(resample=10_000), rng=1)
+    assert res.success and res.weighted.ess >= 1000, res.message
+    f = free_arc_metrics(res.distribution, gt, arc, centre)
+    assert f["arc_coverage"] >= 0.95 and f["mass_in_arc"] >= 0.9 and f["axis_ok"] >= 0.95, f
+    assert tv_uniform(res.distribution, gt, arc) < 0.1
