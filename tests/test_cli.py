@@ -212,6 +212,38 @@ def test_register_bad_certificate_options(capsys):  # type: ignore[no-untyped-de
     assert "time_limit" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("argv, names", [
+    (["--demo", "--scope", "rotation"], "--scope concerns the certificate"),
+    (["--demo", "--tol", "0.1", "--time-limit", "5"], "--tol/--time-limit concern the certificate"),
+    (["--demo", "--solver", "sdp", "--prune", "never"], "--prune applies to --solver gnc"),
+    (["--demo", "--weights", "w.npy"], "--weights does not apply to --demo"),
+    (["a.npy", "b.npy", "--noise-bound", "0.1", "--demo-n", "20"], "--demo-n sets the --demo"),
+])
+def test_register_refuses_options_it_would_ignore(capsys, argv, names):  # type: ignore[no-untyped-def]
+    # Each of these ran without the option having any effect (a rotation scope without a
+    # certificate, a demo size for files...).
+    assert main(["register", *argv]) == 2
+    err = capsys.readouterr().err
+    assert names in err and err.count("\n") == 1, err
+
+
+def test_negative_seed_is_refused_by_the_parser(capsys):  # type: ignore[no-untyped-def]
+    # NumPy's own error did not name the option ("expected non-negative integer").
+    for command in (["register", "--demo"], ["pose", "--demo"], ["bench", "--workers", "0"]):
+        with pytest.raises(SystemExit) as info:
+            main([*command, "--seed", "-5"])
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and "argument --seed: must be a non-negative integer" in err
+
+
+def test_register_certificate_options_with_a_certificate(capsys):  # type: ignore[no-untyped-def]
+    # The same options are taken wherever a certificate is computed.
+    assert main(["register", "--demo", "--require-certificate", "--tol", "0.01", "-q"]) == 0
+    assert main(["register", "--demo", "--solver", "sdp", "--scope", "rotation", "--time-limit",
+                 "60", "-q"]) == 0
+    assert capsys.readouterr().err == ""
+
+
 def test_console_script_and_python_m_run_the_same_program(tmp_path):
     import tomllib
 

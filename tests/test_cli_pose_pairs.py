@@ -56,6 +56,15 @@ def test_one_pair_options_refuse_several_pairs(tmp_path, capsys, extra):
     assert "--ycbv" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("extra", [["--frame", "0000/000002"], ["--object", "061_foam_brick"],
+                                   ["--model", "m.xyz"], ["--object-model", "m.npz"]])
+def test_demo_refuses_the_options_of_a_ycbv_frame(capsys, extra):
+    # --demo poses its own mug: a frame, object or model given with it was silently ignored.
+    assert main(["pose", "--demo", *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{extra[0]} needs --ycbv" in err, err
+
+
 def test_pairs_all_absent_fail_and_bad_frame_is_bad_input(tmp_path, capsys):
     root = require_data("ycbv")
     out = tmp_path / "none.json"

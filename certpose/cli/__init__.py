@@ -51,11 +51,22 @@ def add_common(p: argparse.ArgumentParser, *, seed_help: str | None = None,
     g = p.add_argument_group("common options")
     g.add_argument("--json", metavar="OUT", default=None, help=json_help)
     if seed_help is not None:
-        g.add_argument("--seed", type=int, default=0, help=seed_help)
+        g.add_argument("--seed", type=_seed, default=0, help=seed_help)
     g.add_argument("-q", "--quiet", action="store_true",
                    help="print nothing but errors (and the JSON of --json -); no progress bar")
     g.add_argument("-v", "--verbose", action="count", default=0, dest="sub_verbose",
                    help="more logging (-vv: debug); tracebacks on errors")
+
+
+def _seed(text: str) -> int:
+    """--seed's type: NumPy refuses negative seeds ("expected non-negative integer")."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be a non-negative integer, got {value}")
+    return value
 
 
 def say(args: argparse.Namespace, text: str) -> None:

@@ -50,10 +50,10 @@ def add_parser(subparsers: Any) -> None:
     src.add_argument("--demo", action="store_true",
                      help="the embedded synthetic scene: a textureless mug, handle hidden")
     src.add_argument("--ycbv", metavar="DIR", help="YCB-Video folder (with <scene>/ and models/)")
-    p.add_argument("--frame", metavar="SCENE/FRAME", nargs="+", default=["0000/000001"],
+    p.add_argument("--frame", metavar="SCENE/FRAME", nargs="+", default=None,
                    help="YCB-Video frame(s) (default: 0000/000001); with several frames or "
                         "objects, every pair is posed and --json writes a list of payloads")
-    p.add_argument("--object", metavar="NAME", nargs="+", default=["025_mug"],
+    p.add_argument("--object", metavar="NAME", nargs="+", default=None,
                    help="YCB-Video object name(s) (default: 025_mug)")
     p.add_argument("--model", metavar="POINTS", default=None,
                    help="object model points, metres (default: DIR/models/NAME/points.xyz); the "
@@ -139,10 +139,17 @@ def run(args: argparse.Namespace) -> int:
     from certpose.io.output import check_output_path
 
     check_json_output(args)
+    if args.demo:
+        # The demo is its own scene and model: YCB-Video's options would be silently ignored.
+        given = [f"--{opt.replace('_', '-')}" for opt in ("frame", "object", "model", "object_model")
+                 if getattr(args, opt) is not None]
+        if given:
+            raise CLIError(f"{'/'.join(given)} {'need' if len(given) > 1 else 'needs'} --ycbv "
+                           "(--demo poses its own synthetic mug)")
+    args.frame = args.frame or ["0000/000001"]
+    args.object = args.object or ["025_mug"]
     pairs = [(f, o) for f in args.frame for o in args.object]  # frames outer
     if len(pairs) > 1:
-        if args.demo:
-            raise CLIError("--demo poses one scene: several --frame/--object values need --ycbv")
         for opt in ("model", "object_model", "box", "save_problem", "particles", "plot"):
             if getattr(args, opt) is not None:
                 raise CLIError(f"--{opt.replace('_', '-')} concerns one pair: it cannot combine "

@@ -38,23 +38,24 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--solver", choices=("gnc", "sdp"), default="gnc",
                    help="gnc (default) or sdp (the SDP relaxation, with its certificate)")
     p.add_argument("--certify", action="store_true", help="attach an optimality certificate")
-    p.add_argument("--scope", choices=("auto", "full", "pruned", "rotation"), default="auto",
+    p.add_argument("--scope", choices=("auto", "full", "pruned", "rotation"), default=None,
                    help="problem the certificate bounds: auto = the full problem with --certify, "
                         "the rotation (TIM) subproblem with --solver sdp")
-    p.add_argument("--tol", type=float, default=1e-3, help="gap tolerance of the certificate")
+    p.add_argument("--tol", type=float, default=None,
+                   help="gap tolerance of the certificate (default: 0.001)")
     p.add_argument("--time-limit", type=float, default=None, metavar="S",
                    help="seconds the certifier may spend (default: 120 per bound search)")
-    p.add_argument("--prune", choices=("auto", "always", "never"), default="auto",
+    p.add_argument("--prune", choices=("auto", "always", "never"), default=None,
                    help="max-clique pruning before GNC (default: auto)")
     p.add_argument("--require-certificate", action="store_true",
                    help="implies --certify; exit with code 1 unless the pose is certified")
     demo = p.add_argument_group("demo (a built-in synthetic problem with known ground truth)")
     demo.add_argument("--demo", action="store_true", help="run the demo instead of reading files")
-    demo.add_argument("--demo-n", type=int, default=100, metavar="N",
+    demo.add_argument("--demo-n", type=int, default=None, metavar="N",
                       help="correspondences in the demo (default: 100)")
-    demo.add_argument("--demo-outliers", type=float, default=0.8, metavar="R",
+    demo.add_argument("--demo-outliers", type=float, default=None, metavar="R",
                       help="outlier fraction in the demo (default: 0.8)")
-    demo.add_argument("--demo-noise", type=float, default=0.01, metavar="SIGMA",
+    demo.add_argument("--demo-noise", type=float, default=None, metavar="SIGMA",
                       help="inlier noise std in the demo (default: 0.01; beta = 5.54 sigma)")
     add_common(p, seed_help="seed of the --demo instance (default: 0); the solvers are "
                             "deterministic",
@@ -70,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
         args.certify = True
     if sum([bool(args.demo), args.problem is not None, bool(args.source or args.target)]) > 1:
         raise CLIError("give one of SRC DST, --problem FILE or --demo")
+    _check_options(args)
     if args.demo:
         return _run_demo(args)
     if args.problem is not None:
@@ -101,6 +103,33 @@ def run(args: argparse.Namespace) -> int:
         }
         _write_json(args, {"inputs": inputs, "result": result.to_dict()})
     return _exit_code(args, result)
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Refuse options that the rest of the command line would silently ignore; then fill in
+    their defaults."""
+    from certpose.cli import CLIError
+
+    given = [f"--{name.replace('_', '-')}" for name in ("scope", "tol", "time_limit")
+             if getattr(args, name) is not None]
+    if given and not (args.certify or args.require_certificate or args.solver == "sdp"):
+        raise CLIError(f"{'/'.join(given)} {'concern' if len(given) > 1 else 'concerns'} the "
+                       "certificate: add --certify (or "
+                       "--require-certificate, --solver sdp)")
+    if args.prune is not None and args.solver == "sdp":
+        raise CLIError("--prune applies to --solver gnc (the SDP relaxation does not prune)")
+    demo = [f"--{name.replace('_', '-')}" for name in ("demo_n", "demo_outliers", "demo_noise")
+            if getattr(args, name) is not None]
+    if demo and not args.demo:
+        raise CLIError(f"{'/'.join(demo)} {'set' if len(demo) > 1 else 'sets'} the --demo "
+                       "problem: add --demo")
+    if args.demo and args.weights is not None:
+        raise CLIError("--weights does not apply to --demo (its weights are 1)")
+    defaults = {"scope": "auto", "tol": 1e-3, "prune": "auto", "demo_n": 100,
+                "demo_outliers": 0.8, "demo_noise": 0.01}
+    for name, value in defaults.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
 
 
 def kernels(argv: list[str]) -> tuple[str, ...]:
