@@ -168,6 +168,16 @@ def test_bench_cli_errors(capsys):
     assert set(SOLVERS) >= set(PEERS)
 
 
+def test_bench_draws_no_progress_bar_into_a_log(capsys):
+    # stderr captured, as when redirected to a file: the bar's carriage-return updates
+    # ("certpose bench:  17%|...") used to be written there.
+    assert main(["bench", "--n", "10", "--outlier-ratios", "0", "--trials", "2", "--solvers",
+                 "gnc", "--workers", "0"]) == 0
+    captured = capsys.readouterr()
+    assert "gnc" in captured.out
+    assert "certpose bench:" not in captured.err and "\r" not in captured.err, captured.err
+
+
 def test_bench_names_the_extra_when_it_is_missing(monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "tqdm", None)  # as if the bench extra were not installed
     assert main(["bench", "--n", "10", "--trials", "1", "--solvers", "gnc", "--workers", "0"]) == 1

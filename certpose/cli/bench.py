@@ -96,7 +96,7 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--batch-size", type=int, default=None, metavar="K",
                    help="protocol instances per Dask task (default: up to 50, fewer towards "
                         "the end so that the workers finish together)")
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar (shown only when stderr is a terminal)")
     add_common(p, seed_help="instance seed (default: 0)",
                json_help="also write the summary as JSON to OUT ('-': standard output)")
     p.set_defaults(func=run)
@@ -191,7 +191,9 @@ def run(args: argparse.Namespace) -> int:
         shape, shape_name = None, "synthetic"
     try:
         report = run_benchmark(
-            config, shape=shape, shape_name=shape_name, progress=show_progress(args),
+            # A bar's carriage returns only garble a log: no bar when stderr is not a terminal.
+            config, shape=shape, shape_name=shape_name,
+            progress=show_progress(args) and sys.stderr.isatty(),
             out_dir=args.out, resume=args.resume, force=args.force, workers=args.workers,
             scheduler=args.scheduler, batch_size=args.batch_size,
         )
