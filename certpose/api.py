@@ -106,6 +106,9 @@ def register(
         raise ValueError(f"`solver` must be 'gnc' or 'sdp', got {solver!r}.")
     if prune not in ("auto", "always", "never"):
         raise ValueError(f"`prune` must be 'auto', 'always' or 'never', got {prune!r}.")
+    # Checked even without a certificate: a misspelt scope must not pass unnoticed.
+    if scope not in ("auto", "full", "pruned", "rotation"):
+        raise ValueError(f"`scope` must be 'auto', 'full', 'pruned' or 'rotation', got {scope!r}.")
     check_limit(time_limit, "time_limit")
     if check_limit(tol, "tol", allow_none=False) == 0:
         raise ValueError("`tol` must be positive, got 0.")

@@ -102,6 +102,11 @@ def test_bad_parameters():
         GNCParams(mu_factor=1.0)
     with pytest.raises(ValueError, match="`solver`"):
         certpose.register(np.eye(3), np.eye(3), noise_bound=0.1, solver="nope")  # type: ignore
+    # A misspelt scope was accepted whenever no certificate was asked for.
+    for certify in (False, True):
+        with pytest.raises(ValueError, match="`scope` must be"):
+            certpose.register(np.eye(3), np.eye(3), noise_bound=0.1, certify=certify,
+                              scope="rotaton")  # type: ignore
 
 
 def test_register_accepts_open3d_point_clouds(rng):

@@ -110,6 +110,19 @@ def test_bad_weights(weights, match):
         PoseDistribution(R, t, np.array(weights))
 
 
+def test_from_log_weights_and_resample_name_their_argument():
+    R, t = _particles(3)
+    # A length mismatch was reported as one of `weights` (computed inside).
+    with pytest.raises(ValueError, match=r"`log_weights` to have shape \(3,\)"):
+        PoseDistribution.from_log_weights(R, t, np.zeros(5))
+    d = PoseDistribution.from_log_weights(R, t, np.zeros(3))
+    # resample(1.5) drew 1 particle, resample(0) and resample(-1) were refused.
+    for n in (1.5, 0, -1):
+        with pytest.raises(ValueError, match="`n` to be a positive integer"):
+            d.resample(n)
+    assert len(d.resample(np.int64(4), rng=0)) == 4 and len(d.resample(rng=0)) == 3
+
+
 def test_bad_particles():
     R, t = _particles(3)
     with pytest.raises(ValueError, match="non-empty"):

@@ -180,8 +180,9 @@ class PoseDistribution:
     ) -> PoseDistribution:
         """Build from unnormalised log-weights (``-inf`` is refused, NaN is refused)."""
         lw = np.asarray(log_weights, dtype=np.float64)
-        if lw.ndim != 1 or lw.size == 0:
-            raise ValueError(f"Expected `log_weights` to have shape (n,), n > 0, got {lw.shape}.")
+        n = np.shape(rotations)[0] if np.ndim(rotations) else 0
+        if lw.ndim != 1 or lw.size == 0 or lw.size != n:
+            raise ValueError(f"Expected `log_weights` to have shape ({n},), n > 0, got {lw.shape}.")
         if not np.all(np.isfinite(lw)):
             raise ValueError("`log_weights` contains NaN or infinite values.")
         w = np.exp(lw - lw.max())
@@ -230,9 +231,9 @@ class PoseDistribution:
         self, n: int | None = None, *, rng: np.random.Generator | int | None = None
     ) -> PoseDistribution:
         """Systematic resampling to ``n`` equally weighted particles (default: same size)."""
+        if n is not None and (int(n) != n or n <= 0):
+            raise ValueError(f"Expected `n` to be a positive integer, got {n!r}.")
         n = len(self) if n is None else int(n)
-        if n <= 0:
-            raise ValueError(f"Expected `n` > 0, got {n}.")
         rng = np.random.default_rng(rng)
         cdf = np.cumsum(self.weights)
         cdf[-1] = 1.0
