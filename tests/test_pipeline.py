@@ -152,6 +152,21 @@ def test_cli_ycbv_writes_json(tmp_path, capsys):
     assert "certificate: no certificate" in text and "CERTIFIED" not in text
 
 
+@pytest.mark.parametrize("option, name, message", [
+    ("--particles", "p.dat", "--particles {} must end in .npz"),  # NumPy wrote p.dat.npz
+    ("--plot", "m.dat", "--plot {}: unsupported image type 'dat'"),  # failed after the work
+    ("--plot", "m", "--plot {}: unsupported image type '(none)'"),
+])
+def test_cli_pose_output_names_checked_before_the_work(tmp_path, capsys, option, name, message):  # type: ignore[no-untyped-def]
+    from certpose.cli import main
+
+    path = tmp_path / name
+    assert main(["pose", "--demo", "--samples", "50", option, str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message.format(path) in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.slow
 def test_cli_pose_demo_samples_writes_particles(tmp_path, capsys):  # type: ignore[no-untyped-def]
     """`certpose pose --demo --samples N --particles OUT.npz`: N particles of T_camera_object."""

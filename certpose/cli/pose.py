@@ -165,11 +165,14 @@ def run(args: argparse.Namespace) -> int:
     if args.particles is not None:
         if args.samples == 0:
             raise CLIError("--particles needs --samples N")
+        if not args.particles.endswith(".npz"):  # NumPy would append .npz to another name
+            raise CLIError(f"--particles {args.particles} must end in .npz")
         check_output_path(args.particles, what="--particles output")
     if args.plot is not None:
         if args.samples == 0:
             raise CLIError("--plot needs --samples N")
         check_output_path(args.plot, what="--plot output")
+        _check_plot_format(args.plot)
     if args.method != "is" and args.samples == 0:
         raise CLIError("--method needs --samples N")
     if not (math.isfinite(args.voxel_size) and args.voxel_size > 0):
@@ -243,6 +246,21 @@ def run(args: argparse.Namespace) -> int:
               + (f" ({len(pairs) - len(codes)} skipped)" if len(codes) < len(pairs) else ""))
     sys.stdout.flush()
     return 0 if 0 in codes else 1
+
+
+def _check_plot_format(path: str) -> None:
+    """Refuse a --plot file type matplotlib cannot write before the work, not after it."""
+    from certpose.cli import CLIError
+
+    try:
+        from matplotlib.backend_bases import FigureCanvasBase
+    except ImportError:  # plot_marginals names the missing extra
+        return
+    suffix = Path(path).suffix.lower().lstrip(".")
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if suffix not in formats:
+        raise CLIError(f"--plot {path}: unsupported image type {suffix or '(none)'!r}; use one of "
+                       f"{', '.join(sorted(formats))}")
 
 
 def _for_pair(args: argparse.Namespace, frame: str, obj: str) -> argparse.Namespace:
