@@ -192,6 +192,36 @@ def test_bad_input_gives_a_clear_error():
         object_from_points(good, FPFHBackbone(), voxel_size=VS, sampling="voxel", area_weights="equal")
 
 
+def test_model_points_in_millimetres_are_refused_before_the_work(tmp_path, capsys):
+    # YCB/BOP meshes come in millimetres: the mug's points x 1000 made open3d allocate 4e9
+    # surface samples (`certpose pose: error: std::bad_alloc`, exit 1, after the scene was
+    # built), and `object build`'s voxel model blamed the views' poses.
+    from certpose.cli import main
+    from certpose.geometry.objects import MAX_SURFACE_SAMPLES
+    from certpose.io.ycbv import load_model_points
+    from tests.conftest import require_data
+
+    root = require_data("ycbv", "0000").parent
+    mug = load_model_points(root / "models" / "025_mug" / "points.xyz")
+    for sampling in ("surface", "voxel"):
+        with pytest.raises(ValueError, match=r"span 116 m, 23194 voxels .* must be in metres"):
+            object_from_points(mug * 1000.0, FPFHBackbone(), voxel_size=0.005, sampling=sampling)
+    # Within the span limit, a surface that would take too many samples (refused before
+    # open3d allocates them; here by the density, 1.2 million samples).
+    with pytest.raises(ValueError, match=rf"more than {MAX_SURFACE_SAMPLES}: are the points in metres"):
+        sample_surface(mug, voxel_size=0.005, density=1000.0)
+    mm = tmp_path / "mug_mm.xyz"
+    np.savetxt(mm, mug * 1000.0)
+    for argv in (["pose", "--ycbv", str(root), "--model", str(mm)],
+                 ["object", "build", "--ycbv", str(root), "--object", "025_mug", "--views",
+                  "0000/000001", "--model", str(mm), "-o", str(tmp_path / "m.npz")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "must be in metres" in err, err
+    # The metre model still builds.
+    assert len(object_from_points(mug, FPFHBackbone(), voxel_size=0.005, sampling="voxel")) > 0
+
+
 def test_object_model_areas_are_validated_and_kept_by_subsample():
     rng = np.random.default_rng(0)
     pts = rng.normal(scale=0.02, size=(200, 3))

@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from certpose.geometry.features import FPFHBackbone
-from certpose.geometry.objects import ObjectModel, _oriented_normals, sample_surface
+from certpose.geometry.objects import ObjectModel, _check_metres, _oriented_normals, sample_surface
 from certpose.geometry.rgbd import check_mask, normalize_rows
 from solvers.validation import as_float_array, check_points, check_transform
 
@@ -568,6 +568,7 @@ def object_from_posed_views(
     if sampling not in ("voxel", "surface"):
         raise ValueError(f"`sampling` must be 'voxel' or 'surface', got {sampling!r}.")
     pts = check_points(points, "points", min_points=5)
+    _check_metres(pts, vs)
     areas = None
     if sampling == "surface":
         p, normals, areas = sample_surface(pts, voxel_size=vs, rng=0)

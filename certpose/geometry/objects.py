@@ -214,6 +214,21 @@ def _voronoi_areas(mesh: Any, points: NDArray[np.float64], samples: NDArray[np.f
 #: Fewest input points :func:`sample_surface` reconstructs a surface from.
 MIN_SURFACE_POINTS = 20
 
+#: Most samples :func:`sample_surface` draws (a 40 x 40 x 40 cm box at 5 mm: about 77,000).
+MAX_SURFACE_SAMPLES = 1_000_000
+
+#: Largest side of an object model in voxels (25 m at 5 mm): beyond, the points are taken for
+#: millimetres (YCB and BOP meshes are), which ran out of memory or into a meaningless model.
+MAX_OBJECT_VOXELS = 5000
+
+
+def _check_metres(pts: NDArray[np.float64], vs: float) -> None:
+    extent = float(np.ptp(pts, axis=0).max())
+    if extent > MAX_OBJECT_VOXELS * vs:
+        raise ValueError(
+            f"`points` span {extent:.4g} m, {extent / vs:.0f} voxels of {vs:g} m: model points "
+            "must be in metres (millimetres? multiply them by 0.001).")
+
 
 def sample_surface(
     points: ArrayLike,
@@ -322,6 +337,11 @@ def sample_surface(
     if not area > 0:
         raise ValueError("The surface reconstruction of `points` is empty: too few or too scattered points.")
     n_draw = max(int(math.ceil(dens * area / vs**2)), 1)
+    if n_draw > MAX_SURFACE_SAMPLES:  # open3d would try to allocate them all (std::bad_alloc)
+        raise ValueError(
+            f"The surface of `points` ({area:.4g} m^2, extent {extent:.4g} m) would take "
+            f"{n_draw} samples at voxel_size {vs:g} m and density {dens:g}, more than "
+            f"{MAX_SURFACE_SAMPLES}: are the points in metres?")
     gen = resolve_rng(rng)
     o3d.utility.random.seed(int(gen.integers(2**31 - 1)))
     mesh.compute_triangle_normals()
@@ -459,6 +479,7 @@ def object_from_points(
         raise ValueError("`revolution` applies to sampling='surface'.")
     pts = check_points(points, "points", min_points=3)
     vs = _check_voxel_size(voxel_size)
+    _check_metres(pts, vs)
     if sampling == "surface":
         p, normals, areas = sample_surface(pts, voxel_size=vs, density=density, rng=rng,
                                            area_weights=area_weights or "voronoi")
