@@ -232,6 +232,14 @@ def test_group_voxels_matches_unique_rows():
     rows, inverse, counts = group_voxels(far)
     np.testing.assert_array_equal(rows[inverse], far)
     assert counts.tolist() == [2, 1] and group_voxels(np.zeros((0, 3), int))[0].shape == (0, 3)
+    # Dense keys (counted per cell) and sparse ones (sorted): np.unique's results either way.
+    for spread, n in ((3, 20_000), (1000, 50), (60, 3000)):
+        keys = rng.integers(-spread, spread, size=(n, 3))
+        rows, inverse, counts = group_voxels(keys)
+        ref_rows, ref_inv, ref_counts = np.unique(keys, axis=0, return_inverse=True,
+                                                  return_counts=True)
+        assert np.array_equal(rows, ref_rows) and np.array_equal(counts, ref_counts)
+        assert np.array_equal(inverse, ref_inv.reshape(-1)) and inverse.dtype == np.int64
 
 
 def test_voxel_downsample_means():

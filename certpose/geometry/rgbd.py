@@ -103,7 +103,18 @@ def group_voxels(
         return rows, inverse.reshape(-1), counts
     # Rows encoded as flat indices (lexicographic order kept): a 1-D np.unique is much faster.
     flat = np.ravel_multi_index((keys - lo).T, span)
-    uniq, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    size = int(np.prod(span))
+    if size <= min(1 << 22, 64 * keys.shape[0]):
+        # Few cells for the keys (a frame's points around a scene's grid): counting per cell
+        # gives np.unique's three results without its sort (measured: 18 -> 3 ms, 100k keys).
+        per_cell = np.bincount(flat, minlength=size)
+        uniq = np.flatnonzero(per_cell)
+        counts = per_cell[uniq]
+        rank = np.zeros(size, dtype=np.int64)
+        rank[uniq] = np.arange(uniq.size)
+        inverse = rank[flat]
+    else:
+        uniq, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
     rows = np.stack(np.unravel_index(uniq, span), axis=1).astype(np.int64) + lo
     return rows, inverse.reshape(-1), counts
 

@@ -450,7 +450,9 @@ def build_scene_field(
     for f in frames:
         p_cam, px = f.backproject(mask=False)
         R, t = f.T_world_camera[:3, :3], f.T_world_camera[:3, 3]
-        clouds.append((p_cam, p_cam @ R.T + t, px))
+        # The camera is often the world (one frame): p @ I + 0 == p, bit for bit.
+        identity = np.array_equal(f.T_world_camera, np.eye(4))
+        clouds.append((p_cam, p_cam if identity else p_cam @ R.T + t, px))
 
     if bounds is None:
         sel = []
