@@ -254,6 +254,28 @@ def test_fpfh_kernels_compute_open3d_s_normals_and_fpfh():
     assert np.array_equal(d_keep.astype(np.float32), d_ref[keep])
 
 
+def test_fpfh_while_its_kernels_compile_is_open3d_s(monkeypatch):
+    """A first run's scene, while the warm-up compiles the kernels, gets open3d's histograms:
+    the kernels' numbers (synthetic surface: every bit; given normals; the tangent-plane
+    orientation of models)."""
+    import certpose.geometry.features as F
+
+    rng = np.random.default_rng(11)
+    p = _sphere(2000, rng, radius=0.05) + rng.normal(scale=5e-4, size=(2000, 3)) + [0, 0, 0.6]
+    rows = np.array([3, 1999, 0])
+    for bb, normals in ((FPFHBackbone(radius=0.02), None), (FPFHBackbone(radius=0.02), _sphere_normals(p)),
+                        (FPFHBackbone(radius=0.02, viewpoint=None), None)):
+        kernel = bb.histograms(p, normals=normals, rows=rows)
+        monkeypatch.setattr("solvers.jit.pending", lambda: [F._FPFH_KERNELS])
+
+        def not_now(*args, **kwargs):
+            raise AssertionError("the kernels were called while they compile")
+
+        monkeypatch.setattr(FPFHBackbone, "_kernel_fpfh", not_now)
+        assert np.array_equal(bb.histograms(p, normals=normals, rows=rows), kernel)
+        monkeypatch.undo()
+
+
 def test_fpfh_given_normals_and_rows():
     rng = np.random.default_rng(3)
     p = _sphere(800, rng)

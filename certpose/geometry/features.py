@@ -70,6 +70,8 @@ class FeatureBackbone(Protocol):
         ...
 
 
+_FPFH_KERNELS = "certpose.geometry._fpfh_kernels"
+
 # Sub-histograms of open3d's 33-bin FPFH (three angle features, 11 bins each).
 _FPFH_BLOCKS = 3
 _FPFH_BINS = 11
@@ -160,17 +162,36 @@ class FPFHBackbone:
 
         Normals oriented towards ``viewpoint`` and the FPFH are computed by
         :mod:`certpose.geometry._fpfh_kernels` (open3d's computation, without its import);
-        ``viewpoint=None`` orients the normals with open3d's tangent-plane graph.
+        ``viewpoint=None`` orients the normals with open3d's tangent-plane graph. While a
+        first run's warm-up compiles those kernels (:func:`solvers.jit.warm_up`), open3d
+        computes the same numbers instead.
         """
-        from solvers.jit import compiled
+        from solvers.jit import pending
 
         p = np.ascontiguousarray(check_points(points, "points", min_points=5), dtype=np.float64)
         n = p.shape[0]
         sel = np.arange(n, dtype=np.int64) if rows is None else np.asarray(rows, dtype=np.int64).reshape(-1)
         if sel.size and (sel.min() < 0 or sel.max() >= n):
             raise ValueError(f"`rows` must index the {n} points, got values in [{sel.min()}, {sel.max()}].")
-        kernels = compiled("certpose.geometry._fpfh_kernels")
         nr = self.normal_radius if self.normal_radius is not None else self.radius / 2
+        if _FPFH_KERNELS in pending():
+            # A first run: a warm-up helper is compiling the kernels (seconds, once); open3d
+            # computes the same numbers meanwhile.
+            h = self._open3d_fpfh(p, normals, nr)[sel]
+        else:
+            h = self._kernel_fpfh(p, normals, nr, sel)
+        h = h.reshape(sel.size, _FPFH_BLOCKS, _FPFH_BINS)
+        total = h.sum(axis=2, keepdims=True)
+        # Isolated points get an all-zero histogram: they stay zero (similar to nothing).
+        h = np.sqrt(np.divide(h, total, out=np.zeros_like(h), where=total > 0))
+        return h.reshape(sel.size, -1)
+
+    def _kernel_fpfh(self, p: NDArray[np.float64], normals: ArrayLike | None, nr: float,
+                     sel: NDArray[np.int64]) -> NDArray[np.float64]:
+        """Raw FPFH (len(sel), 33) by :mod:`certpose.geometry._fpfh_kernels`."""
+        from solvers.jit import compiled
+
+        kernels = compiled(_FPFH_KERNELS)
         if normals is not None:
             nm = check_points(normals, "normals")
             if nm.shape != p.shape:
@@ -182,13 +203,31 @@ class FPFHBackbone:
                                          np.asarray(self.viewpoint, dtype=np.float64))
         else:
             nm = self._consistent_normals(p, nr)
-        h = kernels.fpfh(p, np.ascontiguousarray(nm, dtype=np.float64), float(self.radius),
-                         int(self.max_nn), float(nr), np.ascontiguousarray(sel))
-        h = h.reshape(sel.size, _FPFH_BLOCKS, _FPFH_BINS)
-        total = h.sum(axis=2, keepdims=True)
-        # Isolated points get an all-zero histogram: they stay zero (similar to nothing).
-        h = np.sqrt(np.divide(h, total, out=np.zeros_like(h), where=total > 0))
-        return h.reshape(sel.size, -1)
+        return kernels.fpfh(p, np.ascontiguousarray(nm, dtype=np.float64), float(self.radius),
+                            int(self.max_nn), float(nr), np.ascontiguousarray(sel))
+
+    def _open3d_fpfh(self, p: NDArray[np.float64], normals: ArrayLike | None,
+                     nr: float) -> NDArray[np.float64]:
+        """Raw FPFH (N, 33) by open3d (the kernels' numbers, while they compile)."""
+        import open3d as o3d
+
+        if normals is not None:
+            nm = check_points(normals, "normals")
+            if nm.shape != p.shape:
+                raise ValueError(f"Expected `normals` to have shape {p.shape}, got {nm.shape}.")
+            nm = normalize_rows(nm)
+        elif self.viewpoint is None:
+            nm = self._consistent_normals(p, nr)
+        else:
+            pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+            pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=nr, max_nn=30))
+            pcd.orient_normals_towards_camera_location(np.asarray(self.viewpoint))
+            nm = np.asarray(pcd.normals)
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+        pcd.normals = o3d.utility.Vector3dVector(np.array(nm))
+        fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+            pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=self.radius, max_nn=int(self.max_nn)))
+        return np.array(np.asarray(fpfh.data).T)
 
     @staticmethod
     def _consistent_normals(p: NDArray[np.float64], radius: float) -> NDArray[np.float64]:
