@@ -46,11 +46,13 @@ __all__ = ["KernelSpec", "compiled", "declared", "is_cached", "kernel", "pending
 
 @dataclass(frozen=True)
 class KernelSpec:
-    """A declared kernel: its module, name and numba argument types."""
+    """A declared kernel: its module, name and numba argument types; ``deferred``: its callers
+    do without it while a warm-up compiles it (see :func:`kernel`)."""
 
     module: str
     name: str
     signature: tuple[Any, ...]
+    deferred: bool = False
 
     def dispatcher(self) -> Any:
         return getattr(importlib.import_module(self.module), self.name)
@@ -59,7 +61,8 @@ class KernelSpec:
 _REGISTRY: dict[str, list[KernelSpec]] = {}
 
 
-def kernel(*signature: Any, **options: Any) -> Callable[[Callable[..., Any]], Any]:
+def kernel(*signature: Any, deferred: bool = False,
+           **options: Any) -> Callable[[Callable[..., Any]], Any]:
     """``numba.njit(cache=True, **options)`` with its one signature declared.
 
     Parameters
@@ -67,6 +70,11 @@ def kernel(*signature: Any, **options: Any) -> Callable[[Callable[..., Any]], An
     *signature : numba types
         The argument types the callers pass (e.g. ``numba.types.float64[:, ::1]`` for a
         C-contiguous, writable (N, 3) array).
+    deferred : bool
+        Its callers have another way to the same result while it is not compiled (they check
+        :func:`pending` for its module): a warm-up's helper compiles it after the others, and
+        a command waiting for the others never compiles it meanwhile, so a first run does not
+        pay its compilation.
     **options
         Further ``njit`` options (``fastmath``, ``nogil``, ...).
     """
@@ -75,7 +83,7 @@ def kernel(*signature: Any, **options: Any) -> Callable[[Callable[..., Any]], An
     def wrap(fn: Callable[..., Any]) -> Any:
         dispatcher = njit(cache=True, **options)(fn)
         _REGISTRY.setdefault(fn.__module__, []).append(
-            KernelSpec(fn.__module__, fn.__name__, tuple(signature)))
+            KernelSpec(fn.__module__, fn.__name__, tuple(signature), bool(deferred)))
         return dispatcher
 
     return wrap
@@ -166,7 +174,7 @@ def warm_up(kernels: Sequence[str], *, preload: bool = False) -> int:
     ----------
     kernels : sequence of str
         ``"module"`` (all its declared kernels) or ``"module:name"`` (one of them), in the order
-        the command will need them.
+        the command will need them (the helper takes the ``deferred`` ones last).
     preload : bool
         Also load the cached ones from numba's disk cache, in a thread of this process, in the
         order the command will need them (the back of ``kernels`` first, as :func:`wait` takes
@@ -186,6 +194,7 @@ def warm_up(kernels: Sequence[str], *, preload: bool = False) -> int:
             raise ValueError(f"no declared kernel {item!r}")
         specs.extend(found)
     cold = [s for s in specs if not is_cached(s)]
+    cold = [s for s in cold if not s.deferred] + [s for s in cold if s.deferred]
     if preload:
         _preload([s for s in specs[::-1] if s not in cold])
     if not cold:
@@ -268,7 +277,7 @@ def _wait(wanted: set[str] | None) -> None:
             continue
         t0 = time.perf_counter()
         mine = _compile(specs[::-1], item.lock_dir)
-        later = [s for s in item.specs[::-1] if s not in specs]
+        later = [s for s in item.specs[::-1] if s not in specs and not s.deferred]
         # The helper's: numba writes the data file, then the index (each atomically).
         while not all(is_cached(s) for s in specs):
             if item.proc is None or item.proc.poll() is not None:

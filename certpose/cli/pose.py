@@ -116,20 +116,20 @@ def _fmt(x: float | None, scale: float = 1.0, unit: str = "", digits: int = 2) -
 
 
 def kernels(argv: list[str]) -> tuple[str, ...]:
-    """The compiled kernels of the scene's FPFH, eq. (1), the eq. (2) solve and its certificate:
-    on a first run they compile meanwhile (read from the raw arguments). Longest compilations
-    first: the warm-up's helper takes the front, the command the back. The FPFH's come first:
-    while they compile, the scene's FPFH is open3d's (the same numbers,
-    :meth:`~certpose.geometry.features.FPFHBackbone.histograms`), and the command compiles
-    the MLE's itself."""
+    """The compiled kernels of eq. (1), the eq. (2) solve and its certificate, and the scene's
+    FPFH: on a first run they compile meanwhile (read from the raw arguments). Longest
+    compilations first: the warm-up's helper takes the front, the command the back. The FPFH's
+    are deferred (the helper compiles them last; until they are, the scene's FPFH is open3d's,
+    the same numbers) and last: a warm cache is preloaded from the back, and the scene needs
+    them first."""
     from solvers.certify import CERTIFY_KERNELS
     from solvers.registration import PRUNED_SOLVE_KERNELS
 
     certify = () if "--no-certify" in argv else CERTIFY_KERNELS
-    return ("certpose.geometry._fpfh_kernels:normals_towards", "certpose.geometry._fpfh_kernels:fpfh",
-            PRUNED_SOLVE_KERNELS[0], *certify, "solvers.registration._kernels:max_clique_bnb",
+    return (PRUNED_SOLVE_KERNELS[0], *certify, "solvers.registration._kernels:max_clique_bnb",
             *PRUNED_SOLVE_KERNELS[1:], "solvers._linalg_kernels:rotvec_matrices",
-            "certpose.model._kernels:eq1_batch")
+            "certpose.model._kernels:eq1_batch", "certpose.geometry._fpfh_kernels:fpfh",
+            "certpose.geometry._fpfh_kernels:normals_towards")
 
 
 def run(args: argparse.Namespace) -> int:

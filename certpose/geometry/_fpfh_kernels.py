@@ -10,6 +10,10 @@ order may differ: 1e-16 relative on their histograms). Being here rather than in
 a ``certpose pose`` run open3d's import (about 0.3 s of a 2 s call on this project's machine),
 and the FPFH of only the points asked for (``rows``) is computed.
 
+The kernels are ``deferred`` (:func:`solvers.jit.kernel`): they take long to compile (about
+as long as all of eq. (1)'s), so while a first run's warm-up compiles them,
+:class:`~certpose.geometry.features.FPFHBackbone` calls open3d instead.
+
 Neighbours are found on a uniform grid of cell side ``cell`` (no k-d tree): those strictly
 within ``radius`` (squared distance ``< radius**2``, summed as ``(dx*dx + dy*dy) + dz*dz``, as
 open3d's k-d tree does), the ``max_nn`` nearest, nearest first (ties in grid order).
@@ -223,7 +227,7 @@ def _smallest_eigenvector(C, A):  # pragma: no cover
     return 0.0, 0.0, 1.0
 
 
-@kernel(F2, f8, i8, f8, F1, nogil=True)
+@kernel(F2, f8, i8, f8, F1, nogil=True, deferred=True)
 def normals_towards(points, radius, max_nn, cell, viewpoint):  # pragma: no cover - compiled
     """Unit normals (N, 3) of ``points`` (N, 3): the smallest principal axis of the covariance of
     each point's hybrid neighbours (identity covariance with fewer than 3), oriented towards
@@ -327,7 +331,7 @@ def _bin(x):  # pragma: no cover
     return h
 
 
-@kernel(F2, F2, f8, i8, f8, I1, nogil=True)
+@kernel(F2, F2, f8, i8, f8, I1, nogil=True, deferred=True)
 def fpfh(points, normals, radius, max_nn, cell, rows):  # pragma: no cover - compiled
     """FPFH histograms (len(rows), 33) of ``points[rows]`` (open3d's 0..200 scale, unnormalised)
     over all ``points`` (N, 3) with unit ``normals`` (N, 3)."""
