@@ -27,6 +27,13 @@ interleaved figures compare code.
 (9758705) and the deferred NumPy tool packages (3b1f607): cold ``register --demo`` 3.26 / 3.33 s
 (5.84 CPU s), ``pose --demo`` 6.75 / 6.76 s (12.49 CPU s); warm 0.62 / 0.63 and 2.53 / 2.54 s.
 
+2026-11-26, loaded (load 4-7, other sessions' jobs), ``--commands pose``, one cold + one warm run
+each, interleaved with the code before the scene's FPFH kernels (certpose.geometry._fpfh_kernels):
+cold CPU s 14.3-19.2 before (4 runs), 20.2-23.7 with the kernels compiled first by the helper (3
+runs), 15.6 / 16.3 with them deferred (2 runs; the walls, 11-46 s, say only how loaded the machine
+was). The warm run after a cold one then still compiles them in its helper (8.9 / 9.9 CPU s
+against 5.2-6.1): the deferred kernels' compilation moves from the first run to the next.
+
 usage::
 
     python examples/bench_cold_start.py               # both commands, 1 cold + 1 warm run each
