@@ -254,6 +254,26 @@ def test_cli_pose_particles_need_samples(tmp_path, capsys):  # type: ignore[no-u
                  str(tmp_path / "missing" / "p.npz")]) == 2
 
 
+@pytest.mark.slow  # two MLEs
+def test_a_box_with_almost_no_evidence_is_warned_about(caplog):
+    # A 5 x 5 pixel box at the image's corner: 2 positives for the mug's 2288 model points,
+    # a pose 43 cm off that still converges (the status is the MLE's, not a judgement of the
+    # evidence); the log says how little it rests on. A real box does not warn.
+    import logging
+
+    root = require_data("ycbv", "0000", "000001-box.txt").parents[1]
+    with caplog.at_level(logging.WARNING, logger="certpose.estimation.mle"):
+        res = run_ycbv(root, "0000/000001", "025_mug", classifier="best_buddies", box=(0, 0, 5, 5))
+    warned = [r.getMessage() for r in caplog.records if "little evidence" in r.getMessage()]
+    assert len(warned) == 1 and "only 2 occupied voxel(s)" in warned[0], warned
+    assert res.errors.add_s > 0.1  # the pose it warns about is wrong
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="certpose.estimation.mle"):
+        res = run_ycbv(root, "0000/000001", "025_mug", classifier="best_buddies")
+    assert not [r for r in caplog.records if "little evidence" in r.getMessage()]
+    assert res.errors.add_s < 0.01
+
+
 def test_box_only_bad_input_is_refused_before_any_work(tmp_path, capsys):
     root = require_data("ycbv", "0000", "000001-box.txt").parents[1]
     with pytest.raises(ValueError, match="x1 > x0"):
