@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import subprocess
 import sys
@@ -17,6 +18,7 @@ from certpose.io.points import load_bunny
 from solvers.lie import rotation_error_deg, transform_points
 from tests.conftest import require_data, strict_json
 
+ROOT = Path(__file__).resolve().parents[1]
 SIGMA = 0.01
 BETA = 5.54 * SIGMA
 
@@ -242,6 +244,51 @@ def test_register_certificate_options_with_a_certificate(capsys):  # type: ignor
     assert main(["register", "--demo", "--solver", "sdp", "--scope", "rotation", "--time-limit",
                  "60", "-q"]) == 0
     assert capsys.readouterr().err == ""
+
+
+def _documented_command_lines() -> list[str]:
+    """Every `certpose ...` line of the README's shell blocks and of the commands' --help
+    examples (continuation lines joined, comments cut; optional [...] parts kept, lines with
+    alternatives a|b skipped)."""
+    import re
+
+    from certpose.cli import build_parser
+
+    texts = re.findall(r"```bash\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    n_readme = len(texts)
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, command in sub.choices.items():
+        texts.append(command.format_help())
+        if name == "object":
+            texts.append(command._subparsers._group_actions[0].choices["build"].format_help())
+    lines = []
+    for k, text in enumerate(texts):
+        readme = k < n_readme
+        for line in text.replace("\\\n", " ").splitlines():
+            line = line.split("  #")[0].strip()
+            if readme and "certpose " in line:  # e.g. "pip install ... && certpose pose --demo"
+                line = line[line.find("certpose "):]
+            if (line.startswith("certpose ") and "|" not in line and "..." not in line
+                    and "`" not in line and "[-h]" not in line):
+                lines.append(line.replace("[", "").replace("]", ""))
+    return lines
+
+
+def test_documented_command_lines_parse():
+    # The README and the --help examples cannot name an option the parser lost or renamed.
+    import shlex
+
+    from certpose.cli import build_parser
+
+    lines = _documented_command_lines()
+    assert len(lines) >= 20 and any("object build" in x for x in lines)
+    for line in lines:
+        argv = shlex.split(line)[1:]
+        try:
+            build_parser(argv[0]).parse_args(argv)
+        except SystemExit as exc:  # argparse's error (exit 2), printed above
+            raise AssertionError(f"documented command does not parse: {line}") from exc
 
 
 def test_console_script_and_python_m_run_the_same_program(tmp_path):
