@@ -72,9 +72,10 @@ def kernel(*signature: Any, deferred: bool = False,
         C-contiguous, writable (N, 3) array).
     deferred : bool
         Its callers have another way to the same result while it is not compiled (they check
-        :func:`pending` for its module): a warm-up's helper compiles it after the others, and
-        a command waiting for the others never compiles it meanwhile, so a first run does not
-        pay its compilation.
+        :func:`pending` for its module): a warm-up's helper compiles it after the others, a
+        command waiting for the others never compiles it meanwhile, and at exit the command
+        waits for a helper left with deferred kernels only (instead of stopping it), so the
+        first run pays only what is left of their compilation when its own work is done.
     **options
         Further ``njit`` options (``fastmath``, ``nogil``, ...).
     """
@@ -307,12 +308,17 @@ def _finish(item: _Warming) -> None:
 
 def _abandon() -> None:
     """At exit: stop helpers whose kernels were never needed (numba writes its cache files
-    atomically, so a stopped helper leaves no partial entry) and remove their lock folders."""
+    atomically, so a stopped helper leaves no partial entry) and remove their lock folders.
+    A helper left with deferred kernels only (the others cached) is waited for instead: no
+    caller ever compiles those, and stopped at the end of every (short) run they never would be."""
     while _PENDING:
         item = _PENDING.pop()
         if item.proc is not None and item.proc.poll() is None:
-            item.proc.terminate()
-            item.proc.wait()
+            if all(s.deferred or is_cached(s) for s in item.specs):
+                item.proc.wait()
+            else:
+                item.proc.terminate()
+                item.proc.wait()
         shutil.rmtree(item.lock_dir, ignore_errors=True)
 
 

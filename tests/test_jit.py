@@ -144,6 +144,25 @@ def test_unneeded_warm_up_is_stopped_at_exit(tmp_path):
         os.kill(out["pid"], 0)
 
 
+@pytest.mark.slow
+def test_deferred_kernels_compile_by_the_end_of_a_run(tmp_path):
+    """A run that ends while its helper compiles deferred kernels only waits for it: stopped at
+    the end of every run, they would never be compiled (each run shorter than them)."""
+    code = """
+        import json
+        from solvers import jit
+        names = ["certpose.geometry._fpfh_kernels:fpfh"]
+        specs = [s for s in jit.declared(["certpose.geometry._fpfh_kernels"]) if s.name == "fpfh"]
+        print(json.dumps({"started": jit.warm_up(names), "deferred": specs[0].deferred,
+                          "pending": jit.pending()}))
+    """
+    first = _run(code, tmp_path)
+    assert first["started"] == 1 and first["deferred"]
+    assert first["pending"] == ["certpose.geometry._fpfh_kernels"]
+    second = _run(code, tmp_path)
+    assert second["started"] == 0 and second["pending"] == []
+
+
 def test_commands_warm_what_they_will_call():
     from certpose.cli import pose, register
     from solvers.certify import CERTIFY_KERNELS
