@@ -428,6 +428,10 @@ class MLEStatus(str, Enum):
     """A pose maximising eq. (1) locally, best of the hypotheses tried."""
     NO_OBJECT_EVIDENCE = "no_object_evidence"
     """The classifier marked no voxel as the object: there is nothing to localise."""
+    LITTLE_EVIDENCE = "little_evidence"
+    """The classifier marked fewer than :data:`LITTLE_EVIDENCE` voxels per model point as the
+    object: the search ran and its pose is returned, but it rests on too little to trust (a
+    5-pixel box: 2 voxels for 2,288 points, a pose 43 cm off)."""
 
     @property
     def success(self) -> bool:
@@ -1095,18 +1099,22 @@ def _modes(search: _Search, best: Hypothesis, object_model: ObjectModel) -> tupl
 #: (geometry-only models): 0.136-0.351 (the tomato soup can least); best buddies inside
 #: box.txt's boxes: 0.137 (the mug, 0000/000001) and 0.23-0.25 (the potted meat can on 0049 with
 #: a model from 0002's views). A 5 x 5 pixel box on 0000/000001 gave 2 positives for the mug's
-#: 2288 points (0.0009) and a pose 43 cm off, reported as converged. A warning only: the pose,
-#: its status and every default are unchanged.
+#: 2288 points (0.0009) and a pose 43 cm off. Below it the search still runs and returns its
+#: pose, with the status :attr:`MLEStatus.LITTLE_EVIDENCE` (not a success) and a warning.
 LITTLE_EVIDENCE = 0.02
 
 
-def _warn_if_little_evidence(classification: ObjectClassification, object_model: ObjectModel) -> None:
+def _little_evidence(classification: ObjectClassification, object_model: ObjectModel) -> str | None:
+    """The message (also logged as a warning) when the pose would rest on little evidence."""
     n_pos = int(np.count_nonzero(classification.positive))
     n_model = len(object_model)
-    if n_pos < LITTLE_EVIDENCE * n_model:
-        log.warning("only %d occupied voxel(s) classified as the object for a model of %d points "
-                    "(%.4f per point; real frames give 0.13-0.35): the pose rests on little "
-                    "evidence", n_pos, n_model, n_pos / max(n_model, 1))
+    if n_pos >= LITTLE_EVIDENCE * n_model:
+        return None
+    msg = (f"only {n_pos} occupied voxel(s) classified as the object for a model of {n_model} "
+           f"points ({n_pos / max(n_model, 1):.4f} per point, under {LITTLE_EVIDENCE:g}; real "
+           "frames give 0.13-0.35): the pose rests on little evidence")
+    log.warning("%s", msg)
+    return msg
 
 
 def estimate_mle(
@@ -1147,7 +1155,7 @@ def estimate_mle(
     if not classification.success:
         return MLEResult(np.eye(4), float("nan"), "none", None, float("nan"), float("nan"), None,
                          0, {}, MLEStatus.NO_OBJECT_EVIDENCE, classification.message)
-    _warn_if_little_evidence(classification, object_model)
+    little = _little_evidence(classification, object_model)
 
     search = _build_likelihoods(scene, classification, object_model, params, lparams, gen)
     timings = search.timings
@@ -1250,8 +1258,11 @@ def estimate_mle(
                 + ", ".join(f"{m.rotation_from_best_deg:.0f}" for m in modes[1:])
                 + " deg from the best)")
     log.info("MLE: %s", msg)
+    status = MLEStatus.CONVERGED
+    if little is not None:
+        status, msg = MLEStatus.LITTLE_EVIDENCE, f"{little}; {msg}"
     return MLEResult(best.pose, float(best.score), best.source, eq2_result, eq2_ll,
-                     eq2_refined_ll, cert, int(search.n_eval), timings, MLEStatus.CONVERGED, msg,
+                     eq2_refined_ll, cert, int(search.n_eval), timings, status, msg,
                      tuple(finals), modes, eq2)
 
 
