@@ -189,6 +189,9 @@ def test_cli_pose_demo_samples_writes_particles(tmp_path, capsys):  # type: igno
     # its axis, so compare positions).
     assert np.median(np.linalg.norm(dist.translations - T[:3, 3], axis=1)) < 0.02
     assert payload["sampling"]["particles"] == 500 and payload["sampling"]["ess"] > 0
+    # The demo has no YCB-Video frame or object (their defaults do not apply).
+    assert payload["input"]["demo"] is True
+    assert payload["input"]["frame"] is None and payload["input"]["object"] is None
 
 
 @pytest.mark.slow

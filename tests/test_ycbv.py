@@ -86,6 +86,9 @@ def test_missing_files_are_named(root, tmp_path):
         load_ycbv_frame(root, "0000/999999")
     with pytest.raises(FileNotFoundError, match="nowhere"):
         load_ycbv_frame(tmp_path / "nowhere")
+    for bad in ("0000", "0000/", "/000001", "0000/000001/x"):  # not <scene>/<frame>
+        with pytest.raises(ValueError, match="<scene>/<frame>"):
+            load_ycbv_frame(root, bad)
     # A frame folder lacking only its meta.mat (links to the real files, nothing copied).
     (tmp_path / "0000").mkdir()
     (tmp_path / "models").mkdir()

@@ -356,8 +356,10 @@ def _report(args: argparse.Namespace, params: Any, title: str,
                   f"{'included' if result.T_camera_object_gt is not None else 'unknown'})")
     payload = None
     if args.json is not None:
-        payload = {"input": {"demo": bool(args.demo), "ycbv": args.ycbv, "frame": args.frame,
-                             "object": args.object, "model": args.model,
+        # The demo has no YCB-Video frame or object (their defaults do not apply to it).
+        payload = {"input": {"demo": bool(args.demo), "ycbv": args.ycbv,
+                             "frame": None if args.demo else args.frame,
+                             "object": None if args.demo else args.object, "model": args.model,
                              "object_model": args.object_model, "seed": args.seed,
                              "classifier": args.classifier, "box": args.box},
                    **result.to_dict()}

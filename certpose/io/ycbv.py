@@ -143,6 +143,9 @@ def load_ycbv_frame(root: str | Path, frame: str = "0000/000001") -> YCBVFrame:
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"The YCB-Video folder {root} does not exist.")
+    parts = str(frame).split("/")
+    if len(parts) != 2 or not all(parts):
+        raise ValueError(f'Expected `frame` as "<scene>/<frame>", e.g. "0000/000001", got {frame!r}.')
     color_path = _frame_path(root, frame, "color.png")
     depth_path = _frame_path(root, frame, "depth.png")
     label_path = _frame_path(root, frame, "label.png")
