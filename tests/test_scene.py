@@ -204,6 +204,8 @@ def test_build_bad_input():
         build_scene_field(frame, _left_right_descriptors(), roi_mask=np.zeros((48, 64), bool))
     with pytest.raises(ValueError, match="max_voxels"):
         build_scene_field(frame, _left_right_descriptors(), voxel_size=0.001, bounds=BOUNDS)
+    with pytest.raises(ValueError, match="too coarse"):  # e.g. centimetres given as metres
+        build_scene_field(frame, _left_right_descriptors(), voxel_size=10.0, bounds=BOUNDS)
     with pytest.raises(ValueError, match="max must exceed min"):
         build_scene_field(frame, _left_right_descriptors(), bounds=(np.ones(3), np.zeros(3)))
     with pytest.raises(ValueError, match=r"shape \(48, 64, 2\) to match the image, got \(48, 63, 2\)"):

@@ -466,6 +466,11 @@ def build_scene_field(
         lo, hi = _check_bounds(bounds)
     shape = tuple(int(s) for s in np.maximum(np.ceil((hi - lo) / voxel_size - 1e-9), 1).astype(int))
     n_vox = int(np.prod(shape))
+    if max(shape) < 4:
+        raise ValueError(
+            f"`voxel_size` {voxel_size} m is too coarse for a region {np.round(hi - lo, 3).tolist()} m "
+            f"across (a grid of shape {shape}); use a smaller `voxel_size` (metres)."
+        )
     if n_vox > max_voxels:
         raise ValueError(
             f"The grid would have shape {shape} ({n_vox} voxels > max_voxels={max_voxels}); crop it "
