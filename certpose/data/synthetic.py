@@ -242,7 +242,7 @@ class SyntheticScene:
 
         import open3d as o3d
 
-        from certpose.model.arc import FreeSpaceArc, _runs
+        from certpose.model.arc import FreeSpaceArc, runs_and_reference_arc
 
         step = float(step)
         if not (math.isfinite(step) and 0 < step <= 10):
@@ -285,12 +285,8 @@ class SyntheticScene:
             hit = np.isfinite(ans["t_hit"].numpy())
             visible[k] = int(np.count_nonzero(hit & (ans["geometry_ids"].numpy() == hid)))
         free = visible == 0
-        arcs = _runs(angles, free, 360.0 / m)
-        i0 = int(np.argmin(np.abs(angles)))
-        arc = None
-        if free[i0]:
-            arc = next(r for r in arcs if r[0] - 1e-9 <= angles[i0] <= r[1] + 1e-9
-                       or r[0] - 1e-9 <= angles[i0] + 360.0 <= r[1] + 1e-9)
+        arcs, arc, i0 = runs_and_reference_arc(angles, free)
+        if arc is not None:
             status, message = "ok", f"handle hidden over {arc[0]:.1f}..{arc[1]:.1f} deg"
         else:
             status, message = "reference_in_free_space", f"the handle shows in {visible[i0]} pixels at angle 0"

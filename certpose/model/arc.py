@@ -259,12 +259,8 @@ def free_space_arc(
         depth[s:s + chunk] = d.max(axis=1)
         violations[s:s + chunk] = (d > tol).sum(axis=1)
     free = violations <= max_violations
-    arcs = _runs(angles, free, 360.0 / m)
-    i0 = int(np.argmin(np.abs(angles)))
-    arc = None
-    if free[i0]:
-        arc = next(r for r in arcs if r[0] - 1e-9 <= angles[i0] <= r[1] + 1e-9
-                   or r[0] - 1e-9 <= angles[i0] + 360.0 <= r[1] + 1e-9)
+    arcs, arc, i0 = runs_and_reference_arc(angles, free)
+    if arc is not None:
         status, message = "ok", f"reference pose free; its arc {arc[0]:.1f}..{arc[1]:.1f} deg"
     else:
         status = "reference_in_free_space"
@@ -273,6 +269,21 @@ def free_space_arc(
         log.warning("free_space_arc: %s", message)
     return FreeSpaceArc(angles, depth, violations, free, arcs, arc, tol, 360.0 / m, arc is not None,
                         status, message)
+
+
+def runs_and_reference_arc(
+    angles: NDArray[np.float64], free: NDArray[np.bool_],
+) -> tuple[tuple[tuple[float, float], ...], tuple[float, float] | None, int]:
+    """The free runs of a circular grid of ``angles`` (degrees, evenly spaced from -180), the run
+    holding angle 0 (None when angle 0 is not free) and the index of the grid angle nearest 0:
+    the :class:`FreeSpaceArc` fields ``arcs`` and ``arc``."""
+    arcs = _runs(angles, free, 360.0 / len(angles))
+    i0 = int(np.argmin(np.abs(angles)))
+    arc = None
+    if free[i0]:
+        arc = next(r for r in arcs if r[0] - 1e-9 <= angles[i0] <= r[1] + 1e-9
+                   or r[0] - 1e-9 <= angles[i0] + 360.0 <= r[1] + 1e-9)
+    return arcs, arc, i0
 
 
 def _runs(angles: NDArray[np.float64], free: NDArray[np.bool_], step: float) -> tuple[tuple[float, float], ...]:
