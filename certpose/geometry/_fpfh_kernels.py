@@ -152,27 +152,28 @@ def _eigenvector1(A, e0, e1, e2, ev):  # pragma: no cover
     a00, a01, a11 = abs(m00), abs(m01), abs(m11)
     if a00 >= a11:
         if max(a00, a01) > 0:
-            if a00 >= a01:
-                m01 /= m00
-                m00 = 1 / math.sqrt(1 + m01 * m01)
-                m01 *= m00
-            else:
-                m00 /= m01
-                m01 = 1 / math.sqrt(1 + m00 * m00)
-                m00 *= m01
+            m00, m01 = _unit_pair(m00, m01, a00, a01)
             return m01 * u0 - m00 * v0, m01 * u1 - m00 * v1, m01 * u2 - m00 * v2
         return u0, u1, u2
     if max(a11, a01) > 0:
-        if a11 >= a01:
-            m01 /= m11
-            m11 = 1 / math.sqrt(1 + m01 * m01)
-            m01 *= m11
-        else:
-            m11 /= m01
-            m01 = 1 / math.sqrt(1 + m11 * m11)
-            m11 *= m01
+        m11, m01 = _unit_pair(m11, m01, a11, a01)
         return m11 * u0 - m01 * v0, m11 * u1 - m01 * v1, m11 * u2 - m01 * v2
     return u0, u1, u2
+
+
+@njit
+def _unit_pair(p, q, ap, aq):  # pragma: no cover
+    """``(p, q)`` scaled to unit length, dividing by the larger of ``|p|`` (``ap``) and ``|q|``
+    (``aq``) first, in Open3D's order of operations (the same bits)."""
+    if ap >= aq:
+        q /= p
+        p = 1 / math.sqrt(1 + q * q)
+        q *= p
+    else:
+        p /= q
+        q = 1 / math.sqrt(1 + p * p)
+        p *= q
+    return p, q
 
 
 @njit
