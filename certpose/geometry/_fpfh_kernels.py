@@ -177,6 +177,22 @@ def _unit_pair(p, q, ap, aq):  # pragma: no cover
 
 
 @njit
+def _smallest_of_three(A, ea, eb, ev1, x_first):  # pragma: no cover
+    """The eigenvector of the smallest of the eigenvalues ``ea``, ``ev1``, ``eb`` of ``A``, in
+    Open3D's order: ``ea``'s eigenvector first, then ``ev1``'s, else their cross product
+    (``x_first``: ``ea``'s vector is its first factor)."""
+    x0, x1, x2 = _eigenvector0(A, ea)
+    if ea < eb and ea < ev1:
+        return x0, x1, x2
+    y0, y1, y2 = _eigenvector1(A, x0, x1, x2, ev1)
+    if ev1 < ea and ev1 < eb:
+        return y0, y1, y2
+    if x_first:
+        return _cross(x0, x1, x2, y0, y1, y2)
+    return _cross(y0, y1, y2, x0, x1, x2)
+
+
+@njit
 def _smallest_eigenvector(C, A):  # pragma: no cover
     """Unit eigenvector of the smallest eigenvalue of the symmetric ``C`` (zero when ``C`` is):
     the closed form of Eberly's "robust eigensolver for 3x3 symmetric matrices", as open3d's
@@ -207,20 +223,8 @@ def _smallest_eigenvector(C, A):  # pragma: no cover
         beta1 = -(beta0 + beta2)
         ev0, ev1, ev2 = q + p * beta0, q + p * beta1, q + p * beta2
         if half_det >= 0:
-            x0, x1, x2 = _eigenvector0(A, ev2)
-            if ev2 < ev0 and ev2 < ev1:
-                return x0, x1, x2
-            y0, y1, y2 = _eigenvector1(A, x0, x1, x2, ev1)
-            if ev1 < ev0 and ev1 < ev2:
-                return y0, y1, y2
-            return _cross(y0, y1, y2, x0, x1, x2)
-        x0, x1, x2 = _eigenvector0(A, ev0)
-        if ev0 < ev1 and ev0 < ev2:
-            return x0, x1, x2
-        y0, y1, y2 = _eigenvector1(A, x0, x1, x2, ev1)
-        if ev1 < ev0 and ev1 < ev2:
-            return y0, y1, y2
-        return _cross(x0, x1, x2, y0, y1, y2)
+            return _smallest_of_three(A, ev2, ev0, ev1, False)
+        return _smallest_of_three(A, ev0, ev2, ev1, True)
     if C[0, 0] < C[1, 1] and C[0, 0] < C[2, 2]:
         return 1.0, 0.0, 0.0
     if C[1, 1] < C[0, 0] and C[1, 1] < C[2, 2]:
