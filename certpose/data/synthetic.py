@@ -123,6 +123,17 @@ def look_at(eye: NDArray[np.float64], target: NDArray[np.float64], up: NDArray[n
     return make_transform(np.stack([right, down, forward], axis=1), eye)
 
 
+def _pixel_rays(intrinsics: CameraIntrinsics, T_world_camera: NDArray[np.float64],
+                v0: int, v1: int, u0: int, u1: int) -> NDArray[np.float64]:
+    """Rays (N, 6): origin and direction, world frame, of the pixels ``[v0, v1) x [u0, u1)``,
+    row-major; directions have unit z in the camera frame, so a ray's parameter is z-depth."""
+    v, u = np.mgrid[v0:v1, u0:u1].astype(np.float64)
+    d_cam = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy,
+                      np.ones_like(u)], -1).reshape(-1, 3)
+    d_world = d_cam @ T_world_camera[:3, :3].T
+    return np.hstack([np.broadcast_to(T_world_camera[:3, 3], d_world.shape), d_world])
+
+
 def render_depth(
     meshes: dict[str, Any],
     intrinsics: CameraIntrinsics,
@@ -146,13 +157,9 @@ def render_depth(
     for name, mesh in meshes.items():
         ids[name] = scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
     H, W = intrinsics.height, intrinsics.width
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    # Directions with unit z in the camera frame, so the ray parameter t is the z-depth.
-    d_cam = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, np.ones_like(u)], -1)
-    R, t = T_world_camera[:3, :3], T_world_camera[:3, 3]
-    d_world = d_cam.reshape(-1, 3) @ R.T
-    rays = np.hstack([np.broadcast_to(t, d_world.shape), d_world]).astype(np.float32)
-    ans = scene.cast_rays(o3d.core.Tensor(rays))
+    rays = _pixel_rays(intrinsics, T_world_camera, 0, H, 0, W)
+    d_world = rays[:, 3:]
+    ans = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))
     t_hit = ans["t_hit"].numpy().astype(np.float64).reshape(H, W)
     geom = ans["geometry_ids"].numpy().reshape(H, W)
     normals = ans["primitive_normals"].numpy().astype(np.float64).reshape(H, W, 3)
@@ -265,10 +272,7 @@ class SyntheticScene:
         v = K.fy * q[:, 1] / q[:, 2] + K.cy
         u0, u1 = max(int(np.floor(u.min())) - 2, 0), min(int(np.ceil(u.max())) + 2, K.width - 1)
         v0, v1 = max(int(np.floor(v.min())) - 2, 0), min(int(np.ceil(v.max())) + 2, K.height - 1)
-        vv, uu = np.mgrid[v0:v1 + 1, u0:u1 + 1].astype(np.float64)
-        d_cam = np.stack([(uu - K.cx) / K.fx, (vv - K.cy) / K.fy, np.ones_like(uu)], -1).reshape(-1, 3)
-        R, t = self.T_table_camera[:3, :3], self.T_table_camera[:3, 3]
-        rays = o3d.core.Tensor(np.hstack([np.broadcast_to(t, d_cam.shape), d_cam @ R.T]).astype(np.float32))
+        rays = o3d.core.Tensor(_pixel_rays(K, self.T_table_camera, v0, v1 + 1, u0, u1 + 1).astype(np.float32))
         body = o3d.t.geometry.TriangleMesh.from_legacy(
             o3d.geometry.TriangleMesh(parts["body"]).transform(T_table_object))
         fixed = [body] + [o3d.t.geometry.TriangleMesh.from_legacy(mesh) for mesh in self.surroundings.values()]
