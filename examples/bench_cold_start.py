@@ -27,12 +27,11 @@ interleaved figures compare code.
 (9758705) and the deferred NumPy tool packages (3b1f607): cold ``register --demo`` 3.26 / 3.33 s
 (5.84 CPU s), ``pose --demo`` 6.75 / 6.76 s (12.49 CPU s); warm 0.62 / 0.63 and 2.53 / 2.54 s.
 
-2026-11-26, loaded (load 4-7, other sessions' jobs), ``--commands pose``, one cold + one warm run
-each, interleaved with the code before the scene's FPFH kernels (certpose.geometry._fpfh_kernels):
-cold CPU s 14.3-19.2 before (4 runs), 20.2-23.7 with the kernels compiled first by the helper (3
-runs), 15.6 / 16.3 with them deferred (2 runs; the walls, 11-46 s, say only how loaded the machine
-was). The warm run after a cold one then still compiles them in its helper (8.9 / 9.9 CPU s
-against 5.2-6.1): the deferred kernels' compilation moves from the first run to the next.
+2026-11-26, loaded (load 3-7, other sessions' jobs), ``--commands pose``, one cold + one warm run
+each, interleaved with the code before the scene's FPFH kernels (certpose.geometry._fpfh_kernels,
+deferred: compiled by the helper last, waited for at the end of the run): cold CPU s 22.4 / 26.5
+against 17.8 / 17.6 before; warm 5.95 / 6.42 against 5.58 / 5.14 (``pose --demo`` builds its
+object model from views every run). The walls (33-65 s cold) say only how loaded the machine was.
 
 usage::
 

@@ -14,6 +14,12 @@ Issue #10 item 7: the MLE in <= 1 s median per frame, <= 2 s including scene bui
 0050 (18 pairs): one call per pair, median 1.94 s (37.1 s a round); one call per frame, 20.9 s a
 round, 1.16 s per pair; the poses of the two ways equal.
 
+2026-11-26, load 2.6-4.1 (other sessions' jobs), ``--rounds 1`` twice per tree, alternating,
+before and after the scene's FPFH kernels (no open3d import) and the other exact speed-ups of
+that day: one call per pair, median 2.70 / 2.57 -> 2.20 / 2.26 s (52.4 / 49.6 -> 42.9 / 41.0 s a
+round); one call per frame, 1.65 / 1.66 -> 1.51 / 1.37 s per pair; the poses of the two ways
+equal, and equal to those before.
+
 usage::
 
     python examples/bench_pose_calls.py                        # frame 000001 of the four scenes
