@@ -205,7 +205,9 @@ def run(args: argparse.Namespace) -> int:
     if args.demo:
         title = "synthetic mug scene (handle hidden behind an occluder)"
         with busy(args, "certpose pose"):
-            result = run_demo(params=params, rng=args.seed)
+            from certpose.io.cache import default_cache_dir
+
+            result = run_demo(params=params, rng=args.seed, cache_dir=default_cache_dir())
         one = _for_pair(args, args.frame[0], args.object[0])
         code, payload = _report(one, params, title, result)
         if args.json is not None:

@@ -858,6 +858,7 @@ def run_demo(
     rng: np.random.Generator | int | None = 0,
     num_views: int = 4,
     revolution: str | None = "auto",
+    cache_dir: str | Path | None = None,
 ) -> PoseResult:
     """The embedded synthetic scene: a textureless mug, handle hidden behind an occluder.
 
@@ -867,7 +868,8 @@ def run_demo(
     makes eq. (1) along the hidden handle's arc rise and fall every 90 deg, and the pose
     distribution shows three bumps instead of a flat arc; None turns it off); the classifier is
     the mask of the rendered mug. Errors are judged on the symmetry axis (the model's z axis)
-    and ADD-S.
+    and ADD-S. ``cache_dir``: where the resampled object model is kept between runs (the
+    views are the same for every seed; :func:`~certpose.geometry.objects.object_from_views`).
     """
     from certpose.data.synthetic import make_mug_scene
     from certpose.geometry.features import FPFHBackbone
@@ -885,7 +887,7 @@ def run_demo(
     t_scene = time.perf_counter() - t
     t = time.perf_counter()
     obj = object_from_views(views, backbone, voxel_size=params.voxel_size, name="mug",
-                            revolution=revolution)
+                            revolution=revolution, cache_dir=cache_dir)
     t_obj = time.perf_counter() - t
     result = estimate_pose(
         scene, obj, classifier="mask", frame=sc.frame.with_mask(sc.object_mask), params=params,

@@ -67,7 +67,7 @@ def _source_digest() -> bytes:
 
 
 def _key(points: np.ndarray, backbone: Any, voxel_size: float, name: str, rng: int,
-         revolution: str | None = None) -> str:
+         revolution: str | None = None, colors: np.ndarray | None = None) -> str:
     h = hashlib.sha256()
     h.update(_FORMAT.encode())
     h.update(_source_digest())
@@ -78,6 +78,9 @@ def _key(points: np.ndarray, backbone: Any, voxel_size: float, name: str, rng: i
     h.update(f"|{float(voxel_size)!r}|{name}|{int(rng)}".encode())
     if revolution is not None:  # absent from the keys of the models built before the option
         h.update(f"|revolution={revolution}".encode())
+    if colors is not None:  # likewise
+        h.update(b"|colors")
+        h.update(np.ascontiguousarray(colors, dtype=np.float64).tobytes())
     return h.hexdigest()[:32]
 
 
@@ -123,6 +126,7 @@ def object_from_points_cached(
     rng: int = 0,
     cache_dir: str | os.PathLike[str] | None = None,
     revolution: str | None = None,
+    colors: ArrayLike | None = None,
 ) -> ObjectModel:
     """:func:`~certpose.geometry.objects.object_from_points` (surface sampling), read from
     ``cache_dir`` when built there before with the same inputs and code.
@@ -143,6 +147,8 @@ def object_from_points_cached(
         Where models are kept; ``None`` builds without caching.
     revolution : {"auto"} or None, optional
         :func:`~certpose.geometry.objects.object_from_points`' option (part of the key).
+    colors : (N, 3) array_like, optional
+        RGB in ``[0, 1]`` (part of the key).
 
     Returns
     -------
@@ -154,10 +160,11 @@ def object_from_points_cached(
     if isinstance(rng, (bool, np.bool_)) or not isinstance(rng, (int, np.integer)):
         raise TypeError(f"`rng` must be an int seed, got {type(rng).__name__}.")
     pts = np.asarray(points, dtype=np.float64)
+    cols = None if colors is None else np.asarray(colors, dtype=np.float64)
     path = None
     if cache_dir is not None:
         try:
-            key = _key(pts, backbone, voxel_size, name, int(rng), revolution)
+            key = _key(pts, backbone, voxel_size, name, int(rng), revolution, cols)
             path = Path(cache_dir) / "objects" / f"{key}.npz"
         except OSError as exc:
             log.debug("object cache off: %s", exc)
@@ -167,7 +174,7 @@ def object_from_points_cached(
             log.info("object model %r read from the cache (%s)", name, path)
             return model
     model = object_from_points(pts, backbone, voxel_size=voxel_size, name=name, rng=int(rng),
-                               revolution=revolution)
+                               revolution=revolution, colors=cols)
     if path is not None:
         _write(path, model)
     return model
