@@ -287,22 +287,23 @@ def test_object_from_views_revolution_flattens_the_demo_arc():
 
 
 @pytest.mark.slow
-def test_object_from_views_revolution_is_cached(tmp_path):
-    # The demo's views: the resampled model is kept and read back (the same arrays); another
-    # colouring of the same cloud is another entry.
+def test_demo_object_model_is_cached(tmp_path):
+    # The demo's views: the resampled model is kept and read back (the same arrays, and the same
+    # as object_from_views builds); another colouring of the same cloud is another entry.
     from certpose.data.synthetic import make_mug_scene
+    from certpose.estimation.pipeline import _demo_object_model
     from certpose.geometry.features import FPFHBackbone
     from certpose.geometry.objects import object_from_views
     from certpose.io.cache import object_from_points_cached
 
     views = make_mug_scene(rng=0).render_object_views(4)
-    kw = {"voxel_size": 0.005, "name": "mug", "revolution": "auto", "cache_dir": tmp_path}
-    a = object_from_views(views, FPFHBackbone(), **kw)
-    files = list((tmp_path / "objects").glob("*.npz"))
-    assert len(files) == 1
-    b = object_from_views(views, FPFHBackbone(), **kw)
+    a = _demo_object_model(views, FPFHBackbone(), 0.005, "auto", tmp_path)
+    assert len(list((tmp_path / "objects").glob("*.npz"))) == 1
+    b = _demo_object_model(views, FPFHBackbone(), 0.005, "auto", tmp_path)
+    ref = object_from_views(views, FPFHBackbone(), voxel_size=0.005, name="mug", revolution="auto")
     for name in ("points", "descriptors", "colors", "normals", "areas"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        np.testing.assert_array_equal(getattr(a, name), getattr(ref, name))
     assert a.colors is not None
     c = object_from_points_cached(a.points, FPFHBackbone(), voxel_size=0.005, cache_dir=tmp_path,
                                   colors=np.zeros((len(a.points), 3)))

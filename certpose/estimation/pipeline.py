@@ -851,6 +851,22 @@ def build_ycbv_object_model(
                                    name=object_name, unseen=unseen, sampling=sampling)
 
 
+def _demo_object_model(views: Any, backbone: Any, voxel_size: float, revolution: str | None,
+                       cache_dir: str | Path | None) -> Any:
+    """The demo's object model from its views (:func:`~certpose.geometry.objects.object_from_views`),
+    with ``revolution`` and a ``cache_dir`` the same model read from or kept in the model cache
+    (:func:`~certpose.io.cache.object_from_points_cached` of the views' fused cloud)."""
+    from certpose.geometry.objects import object_from_views
+
+    if revolution is None or cache_dir is None:
+        return object_from_views(views, backbone, voxel_size=voxel_size, name="mug", revolution=revolution)
+    from certpose.io.cache import object_from_points_cached
+
+    fused = object_from_views(views, backbone, voxel_size=voxel_size, name="mug")
+    return object_from_points_cached(fused.points, backbone, voxel_size=voxel_size, colors=fused.colors,
+                                     name="mug", revolution=revolution, cache_dir=cache_dir)
+
+
 def run_demo(
     *,
     params: PoseParams | None = None,
@@ -873,7 +889,6 @@ def run_demo(
     """
     from certpose.data.synthetic import make_mug_scene
     from certpose.geometry.features import FPFHBackbone
-    from certpose.geometry.objects import object_from_views
 
     params = params or PoseParams()
     backbone = backbone or FPFHBackbone()
@@ -886,8 +901,7 @@ def run_demo(
     scene = _scene_for(sc.frame, sc.object_mask, params, backbone)
     t_scene = time.perf_counter() - t
     t = time.perf_counter()
-    obj = object_from_views(views, backbone, voxel_size=params.voxel_size, name="mug",
-                            revolution=revolution, cache_dir=cache_dir)
+    obj = _demo_object_model(views, backbone, params.voxel_size, revolution, cache_dir)
     t_obj = time.perf_counter() - t
     result = estimate_pose(
         scene, obj, classifier="mask", frame=sc.frame.with_mask(sc.object_mask), params=params,

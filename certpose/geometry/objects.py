@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -575,7 +574,6 @@ def object_from_views(
     voxel_size: float,
     name: str = "",
     revolution: str | None = None,
-    cache_dir: str | os.PathLike[str] | None = None,
 ) -> ObjectModel:
     """Build an object model from posed RGB-D views of the object (the paper's way).
 
@@ -605,10 +603,6 @@ def object_from_views(
         fall every 90 deg (the demo mug: the sampled marginal about the axis 0.28-2.2 times
         uniform, 0.73-1.15 with ``"auto"``). Without an axis the model is the surface-sampled
         one. Point backbones only. None (default): the voxel-averaged cloud.
-    cache_dir : path, optional
-        With ``revolution``: keep the resampled model in this folder and read it back when the
-        views give the same cloud (:func:`certpose.io.cache.object_from_points_cached`; the
-        axis search and the surface sampling take 1-2 s).
 
     Returns
     -------
@@ -658,10 +652,8 @@ def object_from_views(
     if len(fused) < 3:
         raise ValueError(f"Only {len(fused)} voxel(s) of object points; use a smaller `voxel_size`.")
     if revolution is not None:
-        from certpose.io.cache import object_from_points_cached
-
-        model = object_from_points_cached(fused.points, backbone, voxel_size=vs, colors=fused.colors,
-                                          name=name, revolution=revolution, cache_dir=cache_dir)
+        model = object_from_points(fused.points, backbone, voxel_size=vs, colors=fused.colors,
+                                   name=name, revolution=revolution)
         log.info("object model %r from %d views: %d points (surface of revolution sampled)",
                  name, len(views), len(model.points))
         return model
