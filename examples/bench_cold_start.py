@@ -33,6 +33,11 @@ deferred: compiled by the helper last, waited for at the end of the run): cold C
 against 17.8 / 17.6 before; warm 5.95 / 6.42 against 5.58 / 5.14 (``pose --demo`` builds its
 object model from views every run). The walls (33-65 s cold) say only how loaded the machine was.
 
+2026-11-26, quiet (load 0.3-0.7), ``--commands pose``, after the demo's model became the
+axially resampled one (built about 2 s, then kept in the model cache): cold 13.77 s (21.0 CPU s)
+with the demo's model in the model cache, 16.88 s (24.9 CPU s) with ``CERTPOSE_CACHE_DIR`` empty
+too (a fresh install); warm 2.60 / 2.98 s. Issue #8's 12 s is no longer met.
+
 usage::
 
     python examples/bench_cold_start.py               # both commands, 1 cold + 1 warm run each
