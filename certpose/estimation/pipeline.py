@@ -860,9 +860,10 @@ def _demo_object_model(views: Any, backbone: Any, voxel_size: float, revolution:
 
     if revolution is None or cache_dir is None:
         return object_from_views(views, backbone, voxel_size=voxel_size, name="mug", revolution=revolution)
+    from certpose.geometry.objects import fuse_views
     from certpose.io.cache import object_from_points_cached
 
-    fused = object_from_views(views, backbone, voxel_size=voxel_size, name="mug")
+    fused = fuse_views(views, voxel_size=voxel_size)  # the cloud object_from_views resamples
     return object_from_points_cached(fused.points, backbone, voxel_size=voxel_size, colors=fused.colors,
                                      name="mug", revolution=revolution, cache_dir=cache_dir)
 

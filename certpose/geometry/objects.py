@@ -22,7 +22,7 @@ from solvers.validation import as_float_array, check_per_item, check_points, res
 if TYPE_CHECKING:
     from certpose.geometry.rgbd import RGBDFrame
 
-__all__ = ["ObjectModel", "object_from_points", "object_from_views", "sample_surface"]
+__all__ = ["ObjectModel", "fuse_views", "object_from_points", "object_from_views", "sample_surface"]
 
 log = logging.getLogger(__name__)
 
@@ -567,6 +567,52 @@ def _from_image_backbone(views: Sequence[Any], backbone: Any, vs: float, name: s
     return ObjectModel(fused.points, desc, fused.colors, None, name)
 
 
+def _fused_cloud(views: Sequence[Any], vs: float) -> Any:
+    """The masked pixels of every view in the world (object) frame, with normals oriented towards
+    each view's camera and colours when every view has them (a ``StructuredPointCloud`` whose
+    descriptors are the normals)."""
+    from certpose.geometry.rgbd import StructuredPointCloud
+
+    if len(views) == 0:
+        raise ValueError("`views` is empty: at least one posed view of the object is needed.")
+    all_pts, all_nrm, all_col = [], [], []
+    has_color = True
+    for k, item in enumerate(views):
+        frame, mask = _view_and_mask(k, item)
+        try:
+            pts_c, pix = frame.backproject(mask=np.asarray(mask))
+        except ValueError as exc:
+            raise ValueError(f"`views[{k}]`: {exc}") from exc
+        nrm = _estimate_normals(pts_c, 3.0 * vs)
+        # Camera at the origin of its frame: normals point back at it.
+        flip = np.einsum("ij,ij->i", nrm, pts_c) > 0
+        nrm[flip] *= -1.0
+        R, t = frame.T_world_camera[:3, :3], frame.T_world_camera[:3, 3]
+        all_pts.append(pts_c @ R.T + t)
+        all_nrm.append(nrm @ R.T)
+        col = frame.colors_at(pix)
+        has_color &= col is not None
+        all_col.append(col)
+    colors = np.concatenate(all_col) if has_color else None
+    # Normals ride along as 3-d "descriptors" so the voxel mean re-normalises them.
+    return StructuredPointCloud(np.concatenate(all_pts), np.concatenate(all_nrm), colors)
+
+
+def _voxel_fused(cloud: Any, vs: float) -> Any:
+    fused = cloud.voxel_downsample(vs)
+    if len(fused) < 3:
+        raise ValueError(f"Only {len(fused)} voxel(s) of object points; use a smaller `voxel_size`.")
+    return fused
+
+
+def fuse_views(views: Sequence[RGBDFrame | tuple[RGBDFrame, ArrayLike]], *, voxel_size: float) -> Any:
+    """The cloud :func:`object_from_views` describes: the views' masked pixels in the object
+    frame, averaged per voxel of side ``voxel_size`` (a ``StructuredPointCloud``: points,
+    normals as its descriptors, colours when every view has them), without descriptors."""
+    vs = _check_voxel_size(voxel_size)
+    return _voxel_fused(_fused_cloud(views, vs), vs)
+
+
 def object_from_views(
     views: Sequence[RGBDFrame | tuple[RGBDFrame, ArrayLike]],
     backbone: Any,
@@ -614,8 +660,6 @@ def object_from_views(
         No views, empty masks, or no valid depth inside a mask; ``revolution`` with an image
         backbone.
     """
-    from certpose.geometry.rgbd import StructuredPointCloud
-
     vs = _check_voxel_size(voxel_size)
     if revolution not in (None, "auto"):
         raise ValueError(f"`revolution` must be 'auto' or None, got {revolution!r}.")
@@ -623,34 +667,10 @@ def object_from_views(
     if revolution is not None and image_backbone:
         raise ValueError("`revolution` needs a point backbone (descriptors of resampled points); "
                          f"{type(backbone).__name__} describes image pixels.")
-    if len(views) == 0:
-        raise ValueError("`views` is empty: at least one posed view of the object is needed.")
-    all_pts, all_nrm, all_col = [], [], []
-    has_color = True
-    for k, item in enumerate(views):
-        frame, mask = _view_and_mask(k, item)
-        try:
-            pts_c, pix = frame.backproject(mask=np.asarray(mask))
-        except ValueError as exc:
-            raise ValueError(f"`views[{k}]`: {exc}") from exc
-        nrm = _estimate_normals(pts_c, 3.0 * vs)
-        # Camera at the origin of its frame: normals point back at it.
-        flip = np.einsum("ij,ij->i", nrm, pts_c) > 0
-        nrm[flip] *= -1.0
-        R, t = frame.T_world_camera[:3, :3], frame.T_world_camera[:3, 3]
-        all_pts.append(pts_c @ R.T + t)
-        all_nrm.append(nrm @ R.T)
-        col = frame.colors_at(pix)
-        has_color &= col is not None
-        all_col.append(col)
-    colors = np.concatenate(all_col) if has_color else None
+    cloud = _fused_cloud(views, vs)
     if image_backbone:
         return _from_image_backbone(views, backbone, vs, name)
-    # Normals ride along as 3-d "descriptors" so the voxel mean re-normalises them.
-    fused = StructuredPointCloud(np.concatenate(all_pts), np.concatenate(all_nrm), colors)
-    fused = fused.voxel_downsample(vs)
-    if len(fused) < 3:
-        raise ValueError(f"Only {len(fused)} voxel(s) of object points; use a smaller `voxel_size`.")
+    fused = _voxel_fused(cloud, vs)
     if revolution is not None:
         model = object_from_points(fused.points, backbone, voxel_size=vs, colors=fused.colors,
                                    name=name, revolution=revolution)
