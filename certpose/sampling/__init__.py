@@ -14,6 +14,7 @@ from certpose.sampling.calibration import (
     fit_calibration,
 )
 from certpose.sampling.distribution import PoseDistribution, PoseMode
+from certpose.sampling.reference import AxisMarginal, axis_marginal
 from certpose.sampling.sampler import (
     ISParams,
     ISResult,
@@ -22,6 +23,6 @@ from certpose.sampling.sampler import (
     sample_pose_distribution,
 )
 
-__all__ = ["CalibratedDistribution", "CalibrationFit", "CalibrationParams", "DEParams", "ISParams", "ISResult", "MCMCParams", "PoseDistribution", "PoseMode",
-           "SamplerResult", "TangentMixture", "calibrated_distribution", "de_sample", "fit_calibration", "importance_sample",
+__all__ = ["AxisMarginal", "CalibratedDistribution", "CalibrationFit", "CalibrationParams", "DEParams", "ISParams", "ISResult", "MCMCParams", "PoseDistribution", "PoseMode",
+           "SamplerResult", "TangentMixture", "axis_marginal", "calibrated_distribution", "de_sample", "fit_calibration", "importance_sample",
            "mcmc_sample", "sample_pose_distribution"]
