@@ -17,6 +17,14 @@ thread of this process loads the cached kernels instead (``preload=True``): numb
 process sets up its code generator, about 0.4 s, mostly outside the GIL, which then overlaps the
 command's other work (a YCB-Video frame's scene) instead of delaying its first kernel call.
 
+Kernels declared ``deferred`` (their callers have another way to the same result meanwhile) are
+compiled by the helper last. A run that ends while its helper compiles only those leaves it
+running, detached (its own session, no terminal, none of the caller's pipes), so that they end up
+in the cache without the run waiting for them; ``SOLVERS_JIT_DETACH=0`` makes the run wait
+instead. A lock file in numba's cache folder (``<module>.deferred.lock``, held with ``flock``
+while a process compiles that module's deferred kernels) keeps concurrent runs from compiling
+them twice: a second run started meanwhile does without them, as the first did.
+
 Declaring the signature also documents what each kernel takes, and lets the tests check that
 the callers use only that one (a second signature would be a second compilation).
 """
@@ -24,6 +32,7 @@ the callers use only that one (a second signature would be a second compilation)
 from __future__ import annotations
 
 import atexit
+import contextlib
 import gc
 import importlib
 import logging
@@ -40,8 +49,12 @@ from typing import Any
 
 log = logging.getLogger(__name__)
 
-__all__ = ["KernelSpec", "compiled", "declared", "is_cached", "kernel", "pending", "preloading",
-           "wait", "warm_up"]
+__all__ = ["DETACH_ENV", "KernelSpec", "compiled", "declared", "deferred_lock_path", "is_cached",
+           "kernel", "pending", "preloading", "wait", "warm_up"]
+
+#: Environment variable: ``0`` makes a run wait at exit for its helper's deferred kernels
+#: instead of leaving it to compile them detached.
+DETACH_ENV = "SOLVERS_JIT_DETACH"
 
 
 @dataclass(frozen=True)
@@ -73,9 +86,9 @@ def kernel(*signature: Any, deferred: bool = False,
     deferred : bool
         Its callers have another way to the same result while it is not compiled (they check
         :func:`pending` for its module): a warm-up's helper compiles it after the others, a
-        command waiting for the others never compiles it meanwhile, and at exit the command
-        waits for a helper left with deferred kernels only (instead of stopping it), so the
-        first run pays only what is left of their compilation when its own work is done.
+        command waiting for the others never compiles it meanwhile, and at exit a helper left
+        with deferred kernels only goes on compiling them, detached (see the module's
+        docstring), so the first run does not wait for them.
     **options
         Further ``njit`` options (``fastmath``, ``nogil``, ...).
     """
@@ -101,9 +114,10 @@ def declared(modules: Iterable[str] | None = None) -> list[KernelSpec]:
 def is_cached(spec: KernelSpec) -> bool:
     """Whether ``spec``'s machine code is loaded or in numba's disk cache for this source.
 
-    Reads only the cache's index (numba's own key: signature, CPU and bytecode hash). When the
-    index cannot be read the kernel counts as cached: nothing is warmed, and numba compiles it
-    on first use as usual.
+    Reads only the cache's index (numba's own key: signature, CPU and bytecode hash) and checks
+    that its data file exists (numba writes the index first, then the data file, each
+    atomically). When the index cannot be read the kernel counts as cached: nothing is warmed,
+    and numba compiles it on first use as usual.
     """
     disp = spec.dispatcher()
     try:
@@ -111,7 +125,9 @@ def is_cached(spec: KernelSpec) -> bool:
             return True
         cache = disp._cache  # numba's Cache: no public query for "is this signature on disk"
         key = cache._index_key(tuple(spec.signature), disp.targetctx.codegen())
-        return key in cache._cache_file._load_index()
+        files = cache._cache_file
+        name = files._load_index().get(key)
+        return name is not None and os.path.exists(files._data_path(name))
     except Exception:  # an unknown numba layout: do not guess
         log.debug("cannot read numba's cache index for %s.%s", spec.module, spec.name,
                   exc_info=True)
@@ -119,25 +135,76 @@ def is_cached(spec: KernelSpec) -> bool:
 
 
 def _claim(lock_dir: str, spec: KernelSpec) -> bool:
-    """Whether this process takes ``spec`` (the first to create its lock file does)."""
+    """Whether this process takes ``spec`` (the first to create its lock file does; with the
+    folder gone, its helper has ended: compiling here at worst loads what it cached)."""
     try:
         os.close(os.open(os.path.join(lock_dir, f"{spec.module}.{spec.name}"),
                          os.O_CREAT | os.O_EXCL | os.O_WRONLY))
     except FileExistsError:
         return False
+    except FileNotFoundError:
+        return True
     return True
 
 
-def _compile(specs: Sequence[KernelSpec], lock_dir: str | None = None) -> int:
-    """Compile ``specs`` in order, skipping those another process has claimed in ``lock_dir``."""
+def deferred_lock_path(module: str) -> str:
+    """The lock file held (``flock``) by a process compiling ``module``'s deferred kernels: in
+    numba's cache folder for ``module`` (the folder is created), else in the temporary folder.
+    The file holds the process id of the last holder."""
+    try:
+        spec = next(s for s in declared([module]) if s.deferred)
+        folder = spec.dispatcher()._cache._cache_path  # numba's: no public name
+        os.makedirs(folder, exist_ok=True)
+    except Exception:  # an unknown numba layout, or no deferred kernel
+        log.debug("no numba cache folder for %s", module, exc_info=True)
+        folder = tempfile.gettempdir()
+    return os.path.join(folder, f"{module}.deferred.lock")
+
+
+@contextlib.contextmanager
+def _deferred_lock(module: str, *, block: bool) -> Any:
+    """Hold ``module``'s deferred-kernels lock; yields False (without waiting, when ``block`` is
+    False) if another process holds it. Without ``fcntl`` (not POSIX) it always yields True."""
+    try:
+        import fcntl
+    except ImportError:
+        yield True
+        return
+    fd = os.open(deferred_lock_path(module), os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | (0 if block else fcntl.LOCK_NB))
+        except BlockingIOError:
+            yield False
+            return
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        yield True  # released when the file is closed (or the process ends)
+    finally:
+        os.close(fd)
+
+
+def _compile(specs: Sequence[KernelSpec], lock_dir: str | None = None, *,
+             block: bool = True) -> int:
+    """Compile ``specs`` in order, skipping those another process has claimed in ``lock_dir``.
+    Deferred ones are compiled under their module's lock (:func:`deferred_lock_path`), once no
+    other process holds it (``block``), or skipped if one does (``block=False``: the helper's
+    way; the process holding it compiles them)."""
     done = 0
     enabled = gc.isenabled()
     gc.disable()  # numba's compiler makes ~10^5 short-lived objects: collections cost ~8%
     try:
-        for spec in specs:
-            if lock_dir is None or _claim(lock_dir, spec):
-                spec.dispatcher().compile(tuple(spec.signature))
-                done += 1
+        with contextlib.ExitStack() as held:
+            locked: dict[str, bool] = {}
+            for spec in specs:
+                if spec.deferred and spec.module not in locked:
+                    locked[spec.module] = held.enter_context(
+                        _deferred_lock(spec.module, block=block))
+                if spec.deferred and not locked[spec.module]:
+                    continue  # another process compiles it
+                if lock_dir is None or _claim(lock_dir, spec):
+                    spec.dispatcher().compile(tuple(spec.signature))  # a cached one just loads
+                    done += 1
     finally:
         if enabled:
             gc.enable()
@@ -201,12 +268,17 @@ def warm_up(kernels: Sequence[str], *, preload: bool = False) -> int:
     if not cold:
         return 0
     lock_dir = tempfile.mkdtemp(prefix="solvers-jit-")
+    for token in _TOKENS:  # which of the two is still there (see _leave)
+        open(os.path.join(lock_dir, token), "wb").close()
     args = [f"{s.module}:{s.name}" for s in cold]
     try:
         with open(os.path.join(lock_dir, "stderr"), "wb") as err:  # a file: no pipe to fill
+            # Its own session and none of our pipes: it may outlive this process (deferred
+            # kernels, see _abandon) without holding a caller's pipe or terminal.
             proc: subprocess.Popen[bytes] | None = subprocess.Popen(
                 [sys.executable, "-m", "solvers.jit", "--locks", lock_dir, *args],
-                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
+                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
+                start_new_session=True)
     except OSError as exc:  # no helper: this process compiles them when it needs them
         log.info("kernel warm-up helper not started (%s)", exc)
         proc = None
@@ -279,7 +351,7 @@ def _wait(wanted: set[str] | None) -> None:
         t0 = time.perf_counter()
         mine = _compile(specs[::-1], item.lock_dir)
         later = [s for s in item.specs[::-1] if s not in specs and not s.deferred]
-        # The helper's: numba writes the data file, then the index (each atomically).
+        # The helper's: is_cached sees both of numba's files (index, then data, each atomic).
         while not all(is_cached(s) for s in specs):
             if item.proc is None or item.proc.poll() is not None:
                 break  # it ended without them: they compile here, on first use
@@ -306,15 +378,39 @@ def _finish(item: _Warming) -> None:
     shutil.rmtree(item.lock_dir, ignore_errors=True)
 
 
+_TOKENS = (".command", ".helper")
+
+
+def _leave(lock_dir: str, token: str) -> None:
+    """``token``'s process is done with ``lock_dir``: the second of the two to leave removes it
+    (each removes its token, then looks for the other's)."""
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(os.path.join(lock_dir, token))
+    other = next(t for t in _TOKENS if t != token)
+    if not os.path.exists(os.path.join(lock_dir, other)):
+        shutil.rmtree(lock_dir, ignore_errors=True)
+
+
+def _detach_enabled() -> bool:
+    return os.environ.get(DETACH_ENV, "1").strip() != "0"
+
+
 def _abandon() -> None:
     """At exit: stop helpers whose kernels were never needed (numba writes its cache files
     atomically, so a stopped helper leaves no partial entry) and remove their lock folders.
-    A helper left with deferred kernels only (the others cached) is waited for instead: no
-    caller ever compiles those, and stopped at the end of every (short) run they never would be."""
+    A helper left with deferred kernels only (the others cached) goes on compiling them,
+    detached (it removes its lock folder when done): no caller ever compiles those, and stopped
+    at the end of every (short) run they never would be. With ``SOLVERS_JIT_DETACH=0`` it is
+    waited for instead."""
     while _PENDING:
         item = _PENDING.pop()
         if item.proc is not None and item.proc.poll() is None:
             if all(s.deferred or is_cached(s) for s in item.specs):
+                if _detach_enabled():
+                    log.info("deferred kernels of %s: compiling on in a detached process "
+                             "(pid %d)", sorted(item.modules), item.proc.pid)
+                    _leave(item.lock_dir, ".command")
+                    continue
                 item.proc.wait()
             else:
                 item.proc.terminate()
@@ -342,7 +438,15 @@ def _main(argv: Sequence[str]) -> int:
             print(f"solvers.jit: no declared kernel {item!r}", file=sys.stderr)
             return 2
         specs.extend(found)
-    _compile(specs, lock_dir)
+    first = [s for s in specs if not s.deferred]
+    _compile(first, lock_dir)
+    later = [s for s in specs if s.deferred]
+    if later:
+        with contextlib.suppress(OSError, AttributeError):  # AttributeError: not POSIX
+            os.nice(10)  # no caller waits for these: a command running meanwhile goes first
+        _compile(later, lock_dir, block=False)
+    if lock_dir is not None:  # not on failure: the folder keeps this process's stderr
+        _leave(lock_dir, ".helper")
     gc.freeze()  # exiting: skip the last collection over the compiler's objects
     return 0
 

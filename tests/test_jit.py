@@ -144,22 +144,88 @@ def test_unneeded_warm_up_is_stopped_at_exit(tmp_path):
         os.kill(out["pid"], 0)
 
 
+_DEFERRED_RUN = """
+    import json
+    from solvers import jit
+    names = ["certpose.geometry._fpfh_kernels:fpfh"]
+    specs = [s for s in jit.declared(["certpose.geometry._fpfh_kernels"]) if s.name == "fpfh"]
+    started = jit.warm_up(names)
+    item = jit._PENDING[0] if jit._PENDING else None
+    out = {"started": started, "deferred": specs[0].deferred, "pending": jit.pending(),
+           "pid": item and item.proc.pid, "dir": item and item.lock_dir,
+           "lock": jit.deferred_lock_path("certpose.geometry._fpfh_kernels")}
+    print(json.dumps(out))
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _wait_gone(pid: int, timeout: float = 600.0) -> None:
+    import time
+
+    end = time.monotonic() + timeout
+    while _alive(pid):
+        assert time.monotonic() < end, f"process {pid} still running"
+        time.sleep(0.05)
+
+
 @pytest.mark.slow
-def test_deferred_kernels_compile_by_the_end_of_a_run(tmp_path):
-    """A run that ends while its helper compiles deferred kernels only waits for it: stopped at
-    the end of every run, they would never be compiled (each run shorter than them)."""
-    code = """
-        import json
-        from solvers import jit
-        names = ["certpose.geometry._fpfh_kernels:fpfh"]
-        specs = [s for s in jit.declared(["certpose.geometry._fpfh_kernels"]) if s.name == "fpfh"]
-        print(json.dumps({"started": jit.warm_up(names), "deferred": specs[0].deferred,
-                          "pending": jit.pending()}))
-    """
-    first = _run(code, tmp_path)
+def test_deferred_kernels_compile_detached_after_a_run(tmp_path):
+    """A run that ends while its helper compiles deferred kernels only returns at once, its pipes
+    closed (subprocess.run with captured output, and a shell pipe), and leaves the helper
+    compiling them in its own session; a second run meanwhile does without them and compiles
+    nothing twice (the first helper keeps the lock); once it is done they are cached."""
+    first = _run(_DEFERRED_RUN, tmp_path)  # returns when the run's pipes close
     assert first["started"] == 1 and first["deferred"]
     assert first["pending"] == ["certpose.geometry._fpfh_kernels"]
-    second = _run(code, tmp_path)
+    pid = first["pid"]
+    assert _alive(pid)  # still compiling (seconds), detached
+    assert os.getsid(pid) == pid and os.getsid(pid) != os.getsid(0)
+    second = _run(_DEFERRED_RUN + """
+    jit._PENDING[0].proc.wait()  # its helper: finds the lock held, compiles nothing
+    out["code"] = jit._PENDING[0].proc.returncode
+    print(json.dumps(out))
+    """, tmp_path)
+    assert second["code"] == 0
+    assert second["pending"] == ["certpose.geometry._fpfh_kernels"]  # open3d's FPFH meanwhile
+    assert _alive(pid)
+    assert Path(first["lock"]).read_text() == str(pid)  # the second's helper never held it
+    _wait_gone(pid)
+    assert not Path(first["dir"]).exists()  # the helper removed its lock folder
+    assert not Path(second["dir"]).exists()
+    third = _run(_DEFERRED_RUN, tmp_path)
+    assert third["started"] == 0 and third["pending"] == []
+
+
+@pytest.mark.slow
+def test_a_shell_pipe_returns_while_the_detached_helper_compiles(tmp_path):
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    script = tmp_path / "run.py"
+    script.write_text(textwrap.dedent(_DEFERRED_RUN))
+    proc = subprocess.run(["sh", "-c", f'"{sys.executable}" "{script}" 2>&1 | cat'], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["started"] == 1 and _alive(out["pid"])
+    _wait_gone(out["pid"])
+
+
+@pytest.mark.slow
+def test_deferred_kernels_are_waited_for_when_detaching_is_off(tmp_path, monkeypatch):
+    """SOLVERS_JIT_DETACH=0: the run waits at exit for its helper's deferred kernels."""
+    monkeypatch.setenv(jit.DETACH_ENV, "0")
+    first = _run(_DEFERRED_RUN, tmp_path)
+    monkeypatch.delenv(jit.DETACH_ENV)
+    assert first["started"] == 1 and not _alive(first["pid"])
+    assert not Path(first["dir"]).exists()
+    second = _run(_DEFERRED_RUN, tmp_path)
     assert second["started"] == 0 and second["pending"] == []
 
 
