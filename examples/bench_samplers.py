@@ -362,6 +362,14 @@ def run_scene(name: str, lik, seeds: np.ndarray, T_gt: np.ndarray, arc, centre: 
         t_ref = time.perf_counter()
         exact = axis_marginal(lik, T_gt, AXIS, temperature=temp, pivot=centre, draws=marginal_draws, rng=seed)
         t_ref = time.perf_counter() - t_ref
+    in_arc_exact = None
+    if exact is not None and arc.arc is not None:
+        # The target's own mass in the arc (bins split in proportion where an end cuts them).
+        e = exact.edges_deg
+        lo, hi = arc.arc
+        share = sum(np.clip(np.minimum(e[1:], hi + k) - np.maximum(e[:-1], lo + k), 0.0, None)
+                    for k in (-360.0, 0.0, 360.0)) / np.diff(e)
+        in_arc_exact = float(exact.mass @ share)
     rows = []
     for method, res, ess in (("IS (ours)", ours, ours.weighted.ess), ("Nevergrad DE", de, de.ess),
                              ("MCMC (RWM)", mc, mc.ess)):
@@ -385,7 +393,8 @@ def run_scene(name: str, lik, seeds: np.ndarray, T_gt: np.ndarray, arc, centre: 
             "status": res.status, "load": list(load), "seed": seed,
             **({"tv_uniform": tv_uniform(d, T_gt, arc)} if name == "demo" and arc.arc is not None else {}),
             **({"tv_target": exact.compare(d)[0], "outside_target": exact.compare(d)[1],
-                "target_tv_error": exact.tv_error, "target_ess": exact.ess, "target_seconds": t_ref}
+                "target_tv_error": exact.tv_error, "target_ess": exact.ess, "target_seconds": t_ref,
+                "target_mass_in_arc": in_arc_exact}
                if exact is not None else {}),
         })
     if check_kde:
@@ -528,7 +537,9 @@ def main() -> None:
               "seconds]), and the mass beyond 30 deg:")
         for g in sorted({(r["scene"], r["seed"]) for r in tvt}):
             rs = [r for r in tvt if (r["scene"], r["seed"]) == g]
-            print(f"  {g[0]}@{g[1]} [{rs[0]['target_tv_error']:.3f}, {rs[0]['target_seconds']:.0f} s]: "
+            in_arc = rs[0]["target_mass_in_arc"]
+            print(f"  {g[0]}@{g[1]} [{rs[0]['target_tv_error']:.3f}, {rs[0]['target_seconds']:.0f} s"
+                  + (f"; the target's mass in the arc {in_arc:.2f}" if in_arc is not None else "") + "]: "
                   + ", ".join(f"{r['method']} {r['tv_target']:.3f} (beyond {r['outside_target']:.2f})"
                               for r in rs))
     checked = [r for r in ours_rows if "kde_check" in r]
