@@ -310,3 +310,17 @@ def test_demo_object_model_is_cached(tmp_path):
     d = object_from_points_cached(a.points, FPFHBackbone(), voxel_size=0.005, cache_dir=tmp_path)
     assert len(list((tmp_path / "objects").glob("*.npz"))) == 3
     assert np.all(c.colors == 0) and d.colors is None
+
+
+def test_fuse_views_without_normals_keeps_points_and_colours():
+    # The resampled models take only the fused points and colours: skipping the normals must
+    # leave those bit for bit.
+    from certpose.data.synthetic import make_mug_scene
+    from certpose.geometry.objects import fuse_views
+
+    views = make_mug_scene(rng=0).render_object_views(2)
+    full = fuse_views(views, voxel_size=0.005)
+    bare = fuse_views(views, voxel_size=0.005, normals=False)
+    assert full.dim == 3 and bare.dim == 0
+    np.testing.assert_array_equal(bare.points, full.points)
+    np.testing.assert_array_equal(bare.colors, full.colors)

@@ -863,7 +863,8 @@ def _demo_object_model(views: Any, backbone: Any, voxel_size: float, revolution:
     from certpose.geometry.objects import fuse_views
     from certpose.io.cache import object_from_points_cached
 
-    fused = fuse_views(views, voxel_size=voxel_size)  # the cloud object_from_views resamples
+    # The cloud object_from_views resamples (its points and colours: no normals needed).
+    fused = fuse_views(views, voxel_size=voxel_size, normals=False)
     return object_from_points_cached(fused.points, backbone, voxel_size=voxel_size, colors=fused.colors,
                                      name="mug", revolution=revolution, cache_dir=cache_dir)
 
