@@ -5,6 +5,8 @@ Usage::
     PYTHONPATH=. python examples/bench_samplers.py [--ycbv ../shared/data/ycbv] [--frames 000001 ...]
                                                    [--no-ycbv] [--seeds 0 1 2] [--json OUT]
                                                    [--kde-check] [--temperature-scale S]
+                                                   [--target-marginal demo|all|none] [--target-draws N]
+                                                   [--plot OUT.png]
 
 Every method samples the same target, ``exp(eq. (1) / temperature)`` with the default
 temperature rule, on the same likelihood object, within the same wall-clock budget: ours runs
@@ -335,6 +337,42 @@ def kde_check(lik, res, rng: int = 0) -> dict:  # noqa: ANN001
     return out
 
 
+def plot_target_marginals(rows: list[dict], path: Path) -> None:
+    """One panel per scene and seed: the target's exact marginal about the axis (black, with a
+    band of two standard errors) and each method's (5 deg bins), the reference arc shaded green
+    and the other free runs yellow (PNG, Agg canvas)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    groups = sorted({(r["scene"], r["seed"]) for r in rows if "target_marginal" in r})
+    fig = Figure(figsize=(9.0, 2.0 * len(groups) + 0.6), constrained_layout=True)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(len(groups), 1, sharex=True, squeeze=False)[:, 0]
+    colours = {"IS (ours)": "tab:blue", "Nevergrad DE": "tab:orange", "MCMC (RWM)": "tab:red"}
+    for ax, g in zip(axes, groups, strict=True):
+        rs = [r for r in rows if (r["scene"], r["seed"]) == g]
+        e = np.asarray(rs[0]["target_edges_deg"])
+        lo, hi = rs[0]["arc"]
+        for k in (-360.0, 0.0, 360.0):
+            ax.axvspan(lo + k, hi + k, color="tab:green", alpha=0.12, lw=0)
+            for a, b in rs[0]["other_free_arcs"]:
+                ax.axvspan(a + k, b + k, color="gold", alpha=0.2, lw=0)
+        m, se = np.asarray(rs[0]["target_marginal"]), np.asarray(rs[0]["target_stderr"])
+        ax.fill_between(e[:-1], m - 2 * se, m + 2 * se, step="post", color="0.6", alpha=0.5, lw=0)
+        ax.stairs(m, e, color="k", lw=1.6, label="target (exact)")
+        for r in rs:
+            ax.stairs(r["marginal"], e, color=colours.get(r["method"], "0.4"), lw=0.9,
+                      label=f"{r['method']} TV {r['tv_target']:.2f}")
+        ax.set_xlim(-180.0, 180.0)
+        ax.set_ylim(0.0, 1.6 * max(m.max(), max(max(r["marginal"]) for r in rs if r["method"] == "IS (ours)")))
+        ax.set_ylabel(f"{g[0]}@{g[1]}\nmass / 5 deg", fontsize=8)
+        ax.legend(loc="upper left", ncol=4, fontsize=7)
+    axes[0].set_title("samplers' marginals about the mug's axis vs the target's exact one "
+                      "(green: the hidden arc; yellow: other free runs)", fontsize=9)
+    axes[-1].set_xlabel("turn about the mug's axis (deg)")
+    fig.savefig(path, dpi=110)
+
+
 def run_scene(name: str, lik, seeds: np.ndarray, T_gt: np.ndarray, arc, centre: np.ndarray,  # noqa: ANN001
               seed: int, slice_ref: bool = False, check_kde: bool = False,
               up: np.ndarray | None = None, temperature_scale: float = 1.0,
@@ -392,7 +430,10 @@ def run_scene(name: str, lik, seeds: np.ndarray, T_gt: np.ndarray, arc, centre: 
             "log_p_gt": lp, "log_p_gt_target": ref, "log_p_gt_error": abs(lp - ref),
             "status": res.status, "load": list(load), "seed": seed,
             **({"tv_uniform": tv_uniform(d, T_gt, arc)} if name == "demo" and arc.arc is not None else {}),
-            **({"tv_target": exact.compare(d)[0], "outside_target": exact.compare(d)[1],
+            **({"marginal": exact.histogram(d.rotations, d.weights)[0].tolist(),
+                "target_marginal": exact.mass.tolist(), "target_stderr": exact.stderr.tolist(),
+                "target_edges_deg": exact.edges_deg.tolist(),
+                "tv_target": exact.compare(d)[0], "outside_target": exact.compare(d)[1],
                 "target_tv_error": exact.tv_error, "target_ess": exact.ess, "target_seconds": t_ref,
                 "target_mass_in_arc": in_arc_exact}
                if exact is not None else {}),
@@ -423,6 +464,9 @@ def main() -> None:
                          "variation from it (default: the demo)")
     ap.add_argument("--target-draws", type=int, default=100_000,
                     help="importance draws of that reference (its own error is printed)")
+    ap.add_argument("--plot", type=Path, default=None,
+                    help="PNG: each method's marginal about the axis against the target's exact one, "
+                         "one panel per scene and seed (needs matplotlib and --target-marginal)")
     ap.add_argument("--likelihood", nargs="+", default=[], metavar="NAME=VALUE",
                     help="LikelihoodParams fields other than the defaults (MLE and target), e.g. "
                          "free_space_tolerance=0.0075 free_space_from=boundary")
@@ -442,6 +486,14 @@ def main() -> None:
         from certpose.io.output import check_output_path
 
         check_output_path(args.json, what="--json output")
+    if args.plot is not None:
+        from certpose.io.output import check_output_path
+
+        if args.target_marginal == "none":
+            ap.error("--plot draws the target's exact marginal: it needs --target-marginal demo or all")
+        if args.plot.suffix.lower() != ".png":
+            ap.error(f"--plot writes a PNG: expected a .png path, got {args.plot}")
+        check_output_path(args.plot, what="--plot output")
 
     from certpose.model.likelihood import LikelihoodParams
     from certpose.sampling import DEParams, ISParams, MCMCParams, de_sample, mcmc_sample
@@ -550,6 +602,9 @@ def main() -> None:
             c = r["kde_check"]
             print(f"  {r['scene']:12s} {r['seed']:4d} " + "  ".join(
                 f"{k} {c[k]['mean']:+.2f} / {c[k]['mean_abs']:.2f}" for k in ("one", "mode", "pivot")))
+    if args.plot is not None:
+        plot_target_marginals(rows, args.plot)
+        print(f"wrote {args.plot}")
     if args.json is not None:
         from certpose.io.output import write_json
 

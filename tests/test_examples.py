@@ -158,7 +158,9 @@ def test_bench_samplers_demo(tmp_path: Path) -> None:
     import math
 
     out = tmp_path / "bench.json"
-    proc = _run("bench_samplers.py", "--no-ycbv", "--json", str(out), "--target-draws", "20000")
+    png = tmp_path / "marginals.png"
+    proc = _run("bench_samplers.py", "--no-ycbv", "--json", str(out), "--target-draws", "20000",
+                "--plot", str(png))
     assert proc.returncode == 0, proc.stdout + proc.stderr
     rows = json.loads(out.read_text())["rows"]
     assert [r["method"] for r in rows] == ["IS (ours)", "Nevergrad DE", "MCMC (RWM)"]
@@ -175,6 +177,7 @@ def test_bench_samplers_demo(tmp_path: Path) -> None:
     # Against the target's own marginal about the axis, ours is closer than DE (0.04 vs 0.4-0.9).
     assert rows[0]["tv_target"] < rows[1]["tv_target"], rows
     assert "ours best or tied on" in proc.stdout and "from the target's exact marginal" in proc.stdout
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
 
 
 @pytest.mark.slow  # four bench processes, two of them with a Dask cluster
