@@ -398,7 +398,8 @@ def run_scene(name: str, lik, seeds: np.ndarray, T_gt: np.ndarray, arc, centre: 
         from certpose.sampling.reference import axis_marginal
 
         t_ref = time.perf_counter()
-        exact = axis_marginal(lik, T_gt, AXIS, temperature=temp, pivot=centre, draws=marginal_draws, rng=seed)
+        exact = axis_marginal(lik, T_gt, AXIS, temperature=temp, pivot=centre, draws=marginal_draws, rng=seed,
+                              progress=sys.stderr.isatty())
         t_ref = time.perf_counter() - t_ref
     in_arc_exact = None
     if exact is not None and arc.arc is not None:

@@ -45,6 +45,7 @@ def _quadrature(edges_deg, jacobian=True):
     return h / h.sum()
 
 
+@pytest.mark.slow
 def test_marginal_matches_quadrature_and_haar_draws():
     m = axis_marginal(_target, T_REF, AXIS, pivot=PIVOT, max_swing_deg=MAX_SWING, bin_deg=10.0,
                       draws=200_000, rng=1)
@@ -62,6 +63,7 @@ def test_marginal_matches_quadrature_and_haar_draws():
     assert 0.5 * np.abs(h / h.sum() - m.mass).sum() < 3 * m.tv_error + 0.01
 
 
+@pytest.mark.slow
 def test_stated_error_is_the_observed_error():
     exact = None
     errs, stated = [], []

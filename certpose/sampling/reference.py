@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -198,16 +199,18 @@ def _poses(theta: NDArray[np.float64], x: NDArray[np.float64], basis: NDArray[np
 def _log_weights(log_target: Callable[[NDArray[np.float64]], ArrayLike], theta: NDArray[np.float64],
                  x: NDArray[np.float64], prop: _Proposal, basis: NDArray[np.float64], a: NDArray[np.float64],
                  T_ref: NDArray[np.float64], pivot: NDArray[np.float64], temperature: float,
-                 max_swing: float, chunk: int) -> NDArray[np.float64]:
+                 max_swing: float, chunk: int, bar: Any) -> NDArray[np.float64]:
     r = np.linalg.norm(x[:, :2], axis=1)
     lw = np.full(len(theta), -np.inf)
     keep = np.flatnonzero(r <= max_swing)
+    bar.update(len(theta) - len(keep))
     for k in range(0, len(keep), chunk):
         idx = keep[k:k + chunk]
         f = np.asarray(log_target(_poses(theta[idx], x[idx], basis, a, T_ref, pivot)), dtype=np.float64)
         if f.shape != (len(idx),):
             raise ValueError(f"Expected `log_target` to return shape ({len(idx)},), got {f.shape}.")
         lw[idx] = f / temperature
+        bar.update(len(idx))
     jac = np.log(np.sinc(np.minimum(r, max_swing) / math.pi))  # sin r / r (r < pi where kept)
     lw = lw + jac - prop.logpdf(x)
     lw[~np.isfinite(lw)] = -np.inf
@@ -249,6 +252,7 @@ def axis_marginal(
     initial_scale: tuple[float, float] = (0.035, 0.003),
     rng: np.random.Generator | int | None = None,
     chunk: int = 8192,
+    progress: bool = False,
 ) -> AxisMarginal:
     """The marginal of ``exp(log_target / temperature)`` over the rotation about ``axis``.
 
@@ -280,6 +284,8 @@ def axis_marginal(
         Random source.
     chunk : int
         Poses per call of ``log_target``.
+    progress : bool
+        A progress bar over the target's evaluations (tqdm, when installed).
 
     Returns
     -------
@@ -313,17 +319,24 @@ def axis_marginal(
     max_swing = math.radians(max_swing_deg)
     prop = _Proposal(np.zeros(5), np.diag([sr, sr, st, st, st]))
 
+    from certpose.sampling.sampler import _progress
+
+    bar = _progress(int(pilot_rounds) * int(pilot_draws) + int(draws), "axis marginal", progress)
+
     def run(n: int, p: _Proposal) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         theta = gen.uniform(-math.pi, math.pi, n)
         x = p.draw(n, gen)
         return theta, x, _log_weights(log_target, theta, x, p, basis, a, T_ref, c, float(temperature),
-                                      max_swing, int(chunk))
+                                      max_swing, int(chunk), bar)
 
-    for _ in range(int(pilot_rounds)):
-        _, x, lw = run(int(pilot_draws), prop)
-        if np.isfinite(lw).any():
-            prop = _fit(x, lw, prop, inflate=1.5)
-    theta, x, lw = run(int(draws), prop)
+    try:
+        for _ in range(int(pilot_rounds)):
+            _, x, lw = run(int(pilot_draws), prop)
+            if np.isfinite(lw).any():
+                prop = _fit(x, lw, prop, inflate=1.5)
+        theta, x, lw = run(int(draws), prop)
+    finally:
+        bar.close()
     if not np.isfinite(lw).any():
         raise RuntimeError("Every draw has zero target density: is `T_ref` near the target's mass?")
     w = np.exp(lw - logsumexp(lw))
