@@ -161,10 +161,17 @@ def deferred_lock_path(module: str) -> str:
     return os.path.join(folder, f"{module}.deferred.lock")
 
 
+def _deferred_busy(module: str) -> bool:
+    """Whether another process holds ``module``'s deferred-kernels lock (it compiles them)."""
+    with _deferred_lock(module, block=False, mark=False) as mine:
+        return not mine
+
+
 @contextlib.contextmanager
-def _deferred_lock(module: str, *, block: bool) -> Any:
-    """Hold ``module``'s deferred-kernels lock; yields False (without waiting, when ``block`` is
-    False) if another process holds it. Without ``fcntl`` (not POSIX) it always yields True."""
+def _deferred_lock(module: str, *, block: bool, mark: bool = True) -> Any:
+    """Hold ``module``'s deferred-kernels lock (``mark``: writing this process's id into it);
+    yields False (without waiting, when ``block`` is False) if another process holds it.
+    Without ``fcntl`` (not POSIX) it always yields True."""
     try:
         import fcntl
     except ImportError:
@@ -177,8 +184,9 @@ def _deferred_lock(module: str, *, block: bool) -> Any:
         except BlockingIOError:
             yield False
             return
-        os.ftruncate(fd, 0)
-        os.write(fd, str(os.getpid()).encode())
+        if mark:
+            os.ftruncate(fd, 0)
+            os.write(fd, str(os.getpid()).encode())
         yield True  # released when the file is closed (or the process ends)
     finally:
         os.close(fd)
@@ -270,18 +278,24 @@ def warm_up(kernels: Sequence[str], *, preload: bool = False) -> int:
     lock_dir = tempfile.mkdtemp(prefix="solvers-jit-")
     for token in _TOKENS:  # which of the two is still there (see _leave)
         open(os.path.join(lock_dir, token), "wb").close()
-    args = [f"{s.module}:{s.name}" for s in cold]
+    # Deferred kernels another process compiles (an earlier run's detached helper): not for our
+    # helper; they stay pending, so their callers do without them here too.
+    busy = sorted({s.module for s in cold if s.deferred and _deferred_busy(s.module)})
+    if busy:
+        log.info("deferred kernels of %s: another process is compiling them", busy)
+    args = [f"{s.module}:{s.name}" for s in cold if not (s.deferred and s.module in busy)]
+    proc: subprocess.Popen[bytes] | None = None
     try:
-        with open(os.path.join(lock_dir, "stderr"), "wb") as err:  # a file: no pipe to fill
-            # Its own session and none of our pipes: it may outlive this process (deferred
-            # kernels, see _abandon) without holding a caller's pipe or terminal.
-            proc: subprocess.Popen[bytes] | None = subprocess.Popen(
-                [sys.executable, "-m", "solvers.jit", "--locks", lock_dir, *args],
-                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
-                start_new_session=True)
+        if args:
+            with open(os.path.join(lock_dir, "stderr"), "wb") as err:  # a file: no pipe to fill
+                # Its own session and none of our pipes: it may outlive this process (deferred
+                # kernels, see _abandon) without holding a caller's pipe or terminal.
+                proc = subprocess.Popen(
+                    [sys.executable, "-m", "solvers.jit", "--locks", lock_dir, *args],
+                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
+                    start_new_session=True)
     except OSError as exc:  # no helper: this process compiles them when it needs them
         log.info("kernel warm-up helper not started (%s)", exc)
-        proc = None
     if not _PENDING:
         atexit.register(_abandon)
     _PENDING.append(_Warming(proc, cold, lock_dir))
