@@ -46,6 +46,16 @@ axially resampled one (built about 2 s, then kept in the model cache): cold 13.7
 with the demo's model in the model cache, 16.88 s (24.9 CPU s) with ``CERTPOSE_CACHE_DIR`` empty
 too (a fresh install); warm 2.60 / 2.98 s. Issue #8's 12 s is no longer met.
 
+2026-11-26 afternoon, after the detached compilation of the deferred kernels (solvers.jit) and
+the demo's model without the unused per-view normals, ``--commands pose register
+--fresh-model-cache``, interleaved with the code before (four rounds, two of them at
+``nice -n -15``; load 7-9.5 from other sessions, so every wall is 2-3x a quiet machine's): cold
+``pose --demo`` 15.83 / 16.31 / 18.21 / 18.05 s (22.5 / 21.9 / 24.7 / 25.3 CPU s with the
+detached compiler's, which went on 9.7-11.5 s after the command) against 44.81 / 35.07 / 42.92 /
+42.43 s (27.7 / 23.1 / 27.4 / 28.4 CPU s); warm 4.60 / 4.89 / 4.66 / 4.32 s (3.0-3.2 CPU s)
+against 5.59 / 6.39 / 6.12 / 5.18 s (3.5-4.0 CPU s); cold ``register --demo`` 7.46 / 7.99 /
+7.97 / 5.23 s against 10.73 / 12.30 / 13.59 / 11.91 s (7.0-8.5 CPU s both: the same code).
+
 usage::
 
     python examples/bench_cold_start.py               # both commands, 1 cold + 1 warm run each
