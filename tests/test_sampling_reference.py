@@ -61,6 +61,12 @@ def test_marginal_matches_quadrature_and_haar_draws():
     w = np.exp(0.7 * np.cos(th) - sw**2 / (2 * _sigma(th) ** 2)) * (sw <= math.radians(MAX_SWING))
     h, _ = np.histogram(np.degrees(th), m.edges_deg, weights=w)
     assert 0.5 * np.abs(h / h.sum() - m.mass).sum() < 3 * m.tv_error + 0.01
+    # The mass with the axis within 20 deg (the pivot's 2-mm offsets all within 1 cm of the
+    # axis line): the Haar draws' share against the estimate's, and the axis's other bounds.
+    near = w[sw <= math.radians(20.0)].sum() / w.sum()
+    assert abs(m.mass_near_axis(20.0, 0.01) - near) < 0.02, (m.mass_near_axis(20.0, 0.01), near)
+    assert m.mass_near_axis(20.0, 0.01, direction=T_REF[:3, :3] @ AXIS) == m.mass_near_axis(20.0, 0.01)
+    assert abs(m.mass_near_axis(180.0, np.inf) - 1.0) < 1e-9 and m.mass_near_axis(20.0, 1e-4) < 0.01
 
 
 @pytest.mark.slow

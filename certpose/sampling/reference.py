@@ -134,6 +134,12 @@ class AxisMarginal:
         Unit object-frame axis.
     T_ref : (4, 4)
         Reference pose (angles are measured from it).
+    axes : (n, 3)
+        The final draws' axis directions (scene frame, unit).
+    offsets : (n, 3)
+        The final draws' pivot offsets from the reference's pivot (scene frame, m).
+    weights : (n,)
+        The final draws' normalised importance weights (zero outside the region).
     """
 
     edges_deg: NDArray[np.float64]
@@ -144,6 +150,22 @@ class AxisMarginal:
     max_swing_deg: float
     axis: NDArray[np.float64]
     T_ref: NDArray[np.float64]
+    axes: NDArray[np.float64]
+    offsets: NDArray[np.float64]
+    weights: NDArray[np.float64]
+
+    def mass_near_axis(self, max_tilt_deg: float = 5.0, max_offset: float = 0.01, *,
+                       direction: ArrayLike | None = None) -> float:
+        """The target's mass (in the region) whose axis lies within ``max_tilt_deg`` of
+        ``direction`` (scene frame; default the reference's axis) and whose pivot lies within
+        ``max_offset`` (m) of the reference's axis line: issue 11's "axis direction within 5 deg
+        and axis position within 1 cm", for the target itself."""
+        a_ref = self.T_ref[:3, :3] @ self.axis
+        up = a_ref if direction is None else _unit_axis(direction)
+        tilt = np.degrees(np.arccos(np.clip(self.axes @ up, -1.0, 1.0)))
+        d = self.offsets
+        off = np.linalg.norm(d - np.outer(d @ a_ref, a_ref), axis=1)
+        return float(self.weights[(tilt <= max_tilt_deg) & (off <= max_offset)].sum())
 
     @property
     def tv_error(self) -> float:
@@ -347,5 +369,7 @@ def axis_marginal(
     w2 = w**2
     in_b = np.bincount(b, weights=w2, minlength=len(edges) - 1)
     var = in_b * (1.0 - mass) ** 2 + (w2.sum() - in_b) * mass**2
+    axes = (T_ref[:3, :3] @ Rotation.from_rotvec(x[:, :2] @ basis).as_matrix() @ a)
     return AxisMarginal(edges_deg=edges, mass=mass, stderr=np.sqrt(var), ess=float(1.0 / w2.sum()),
-                        draws=int(draws), max_swing_deg=float(max_swing_deg), axis=a, T_ref=T_ref)
+                        draws=int(draws), max_swing_deg=float(max_swing_deg), axis=a, T_ref=T_ref,
+                        axes=axes, offsets=x[:, 2:].copy(), weights=w)
