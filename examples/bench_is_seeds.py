@@ -21,11 +21,14 @@ The demo's mug with its body sampled by its axial symmetry (``run_demo``'s model
 2026-11-26; 2026-11-26, seeds 0-4, load 6): final ESS 2,303-6,159 (YCB-Video frames 1-5
 unchanged: least 1,671); after the faster axis search (a597463, the model moved by hundredths
 of a degree), quiet, seeds 0-9: 6,059 4,938 5,601 6,182 **563** 6,391 6,072 6,642 2,856 6,154.
-Seed 4's heaviest final draws are the mug upside down (tilt 177 deg, eq. (1) about 18 nats below
-the typical draw), a basin no pilot round reached: seeding the sampler also with the MLE's
-refined half turns about the model's principal axes (``calibration.find_basins``' flips) gives
-5,920 there (seeds 1 / 8: 6,390 / 5,681; YCB-Video 0000/000001 3,641 -> 4,315, but 000003
-2,178 -> 1,149), not adopted yet; mass in the arc 0.99-1.00, axis within 5 deg / 1 cm 0.97-0.99, arc
+Seed 4's heaviest final draws are the mug upside down (tilt 177 deg, its refined peak 4.2
+tempered nats below the MLE), a basin no pilot round reached. ``--param half_turns=True``
+(``ISParams.half_turns``: the MLE's half turns about the model's principal axes, refined, as
+seeds within 20 tempered nats of the best, 5% of the initial mixture each; 2026-11-26, the same
+cached MLE seeds): demo seeds 0-19, least ESS 563 -> 1,465, median 6,113 -> 6,154 (seed 4 563
+-> 6,193); YCB-Video 0000 frames 1-5 seeds 0-4 unchanged but for 000002 seed 2 (2,399 ->
+2,738; the mug's half turns there lie 18-102 nats below, all but that one beyond the window).
+Demo seeds 0-9: mass in the arc 0.99-1.00, axis within 5 deg / 1 cm 0.97-0.99, arc
 coverage 0.88-1.00: the computed arc (one-voxel tolerance) reaches 10-20 deg past where eq. (1)
 starts charging the handle's tip (seed 1: the last 20 deg of -138.5..72 deg empty), while
 inside the marginal is flat (0.9-1.3 times a uniform share per 5 deg).

@@ -376,14 +376,15 @@ def plot_target_marginals(rows: list[dict], path: Path) -> None:
 def run_scene(name: str, lik, seeds: np.ndarray, T_gt: np.ndarray, arc, centre: np.ndarray,  # noqa: ANN001
               seed: int, slice_ref: bool = False, check_kde: bool = False,
               up: np.ndarray | None = None, temperature_scale: float = 1.0,
-              marginal_draws: int = 0) -> list[dict]:
+              marginal_draws: int = 0, is_params: dict | None = None) -> list[dict]:
     from certpose.sampling import DEParams, ISParams, MCMCParams, de_sample, mcmc_sample
     from certpose.sampling.chart import to_chart
     from certpose.sampling.sampler import sample_pose_distribution
 
     load = os.getloadavg()
     ours = sample_pose_distribution(lik, seeds, rng=seed,
-                                    params=ISParams(resample=10_000, temperature_scale=temperature_scale))
+                                    params=ISParams(resample=10_000, temperature_scale=temperature_scale,
+                                                    **(is_params or {})))
     temp, budget = ours.temperature, ours.seconds
     sliced = slice_arc(lik, T_gt, temp) if slice_ref else None
     de = de_sample(lik, seeds[0], rng=seed, init=to_chart(seeds[:, :3, :3], seeds[:, :3, 3], seeds[0]),
@@ -459,6 +460,9 @@ def main() -> None:
     ap.add_argument("--temperature-scale", type=float, default=1.0,
                     help="multiplies the default temperature rule (every method samples ours' temperature)")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--param", nargs="+", default=[], metavar="NAME=VALUE",
+                    help="ISParams fields of ours other than the defaults (Python literals), e.g. "
+                         "half_turns=True")
     ap.add_argument("--target-marginal", choices=("demo", "all", "none"), default="demo",
                     help="where to compute the target's exact marginal about the axis "
                          "(certpose.sampling.reference.axis_marginal) and each method's total "
@@ -506,6 +510,11 @@ def main() -> None:
         # Each value takes the type of the field's default (the string options stay strings).
         lparams = LikelihoodParams(**{k: type(getattr(LikelihoodParams(), k))(v) for k, v in fields.items()})
         print(f"likelihood: {lparams}")
+    import ast
+
+    is_params = {k: ast.literal_eval(v) for k, v in (item.split("=", 1) for item in args.param)}
+    if is_params:
+        print(f"ours: {ISParams(**is_params)}")
     seeds_run = args.seeds if args.seeds else [args.seed]
     use_ycbv = not args.no_ycbv and args.ycbv.is_dir()
     if not args.no_ycbv and not use_ycbv:
@@ -522,7 +531,8 @@ def main() -> None:
             t0 = time.perf_counter()
         rows += run_scene("demo", lik, seeds, gt, arc, centre, seed, slice_ref=args.arc == "slice",
                           check_kde=args.kde_check, temperature_scale=args.temperature_scale,
-                          marginal_draws=args.target_draws if args.target_marginal != "none" else 0)
+                          marginal_draws=args.target_draws if args.target_marginal != "none" else 0,
+                          is_params=is_params)
         if use_ycbv:
             for frame in args.frames:
                 lik, seeds, gt, arc, centre = ycbv_problem(args.ycbv, frame, seed, lparams, args.arc_test,
@@ -530,7 +540,8 @@ def main() -> None:
                 rows += run_scene(f"0000/{frame}", lik, seeds, gt, arc, centre, seed,
                                   check_kde=args.kde_check, up=support_normal(args.ycbv, frame),
                                   temperature_scale=args.temperature_scale,
-                                  marginal_draws=args.target_draws if args.target_marginal == "all" else 0)
+                                  marginal_draws=args.target_draws if args.target_marginal == "all" else 0,
+                                  is_params=is_params)
     print(f"\nsame target (eq. (1) / default temperature) and wall-clock budget (ours' sampling "
           f"time) per scene; seeds {seeds_run}; {time.perf_counter() - t0:.0f} s in all")
     print(f"{'scene':12s} {'seed':>4s} {'method':13s} {'T':>5s} {'load':>5s} {'s':>5s} {'evals':>6s} "

@@ -83,6 +83,7 @@ from certpose.sampling.sampler import (
     _laplace_covariances,
     _laplace_precisions,
     default_temperature,
+    principal_half_turns,
 )
 from solvers.validation import resolve_rng
 
@@ -160,20 +161,6 @@ class Basins:
     temperature: float
 
 
-def _principal_flips(likelihood, T: NDArray[np.float64]) -> NDArray[np.float64]:  # noqa: ANN001
-    """(3, 4, 4) half turns of ``T`` about the model's principal axes through its centroid."""
-    pts = likelihood._points
-    c = pts.mean(axis=0)
-    _, V = np.linalg.eigh(np.cov((pts - c).T))
-    out = np.repeat(T[None], 3, axis=0)
-    for i in range(3):
-        F = Rotation.from_rotvec(np.pi * V[:, i]).as_matrix()
-        # Object-frame half turn about the centroid: x -> F (x - c) + c.
-        out[i, :3, :3] = T[:3, :3] @ F
-        out[i, :3, 3] = T[:3, :3] @ (c - F @ c) + T[:3, 3]
-    return out
-
-
 def _distinct(poses: NDArray[np.float64], values: NDArray[np.float64]) -> NDArray[np.intp]:
     """Indices of ``poses`` (best value first) with no better pose within 2 mm and 2 deg."""
     keep: list[int] = []
@@ -220,7 +207,7 @@ def find_basins(
     values = list(np.asarray(likelihood(T0), dtype=np.float64))
     if flips:
         radius = float(np.linalg.norm(likelihood._points - likelihood._points.mean(0), axis=1).max())
-        for F in _principal_flips(likelihood, T0[0]):
+        for F in principal_half_turns(likelihood, T0[0]):
             T, v, _ = refine_pose(likelihood, F, scale=radius)
             poses.append(np.asarray(T))
             values.append(float(v))

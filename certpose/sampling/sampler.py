@@ -21,6 +21,13 @@ round's weight far from every component (a narrow peak no sweep reached) gets a 
 own, fitted the same way (:func:`_births`). ``examples/bench_is_seeds.py --seeds 0-9`` (demo and
 YCB-V 0000/000001-5, 60 runs): final ESS < 1,000 in 33 runs before, none after (least 1,859).
 
+Basins off the circle. A sweep turns about the axis of a run it has seen; a basin elsewhere (the
+demo's mug upside down, a few tempered nats below the MLE) is reached only by tail draws, which
+then carry the weight (the demo at seed 4: final ESS 563). With ``ISParams.half_turns`` the
+first seed's half turns about the model's principal axes, refined on eq. (1)
+(:func:`half_turn_seeds`), join the seeds when they are within ``half_turn_window`` tempered nats
+of the best, each with a fixed initial share (``half_turn_share``); figures in :class:`ISParams`.
+
 Tangent chart (the one of :mod:`certpose.sampling.distribution`): around a centre ``(R_k, t_k)``
 a 6-vector ``x = (w, d)`` is the pose ``R = R_k exp([w]_x)``, ``t = t_k + d`` (rotation vector in
 radians, object-frame perturbation; translation in metres).
@@ -69,8 +76,9 @@ from certpose.sampling.distribution import PoseDistribution
 from solvers.lie import so3_log
 from solvers.validation import resolve_rng
 
-__all__ = ["ISParams", "ISResult", "TangentMixture", "default_temperature", "importance_sample",
-           "perturbed_eq2_seeds", "sample_pose_distribution", "seeds_from_mle"]
+__all__ = ["ISParams", "ISResult", "TangentMixture", "default_temperature", "half_turn_seeds",
+           "importance_sample", "perturbed_eq2_seeds", "principal_half_turns", "sample_pose_distribution",
+           "seeds_from_mle"]
 
 log = logging.getLogger(__name__)
 
@@ -192,6 +200,39 @@ class ISParams:
         them final ESS median 3,815, 10% quantile 2,740, least 931 (1 run below 1,000: the demo
         at seed 9, a narrow peak no component reached); without them 3,568, 2,214, 1,192; the
         same arc figures and time (the mixture density is a small share of it).
+    half_turns : bool
+        :func:`sample_pose_distribution` also seeds the sampler with the first seed's half turns
+        about the model's principal axes through its centroid, each refined on eq. (1)
+        (:func:`half_turn_seeds`; the flips of :func:`certpose.sampling.calibration.find_basins`,
+        climbed in one batch): a basin that no pilot round reaches, such as the demo's mug upside
+        down (tilt 177 deg, its refined peak 3.6-5.3 tempered nats below the MLE on seeds 0-19,
+        a ring of its own since its handle hides there too). Their cost (0.04-0.2 s) is counted
+        in :attr:`ISResult.seconds`. ``examples/bench_is_seeds.py`` (2026-11-26, the same MLE
+        seeds off and on, ``--cache``): the demo at seeds 0-19, final ESS least 563 -> 1,465,
+        10% quantile 3,379 -> 4,283, median 6,113 -> 6,154, runs under 1,000 1 -> 0 (seed 4 563 ->
+        6,193; single seeds move both ways with the sampler's random path: seed 7 6,641 -> 3,739,
+        seed 12 6,387 -> 1,465); YCB-Video 0000 frames 1-5 at seeds 0-4: their half turns lie
+        18-102 tempered nats below the best seed, all but one beyond the window, so 24 of 25 runs
+        are unchanged bit for bit and 000002 at seed 2 (a half turn 17.8 nats below) 2,399 -> 2,738.
+        Without them the demo's sampler misses the upside-down basin on seeds 0, 10, 12 and 13
+        (0-4 draws there; with them 89-278 draws and 0.2-4.7% of the mass: seed 12's 4.7% is what
+        its ESS pays, 6,387 -> 1,465) and hits it with a few heavy tail draws on others (seed 4:
+        67 draws, 5.2% of the weight). ``examples/bench_samplers.py --no-ycbv --seeds 0 1 2 3 4``:
+        total variation of the marginal about the axis from the exact arc 0.064-0.133 ->
+        0.060-0.106, arc coverage the same, mass in it 0.88-0.96 -> 0.90-0.96. Not the default:
+        the Pareto k of the final weights rises on some seeds (demo seeds 0-19: mean 0.31 ->
+        0.36, largest 0.55 -> 0.77, seed 18), and single runs lose ESS as above.
+    half_turn_window : float
+        Refined half turns more than this many tempered nats below the best seed are dropped:
+        such a basin holds about ``e^-20`` of the peak's mass, nothing a draw could find, and
+        its seed only wastes draws and moves the adaptation's random path. Without the window
+        (the half turns' shares by their value, about 0.2% each) YCB-Video 0000/000003 at seed 0
+        fell from 2,178 to 543 and the demo at seed 8 from 2,856 to 157.
+    half_turn_share : float
+        Initial mixture share of each half-turn seed (the other seeds share the rest by their
+        value at the seed, floored at 1%). By value the upside-down mug's seed would get about
+        0.4% while it holds up to 4.7% of the mass: with window 20 and that share the demo at
+        seed 4 ended at ESS 91, with 5% at 6,193.
 
     Notes
     -----
@@ -233,6 +274,9 @@ class ISParams:
     sweep_defensive: bool = True
     birth_weight: float = 0.02
     sweep_max_new: int = 8
+    half_turns: bool = False
+    half_turn_window: float = 20.0
+    half_turn_share: float = 0.05
 
     def __post_init__(self) -> None:
         if int(self.draws) < 2:
@@ -269,6 +313,10 @@ class ISParams:
         for name in ("sweep_components", "sweep_max_new"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"Expected `{name}` >= 1, got {getattr(self, name)}.")
+        if not self.half_turn_window > 0:
+            raise ValueError(f"Expected `half_turn_window` > 0 nats, got {self.half_turn_window}.")
+        if not 0.0 < self.half_turn_share < 1.0 / 3.0:
+            raise ValueError(f"Expected `half_turn_share` in (0, 1/3), got {self.half_turn_share}.")
         if any(int(r) < 0 for r in self.sweep_rounds):
             raise ValueError(f"Expected `sweep_rounds` >= 0, got {self.sweep_rounds}.")
 
@@ -396,7 +444,9 @@ class ISResult:
     num_evaluations : int
         Target evaluations.
     seconds : float
-        Wall-clock time of the sampling (seeds not included).
+        Wall-clock time of the sampling, the seeds' values and Laplace fits included (and, from
+        :func:`sample_pose_distribution`, the half turns' search; not the seeds' own search,
+        e.g. the MLE).
     success : bool
     status : str
         ``"ok"``, or ``"low_ess"`` when the final ESS is below 1% of the draws.
@@ -815,6 +865,7 @@ def importance_sample(
     *,
     params: ISParams | None = None,
     rng: np.random.Generator | int | None = None,
+    fixed_share: ArrayLike | None = None,
 ) -> ISResult:
     """Adaptive, noise-injected importance sampling of ``exp(log_target(T) / temperature)``.
 
@@ -825,10 +876,15 @@ def importance_sample(
         constant), e.g. a :class:`~certpose.model.likelihood.PoseLikelihood`. Its density is taken
         with respect to Haar measure x Lebesgue (the measure of :class:`TangentMixture`).
     seeds : (K, 4, 4) or (4, 4) array_like
-        Poses the proposal starts around (equal mixture weights).
+        Poses the proposal starts around; a seed's initial mixture share follows the tempered
+        target at it (``e^-10`` of the best's share 10 nats below), floored at 1%.
     params : ISParams, optional
         ``temperature`` None means 1 here.
     rng : numpy Generator, int or None
+    fixed_share : (K,) array_like, optional
+        Initial shares of some seeds, fixed (in (0, 1), together under 1), NaN for the seeds
+        whose share follows the rule above (they share the rest), e.g. the half turns of
+        :func:`sample_pose_distribution`.
 
     Returns
     -------
@@ -839,12 +895,15 @@ def importance_sample(
     T0 = _check_seeds(seeds)
     temp = 1.0 if p.temperature is None else float(p.temperature)
     K = len(T0)
+    t_start = time.perf_counter()  # the seeds' values and Laplace fits are part of the work
     # Seeds weighted by the target at the seed (a seed 10 nats worse starts with e^-10 the mass,
     # floored at 1% so that every seed keeps a chance).
     ls = np.asarray(log_target(T0), dtype=np.float64).reshape(-1) / temp
     ls = np.where(np.isfinite(ls), ls, -np.inf)
     sw = np.exp(ls - ls.max()) if np.any(np.isfinite(ls)) else np.ones(K)
     sw = np.maximum(sw / sw.sum(), 0.01)
+    if fixed_share is not None:
+        sw = _fixed_shares(ls, fixed_share)
     covs = np.repeat(_isotropic(p.rotation_noise, p.translation_noise)[None], K, 0)
     n_eval = K
     if p.laplace:
@@ -852,7 +911,6 @@ def importance_sample(
         n_eval += K * len(_stencil())
     initial = TangentMixture(T0[:, :3, :3].copy(), T0[:, :3, 3].copy(), covs, sw / sw.sum(), p.dof)
     adapted, mix = initial, initial
-    t_start = time.perf_counter()
     n_last = int(p.draws)
     n_pilot = int(p.pilot_draws) or max(n_last // 4, 500)
     ess_rounds: list[float] = []
@@ -919,6 +977,23 @@ def importance_sample(
                     status, msg, lt[keep])
 
 
+def _fixed_shares(ls: NDArray[np.float64], fixed: ArrayLike) -> NDArray[np.float64]:
+    """Initial seed shares: ``fixed`` where it is a number, the rest of the mass shared by the
+    others as :func:`importance_sample`'s rule gives it from the tempered values ``ls``."""
+    fixed = np.asarray(fixed, dtype=np.float64).reshape(-1)
+    given = np.isfinite(fixed)
+    if fixed.shape != ls.shape or not np.all((fixed[given] > 0) & (fixed[given] < 1)) \
+            or fixed[given].sum() >= 1 or np.all(given):
+        raise ValueError(f"Expected `fixed_share` of shape {ls.shape}, in (0, 1) or NaN, the numbers summing "
+                         f"to under 1 and at least one NaN, got {fixed}.")
+    rest = ls[~given]
+    sw = np.exp(rest - rest.max()) if np.any(np.isfinite(rest)) else np.ones(len(rest))
+    sw = np.maximum(sw / sw.sum(), 0.01)
+    out = fixed.copy()
+    out[~given] = (1.0 - fixed[given].sum()) * sw / sw.sum()
+    return out
+
+
 def default_temperature(likelihood, T: ArrayLike, *, scale: float = 1.0,  # noqa: ANN001
                         correlation_voxels: float = 4.0) -> float:
     """The default temperature rule (see the module docstring): ``scale * N / n_eff``.
@@ -945,10 +1020,53 @@ def seeds_from_mle(mle) -> NDArray[np.float64]:  # noqa: ANN001
     poses += [np.asarray(h.pose) for h in mle.hypotheses]
     out: list[NDArray[np.float64]] = []
     for T in poses:
-        if all(np.linalg.norm(T[:3, 3] - S[:3, 3]) > 2e-3
-               or np.linalg.norm(so3_log(S[:3, :3].T @ T[:3, :3])) > 0.02 for S in out):
+        if _is_new(T, out):
             out.append(T)
     return np.stack(out)
+
+
+def principal_half_turns(likelihood, T: ArrayLike) -> NDArray[np.float64]:  # noqa: ANN001
+    """(3, 4, 4) half turns of ``T`` (4, 4) about the principal axes of the model points of
+    ``likelihood`` (a :class:`~certpose.model.likelihood.PoseLikelihood`) through their centroid:
+    the object-frame map ``x -> F (x - c) + c`` composed with ``T`` (``T_scene_object``)."""
+    T = np.asarray(T, dtype=np.float64)
+    pts = likelihood._points
+    c = pts.mean(axis=0)
+    _, V = np.linalg.eigh(np.cov((pts - c).T))
+    out = np.repeat(T[None], 3, axis=0)
+    for i in range(3):
+        F = _so3_exp(np.pi * V[:, i])
+        out[i, :3, :3] = T[:3, :3] @ F
+        out[i, :3, 3] = T[:3, :3] @ (c - F @ c) + T[:3, 3]
+    return out
+
+
+def half_turn_seeds(likelihood, T: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:  # noqa: ANN001
+    """The half turns of ``T`` (:func:`principal_half_turns`), each refined on eq. (1) by
+    :func:`certpose.estimation.batch.refine_poses` (the three climb in one batch; translation in
+    units of the model's radius about its centroid). 0.05 s on the demo mug where
+    :func:`~certpose.estimation.mle.refine_pose` one at a time (as
+    :func:`~certpose.sampling.calibration.find_basins` does) takes 0.2 s.
+
+    Returns
+    -------
+    poses : (3, 4, 4) ndarray
+        Refined ``T_scene_object``.
+    log_likelihood : (3,) ndarray
+        Eq. (1) at each (nats, not tempered).
+    """
+    from certpose.estimation.batch import refine_poses
+
+    pts = likelihood._points
+    radius = float(np.linalg.norm(pts - pts.mean(axis=0), axis=1).max())
+    P, v = refine_poses(likelihood, principal_half_turns(likelihood, T), scale=radius)
+    return np.asarray(P, dtype=np.float64), np.asarray(v, dtype=np.float64)
+
+
+def _is_new(T: NDArray[np.float64], others: NDArray[np.float64]) -> bool:
+    """Whether ``T`` lies more than 2 mm or 0.02 rad from every pose of ``others``."""
+    return all(np.linalg.norm(T[:3, 3] - S[:3, 3]) > 2e-3
+               or np.linalg.norm(so3_log(S[:3, :3].T @ T[:3, :3])) > 0.02 for S in others)
 
 
 def sample_pose_distribution(
@@ -960,8 +1078,12 @@ def sample_pose_distribution(
 ) -> ISResult:
     """Sample ``exp(eq. (1) / temperature)`` with :func:`importance_sample`.
 
-    ``params.temperature`` None uses :func:`default_temperature` at the first seed. The
-    particles are in the likelihood's scene frame (``T_scene_object``).
+    ``params.temperature`` None uses :func:`default_temperature` at the first seed. With
+    ``params.half_turns`` the first seed's refined half turns (:func:`half_turn_seeds`) join the
+    seeds (those within ``half_turn_window`` tempered nats of the best seed and not already
+    among them), each with ``half_turn_share`` of the initial mixture; the time they take
+    is added to :attr:`ISResult.seconds`. The particles are in the likelihood's scene frame
+    (``T_scene_object``).
     """
     from dataclasses import replace
 
@@ -970,7 +1092,24 @@ def sample_pose_distribution(
     if p.temperature is None:
         p = replace(p, temperature=default_temperature(likelihood, T0[0], scale=p.temperature_scale,
                                                        correlation_voxels=p.correlation_voxels))
-    return importance_sample(likelihood.log_likelihood, T0, params=p, rng=rng)
+    if not p.half_turns:
+        return importance_sample(likelihood.log_likelihood, T0, params=p, rng=rng)
+    t_start = time.perf_counter()
+    H, vH = half_turn_seeds(likelihood, T0[0])
+    best = float(np.max(likelihood.log_likelihood(T0)))
+    added = 0
+    for T, v in zip(H, vH, strict=True):
+        if np.isfinite(v) and (v - best) / p.temperature >= -p.half_turn_window and _is_new(T, T0):
+            T0 = np.concatenate([T0, T[None]])
+            added += 1
+    log.debug("half turns: %s tempered nats from the best seed, %d added",
+              " ".join(f"{(v - best) / p.temperature:.1f}" for v in vH), added)
+    share = np.r_[np.full(len(T0) - added, np.nan), np.full(added, p.half_turn_share)]
+    seconds = time.perf_counter() - t_start
+    res = importance_sample(likelihood.log_likelihood, T0, params=p, rng=rng,
+                            fixed_share=share if added else None)
+    return replace(res, seconds=res.seconds + seconds,
+                   message=f"{res.message} (+ {added} half-turn seeds, {seconds:.2f} s)")
 
 
 def perturbed_eq2_seeds(
