@@ -6,7 +6,7 @@ Usage::
                                                    [--no-ycbv] [--seeds 0 1 2] [--json OUT]
                                                    [--kde-check] [--temperature-scale S]
                                                    [--target-marginal demo|all|none] [--target-draws N]
-                                                   [--plot OUT.png]
+                                                   [--plot OUT.png] [--param half_turns=True ...]
 
 Every method samples the same target, ``exp(eq. (1) / temperature)`` with the default
 temperature rule, on the same likelihood object, within the same wall-clock budget: ours runs
