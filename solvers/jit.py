@@ -171,13 +171,18 @@ def _deferred_busy(module: str) -> bool:
 def _deferred_lock(module: str, *, block: bool, mark: bool = True) -> Any:
     """Hold ``module``'s deferred-kernels lock (``mark``: writing this process's id into it);
     yields False (without waiting, when ``block`` is False) if another process holds it.
-    Without ``fcntl`` (not POSIX) it always yields True."""
+    Without ``fcntl`` (not POSIX) or a lock file it can create, it always yields True."""
     try:
         import fcntl
     except ImportError:
         yield True
         return
-    fd = os.open(deferred_lock_path(module), os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fd = os.open(deferred_lock_path(module), os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:  # no lock file: go on unguarded (at worst compiled twice)
+        log.debug("no lock file for %s's deferred kernels: %s", module, exc)
+        yield True
+        return
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | (0 if block else fcntl.LOCK_NB))

@@ -324,3 +324,12 @@ def test_warm_up_preloads_cached_kernels_in_a_thread(tmp_path):
     assert out == {"started": 0, "pending": [], "threads": ["solvers-jit-preload"],
                    "before": [0, 0], "after": [1, 1], "preloading": False}
 
+
+
+def test_deferred_lock_without_a_lock_file_goes_on_unguarded(tmp_path, monkeypatch):
+    """A lock file that cannot be created (a missing or read-only folder) never stops a run."""
+    module = "certpose.geometry._fpfh_kernels"
+    monkeypatch.setattr(jit, "deferred_lock_path", lambda m: str(tmp_path / "missing" / "x.lock"))
+    assert jit._deferred_busy(module) is False
+    with jit._deferred_lock(module, block=True) as mine:
+        assert mine is True
