@@ -55,6 +55,10 @@ detached compiler's, which went on 9.7-11.5 s after the command) against 44.81 /
 42.43 s (27.7 / 23.1 / 27.4 / 28.4 CPU s); warm 4.60 / 4.89 / 4.66 / 4.32 s (3.0-3.2 CPU s)
 against 5.59 / 6.39 / 6.12 / 5.18 s (3.5-4.0 CPU s); cold ``register --demo`` 7.46 / 7.99 /
 7.97 / 5.23 s against 10.73 / 12.30 / 13.59 / 11.91 s (7.0-8.5 CPU s both: the same code).
+Two more rounds with only one other job running (one process at 70-80 % of a core, load average
+3.9-4.2): cold ``pose --demo`` 12.05 / 11.31 s (22.3 / 22.1 CPU s, detached 6.5 / 7.1 s) against
+23.89 / 21.89 s (25.2 / 22.7 CPU s); warm 3.23 / 3.39 against 3.91 / 3.91 s; cold ``register
+--demo`` 5.00 / 5.52 against 7.06 / 6.11 s.
 
 usage::
 
