@@ -60,6 +60,14 @@ Two more rounds with only one other job running (one process at 70-80 % of a cor
 23.89 / 21.89 s (25.2 / 22.7 CPU s); warm 3.23 / 3.39 against 3.91 / 3.91 s; cold ``register
 --demo`` 5.00 / 5.52 against 7.06 / 6.11 s.
 
+Quiet (load 1.5-2.2 with these runs), interleaved, ``--commands pose register
+--fresh-model-cache --repeat 2``, two rounds, best / median: cold ``pose --demo`` 8.69 / 9.05
+and 9.10 / 9.41 s (23.4 / 24.6 CPU s, detached 6.3 / 6.9 s) against 15.28 / 16.04 and 14.09 /
+14.86 s (24.0 / 22.6 CPU s); cold ``register --demo`` 3.66 / 4.37 and 3.70 / 4.08 against
+4.34 / 4.56 and 3.57 / 3.81 s; warm ``pose --demo`` 2.69 / 2.79 and 2.39 / 2.65 against 2.61 /
+2.77 and 2.46 / 2.61 s. The demo's model in the model cache (``CERTPOSE_CACHE_DIR`` filled, one
+round of ``--commands pose --repeat 2``): cold 8.31 / 10.09 against 14.45 / 19.18 s.
+
 usage::
 
     python examples/bench_cold_start.py               # both commands, 1 cold + 1 warm run each
