@@ -22,8 +22,8 @@ The demo's mug with its body sampled by its axial symmetry (``run_demo``'s model
 unchanged: least 1,671); after the faster axis search (a597463, the model moved by hundredths
 of a degree), quiet, seeds 0-9: 6,059 4,938 5,601 6,182 **563** 6,391 6,072 6,642 2,856 6,154.
 Seed 4's heaviest final draws are the mug upside down (tilt 177 deg, its refined peak 4.2
-tempered nats below the MLE), a basin no pilot round reached. ``--param half_turns=True``
-(``ISParams.half_turns``: the MLE's half turns about the model's principal axes, refined, as
+tempered nats below the MLE), a basin no pilot round reached. ``ISParams.half_turns`` (the
+default since 2026-11-26's afternoon; ``--param half_turns=False`` for the former sampler: the MLE's half turns about the model's principal axes, refined, as
 seeds within 20 tempered nats of the best, 5% of the initial mixture each; 2026-11-26, the same
 cached MLE seeds): demo seeds 0-19, least ESS 563 -> 1,465, median 6,113 -> 6,154 (seed 4 563
 -> 6,193); YCB-Video 0000 frames 1-5 seeds 0-4 unchanged but for 000002 seed 2 (2,399 ->

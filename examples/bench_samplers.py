@@ -6,7 +6,7 @@ Usage::
                                                    [--no-ycbv] [--seeds 0 1 2] [--json OUT]
                                                    [--kde-check] [--temperature-scale S]
                                                    [--target-marginal demo|all|none] [--target-draws N]
-                                                   [--plot OUT.png] [--param half_turns=True ...]
+                                                   [--plot OUT.png] [--param half_turns=False ...]
 
 Every method samples the same target, ``exp(eq. (1) / temperature)`` with the default
 temperature rule, on the same likelihood object, within the same wall-clock budget: ours runs
@@ -462,7 +462,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--param", nargs="+", default=[], metavar="NAME=VALUE",
                     help="ISParams fields of ours other than the defaults (Python literals), e.g. "
-                         "half_turns=True")
+                         "half_turns=False")
     ap.add_argument("--target-marginal", choices=("demo", "all", "none"), default="demo",
                     help="where to compute the target's exact marginal about the axis "
                          "(certpose.sampling.reference.axis_marginal) and each method's total "

@@ -126,8 +126,10 @@ def kernels(argv: list[str]) -> tuple[str, ...]:
     from solvers.registration import PRUNED_SOLVE_KERNELS
 
     certify = () if "--no-certify" in argv else CERTIFY_KERNELS
+    samples = ("certpose.sampling._kernels:mixture_log_densities",) \
+        if any(a == "--samples" or a.startswith("--samples=") for a in argv) else ()
     return (PRUNED_SOLVE_KERNELS[0], *certify, "solvers.registration._kernels:max_clique_bnb",
-            *PRUNED_SOLVE_KERNELS[1:], "solvers._linalg_kernels:rotvec_matrices",
+            *PRUNED_SOLVE_KERNELS[1:], "solvers._linalg_kernels:rotvec_matrices", *samples,
             "certpose.model._kernels:eq1_batch", "certpose.geometry._fpfh_kernels:fpfh",
             "certpose.geometry._fpfh_kernels:normals_towards")
 
