@@ -8,6 +8,14 @@ sampler variants are compared on the same seeds (the MLE is then not rerun). ``-
 sets eq. (1)'s constants for the MLE and the target (as ``bench_samplers.py --likelihood``; its
 cached seeds are kept apart from the defaults').
 
+Issue 11's speed target (10,000 resampled particles, ESS >= 1,000, <= 2 s of sampling), quiet
+(load 0.3-1.4), 2026-11-26 afternoon, ``--seeds 0 1 2 3 4 --cache DIR``, the half-turn seeds on
+(the default) and the proposal density compiled: ESS >= 1,000 in 30/30 runs (least 1,670; the
+demo 5,799-6,640), sampling median 1.48 s, max 1.61 s (the seeds' Laplace fits and the half turns'
+search now counted). The same seeds just before (NumPy density): median 1.81-1.83 s, max 2.22-2.38
+s, 8 runs over 2 s; the previous day's tree (1c51227, the Laplace fits not counted): median 1.73
+s, max 2.22 s, ESS 563 on the demo at seed 4.
+
 The arc's option set (``LikelihoodParams.field_blur``) as the target, with the Voronoi-area models
 (2026-11-26, seeds 0-4, frames 1-2): ESS >= 1000 in 8/10 (least 439, 0000/000002 seed 0, where the
 defaults give 2475) and the mug's axis within 5 deg / 1 cm 0.63-0.67 of the mass (defaults
