@@ -78,7 +78,7 @@ Reported per scene and method:
   importance draws with the angle drawn uniformly; the axis within 30 deg of the truth's), and
   each method's total variation from it (5 deg bins) with its mass beyond 30 deg: issue 11's
   known answer as the issue words it, a test of the sampler alone. 2026-11-26, seeds 0-4, load
-  5-8: ours 0.034-0.044 (the reference's own expected error 0.018, 25-43 s each), Nevergrad DE
+  5-8: ours 0.034-0.044 (0.030-0.048 with the half-turn seeds, the default since; the reference's own expected error 0.018, 25-43 s each), Nevergrad DE
   0.42-0.84, MCMC 0.072-0.099 with 13-25% of its mass beyond 30 deg; against the rendered arc's
   uniform (the model and the sampler together) ours 0.064-0.133 on the same runs.
 * ``cov|arc``: ``arc cov`` of the distribution conditioned on the arc (a bin counts when it
