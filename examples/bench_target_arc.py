@@ -33,6 +33,9 @@ the arc's set (below)                                   0.87-0.92    0.95-1.00  
 ``c_empty=-20`` + ``--revolution auto``                 0.95-0.99    0.90-0.97    0.65-0.72
 the set + ``c_empty=-20`` + ``--revolution auto``       0.92-0.96    0.95-1.00    0.65-0.71
 the set + ``c_empty=-40`` + ``--revolution auto``       0.94-0.97    0.93-1.00    0.66-0.73
+``c_empty=-20`` + revolution, ``--temperature-scale 0.8``  0.96-0.99    0.87-0.97    0.66-0.74
+the set without ``field_blur`` + ``c_empty=-20`` + rev.  0.92-0.97    0.93-1.00    0.61-0.68
+the same, ``--temperature-scale 0.8``                   0.93-0.98    0.90-1.00    0.61-0.71
 ======================================================  ===========  ===========  ==========
 
 (the arc's set: ``free_space_at=point field_blur=0.0075 free_space_tolerance=0.0035
@@ -40,7 +43,10 @@ free_space_ramp=0.0025``). No configuration meets ``in U`` >= 0.95 and ``cov U``
 frame. ``axis ok`` (truth / table): defaults 0.79-0.94 / 0.84-0.97 (the target's axis on average
 2.7-3.7 deg from the truth's, 2.2-3.2 deg from the table's normal, which the truth's lies 2 deg
 from); the set + ``c_empty=-20`` + ``--revolution auto`` 0.66-0.72 / 0.70-0.74 (frames 1-3; mean
-tilt 4.0-4.3 deg: the field blur widens the tilt). The demo (seed 0, rendered arc): in arc 0.90
+tilt 4.0-4.3 deg: the field blur widens the tilt); ``c_empty=-20`` + revolution 0.80-0.91 / 0.85-0.96
+(0.85-0.95 / 0.90-0.98 at 0.8 times the rule); the set without the blur + ``c_empty=-20`` +
+revolution 0.78-0.90 / 0.82-0.94 (0.84-0.94 / 0.86-0.97 at 0.8; the first verdict, frame 1 against
+the table, and only that one). The demo (seed 0, rendered arc): in arc 0.90
 (eq. (1) flat 10-15 deg past the arc's far end), ``cov U`` 1.00, ``axis ok`` 0.99.
 
 The temperature is the rule's at the ground-truth pose (the sampler takes it at its first seed,
