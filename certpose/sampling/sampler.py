@@ -396,14 +396,15 @@ class TangentMixture:
         t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
         n, K = len(R), len(self.weights)
         out = np.empty((K, n))
+        # Each component's chart normaliser (t or Gaussian, its scale's determinant) and weight.
+        if math.isfinite(self.dof):
+            nu = self.dof
+            c = gammaln((nu + 6) / 2) - gammaln(nu / 2) - 3 * math.log(nu * math.pi)
+        else:
+            c = -3 * math.log(2 * math.pi)
+        log_norm = c - np.log(np.diagonal(self._chol, axis1=1, axis2=2)).sum(axis=1)
+        log_w = np.log(np.maximum(self.weights, 1e-300))
         if _COMPILED_DENSITY:
-            if math.isfinite(self.dof):
-                nu = self.dof
-                c = gammaln((nu + 6) / 2) - gammaln(nu / 2) - 3 * math.log(nu * math.pi)
-            else:
-                c = -3 * math.log(2 * math.pi)
-            log_norm = c - np.log(np.diagonal(self._chol, axis1=1, axis2=2)).sum(axis=1)
-            log_w = np.log(np.maximum(self.weights, 1e-300))
             kern = compiled("certpose.sampling._kernels").mixture_log_densities
             fixed = (np.ascontiguousarray(self.rotations), np.ascontiguousarray(self.translations),
                      np.ascontiguousarray(self._chol_inv), np.ascontiguousarray(log_norm),
@@ -425,22 +426,16 @@ class TangentMixture:
             B = (t - self.translations[k]) @ Li[:, 3:].T
             m2 = (s * s * np.sum(A * A, axis=1)[:, None] + 2.0 * s * np.sum(A * B, axis=1)[:, None]
                   + np.sum(B * B, axis=1)[:, None])
-            L = self._chol[k]
             if math.isfinite(self.dof):
-                nu = self.dof
-                log_norm = (gammaln((nu + 6) / 2) - gammaln(nu / 2) - 3 * math.log(nu * math.pi)
-                            - np.log(np.diag(L)).sum())
-                log_gauss = log_norm - 0.5 * (nu + 6) * np.log1p(m2 / nu)
+                log_gauss = log_norm[k] - 0.5 * (self.dof + 6) * np.log1p(m2 / self.dof)
             else:
-                log_norm = -3 * math.log(2 * math.pi) - np.log(np.diag(L)).sum()
-                log_gauss = log_norm - 0.5 * m2
+                log_gauss = log_norm[k] - 0.5 * m2
             # Near theta = 0 the m = 0 term's Jacobian ratio s^2 / (2 (1 - cos s)) -> 1.
             log_jac = np.where(s == 0, 0.0, np.log(np.maximum(s * s, 1e-300))
                                - np.log(two_one_minus_cos)[:, None])
             v = log_gauss + log_jac
             top = v.max(axis=1)
-            out[k] = (math.log(max(self.weights[k], 1e-300)) + top
-                      + np.log(np.exp(v - top[:, None]).sum(axis=1)))
+            out[k] = log_w[k] + top + np.log(np.exp(v - top[:, None]).sum(axis=1))
         return out
 
 
