@@ -44,9 +44,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
-from scipy.special import gammaln, logsumexp
+from scipy.special import logsumexp
 
 from certpose.sampling.chart import check_pose
+from certpose.sampling.sampler import _t_log_norm
 from solvers.validation import as_float_array
 
 __all__ = ["AxisMarginal", "axis_marginal", "swing_angles"]
@@ -86,9 +87,7 @@ def swing_angles(rotations: ArrayLike, axis: ArrayLike, T_ref: ArrayLike) -> NDA
 
 def _t_logpdf(z: NDArray[np.float64], dim: int) -> NDArray[np.float64]:
     """log density of a standard multivariate t (``_DOF`` dof) at whitened points ``z`` (n, dim)."""
-    nu = _DOF
-    return (gammaln((nu + dim) / 2) - gammaln(nu / 2) - 0.5 * dim * math.log(nu * math.pi)
-            - 0.5 * (nu + dim) * np.log1p(np.einsum("ij,ij->i", z, z) / nu))
+    return _t_log_norm(_DOF, dim) - 0.5 * (_DOF + dim) * np.log1p(np.einsum("ij,ij->i", z, z) / _DOF)
 
 
 @dataclass(frozen=True)

@@ -397,12 +397,7 @@ class TangentMixture:
         n, K = len(R), len(self.weights)
         out = np.empty((K, n))
         # Each component's chart normaliser (t or Gaussian, its scale's determinant) and weight.
-        if math.isfinite(self.dof):
-            nu = self.dof
-            c = gammaln((nu + 6) / 2) - gammaln(nu / 2) - 3 * math.log(nu * math.pi)
-        else:
-            c = -3 * math.log(2 * math.pi)
-        log_norm = c - np.log(np.diagonal(self._chol, axis1=1, axis2=2)).sum(axis=1)
+        log_norm = _t_log_norm(self.dof, 6) - np.log(np.diagonal(self._chol, axis1=1, axis2=2)).sum(axis=1)
         log_w = np.log(np.maximum(self.weights, 1e-300))
         if _COMPILED_DENSITY:
             kern = compiled("certpose.sampling._kernels").mixture_log_densities
@@ -437,6 +432,14 @@ class TangentMixture:
             top = v.max(axis=1)
             out[k] = log_w[k] + top + np.log(np.exp(v - top[:, None]).sum(axis=1))
         return out
+
+
+def _t_log_norm(nu: float, dim: int) -> float:
+    """log normaliser of a standard ``dim``-variate Student t with ``nu`` degrees of freedom
+    (``nu`` inf: the Gaussian's)."""
+    if not math.isfinite(nu):
+        return -0.5 * dim * math.log(2 * math.pi)
+    return gammaln((nu + dim) / 2) - gammaln(nu / 2) - 0.5 * dim * math.log(nu * math.pi)
 
 
 def _isotropic(rot: float, trans: float) -> NDArray[np.float64]:
