@@ -304,7 +304,8 @@ def warm_up(kernels: Sequence[str], *, preload: bool = False) -> int:
     if not _PENDING:
         atexit.register(_abandon)
     _PENDING.append(_Warming(proc, cold, lock_dir))
-    log.info("first run: compiling %d kernels in the background", len(cold))
+    log.info("first run: %d kernels being compiled in the background (%d by another process)",
+             len(cold), len(cold) - len(args))
     return len(cold)
 
 

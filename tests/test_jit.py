@@ -124,7 +124,7 @@ def test_cli_warms_kernels_on_a_cold_cache(tmp_path):
     args = [sys.executable, "-m", "certpose", "-v", "register", "--demo", "--demo-n", "40"]
     first = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
     assert first.returncode == 0, first.stderr
-    assert "compiling 7 kernels in the background" in first.stderr
+    assert "7 kernels being compiled in the background" in first.stderr
     second = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
     assert second.returncode == 0 and "in the background" not in second.stderr
     assert first.stdout.splitlines()[2:6] == second.stdout.splitlines()[2:6]  # same pose
@@ -146,14 +146,21 @@ def test_unneeded_warm_up_is_stopped_at_exit(tmp_path):
 
 _DEFERRED_RUN = """
     import json
+    import logging
     from solvers import jit
+    logs = []
+    handler = logging.Handler()
+    handler.emit = lambda record: logs.append(record.getMessage())
+    logging.getLogger("solvers.jit").addHandler(handler)
+    logging.getLogger("solvers.jit").setLevel(logging.INFO)
     names = ["certpose.geometry._fpfh_kernels:fpfh"]
     specs = [s for s in jit.declared(["certpose.geometry._fpfh_kernels"]) if s.name == "fpfh"]
     started = jit.warm_up(names)
     item = jit._PENDING[0] if jit._PENDING else None
     out = {"started": started, "deferred": specs[0].deferred, "pending": jit.pending(),
            "pid": item and item.proc and item.proc.pid, "dir": item and item.lock_dir,
-           "lock": jit.deferred_lock_path("certpose.geometry._fpfh_kernels")}
+           "lock": jit.deferred_lock_path("certpose.geometry._fpfh_kernels"),
+           "logs": [m for m in logs if "in the background" in m]}
     print(json.dumps(out))
 """
 
@@ -183,12 +190,14 @@ def test_deferred_kernels_compile_detached_after_a_run(tmp_path):
     one holds their lock); once it is done they are cached."""
     first = _run(_DEFERRED_RUN, tmp_path)  # returns when the run's pipes close
     assert first["started"] == 1 and first["deferred"]
+    assert first["logs"] == ["first run: 1 kernels being compiled in the background (0 by another process)"]
     assert first["pending"] == ["certpose.geometry._fpfh_kernels"]
     pid = first["pid"]
     assert _alive(pid)  # still compiling (seconds), detached
     assert os.getsid(pid) == pid and os.getsid(pid) != os.getsid(0)
     second = _run(_DEFERRED_RUN, tmp_path)
     assert second["started"] == 1 and second["pid"] is None  # no helper for them: one compiles
+    assert second["logs"] == ["first run: 1 kernels being compiled in the background (1 by another process)"]
     assert second["pending"] == ["certpose.geometry._fpfh_kernels"]  # open3d's FPFH meanwhile
     assert not Path(second["dir"]).exists()
     assert _alive(pid)

@@ -201,7 +201,7 @@ def main(argv: Sequence[str] | None = None, *, _startup_gc_paused: bool = False)
     )
     if warming:
         logging.getLogger("solvers.jit").info(
-            "first run: compiling %d kernels in the background", warming)
+            "first run: %d kernels being compiled in the background", warming)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
