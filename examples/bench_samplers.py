@@ -121,11 +121,12 @@ from scipy.spatial.transform import Rotation
 AXIS = np.array([0.0, 0.0, 1.0])  # the mug's axis in its model frame (demo and YCB-Video)
 
 
-def demo_problem(seed: int, lparams=None, arc_test: str = "render"):  # noqa: ANN001, ANN201
+def demo_problem(seed: int, lparams=None, arc_test: str = "render", *, mle: bool = True):  # noqa: ANN001, ANN201
     """The demo's likelihood, MLE seeds, ground truth (scene frame = camera frame) and its arc
     about the axis through the model origin: ``"render"``, the exact arc on which the handle
     shows in no pixel (:meth:`SyntheticScene.hidden_handle_arc`), or ``"voxels"``, the
-    free-space arc (:func:`certpose.model.arc.free_space_arc`, one-voxel tolerance)."""
+    free-space arc (:func:`certpose.model.arc.free_space_arc`, one-voxel tolerance).
+    ``mle=False``: no MLE, no seeds (None)."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from bench_sampler import build_demo
 
@@ -135,7 +136,7 @@ def demo_problem(seed: int, lparams=None, arc_test: str = "render"):  # noqa: AN
     from certpose.model.arc import free_space_arc
     from certpose.sampling.sampler import seeds_from_mle
 
-    lik, mle, gt = build_demo(seed, lparams)
+    lik, mle_result, gt = build_demo(seed, lparams, mle=mle)
     # build_demo's scene: the same seed draws the same layout first.
     sc = make_mug_scene(rng=np.random.default_rng(seed), n_model_points=6000)
     assert np.allclose(sc.T_camera_object, gt)
@@ -144,7 +145,8 @@ def demo_problem(seed: int, lparams=None, arc_test: str = "render"):  # noqa: AN
     else:
         scene = _scene_for(sc.frame, sc.object_mask, PoseParams(), FPFHBackbone())
         arc = free_space_arc(scene, sc.model_points, gt, axis=AXIS)
-    return lik, seeds_from_mle(mle), gt, arc, np.zeros(3)
+    seeds = seeds_from_mle(mle_result) if mle_result is not None else None
+    return lik, seeds, gt, arc, np.zeros(3)
 
 
 def tv_uniform(dist, T_gt: np.ndarray, arc) -> float:  # noqa: ANN001

@@ -122,7 +122,7 @@ def main() -> None:
     problems = []
     if not args.no_demo:
         def demo():  # noqa: ANN202
-            lik, _, gt, arc, centre = demo_problem(args.seed, lparams)
+            lik, _, gt, arc, centre = demo_problem(args.seed, lparams, mle=False)
             return lik, gt, arc, centre, None
         problems.append(("demo", demo))
     if use_ycbv:
