@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -189,6 +190,22 @@ def test_cli_pose_demo_samples_writes_particles(tmp_path, capsys):  # type: igno
     # its axis, so compare positions).
     assert np.median(np.linalg.norm(dist.translations - T[:3, 3], axis=1)) < 0.02
     assert payload["sampling"]["particles"] == 500 and payload["sampling"]["ess"] > 0
+    # Each mode line says how far the mode's mean turns from the returned pose and the truth,
+    # about the mug's axis too: read the heaviest mode's back against the saved particles.
+    from certpose.sampling.plots import axis_angles
+    from solvers.lie import rotation_error_deg
+
+    mode = dist.modes()[0]
+    line = next(x for x in text.splitlines() if x.startswith("  mode 0: "))
+    found = re.search(r"rotation ([\d.]+) deg \(([-+][\d.]+) about the axis\) from the returned pose, "
+                      r"([\d.]+) deg \(([-+][\d.]+) about the axis\) from the truth", line)
+    assert found, line
+    from certpose.data.synthetic import make_mug_scene
+
+    gt = make_mug_scene(rng=0).T_camera_object  # the demo's scene at its default seed
+    for (angle, turn), T_ref in zip([found.group(1, 2), found.group(3, 4)], [T, gt]):
+        assert abs(float(angle) - rotation_error_deg(mode.rotation, T_ref[:3, :3])) < 0.06
+        assert abs(float(turn) - np.degrees(axis_angles(mode.rotation[None], (0, 0, 1), T_ref)[0])) < 0.06
     # The demo has no YCB-Video frame or object (their defaults do not apply).
     assert payload["input"]["demo"] is True
     assert payload["input"]["frame"] is None and payload["input"]["object"] is None

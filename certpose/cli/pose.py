@@ -378,6 +378,27 @@ def _report(args: argparse.Namespace, params: Any, title: str,
     return 0, payload
 
 
+def _mode_rotation(R_mode: object, result: object, axis: object) -> str:
+    """How a mode's mean rotation differs from the returned pose (and the ground truth): the
+    geodesic angle, and the turn about the object's symmetry axis when it has one, so that modes
+    along an ambiguity (a hidden handle's arc, a box's flips) read as such."""
+    import numpy as np
+
+    from certpose.sampling.plots import axis_angles
+    from solvers.lie import rotation_error_deg
+
+    def angles(T_ref: object) -> str:
+        text = f"{rotation_error_deg(R_mode, np.asarray(T_ref)[:3, :3]):.1f} deg"
+        if axis is not None:
+            turn = np.degrees(axis_angles(np.asarray(R_mode)[None], axis, T_ref)[0])
+            text += f" ({turn:+.1f} about the axis)"
+        return text
+
+    text = f"rotation {angles(result.T_camera_object)} from the returned pose"  # type: ignore[attr-defined]
+    gt = result.T_camera_object_gt  # type: ignore[attr-defined]
+    return text if gt is None else text + f", {angles(gt)} from the truth"
+
+
 def _print_distribution(result: object, args: argparse.Namespace) -> None:
     from certpose.cli import say
 
@@ -392,17 +413,19 @@ def _print_distribution(result: object, args: argparse.Namespace) -> None:
           f"{info['ess']:.0f}, Pareto-k {_fmt(k, 1, '', 2)}, temperature {info['temperature']:.3g}, "
           + (f"{info['evaluations']} eq. (1) evaluations" if info.get("evaluations") is not None
              else "built") + f" in {info['seconds']:.2f} s; {info['message']}")
+    from certpose.estimation.pipeline import YCBV_SYMMETRY_AXES
+
+    axis = (0.0, 0.0, 1.0) if args.demo else YCBV_SYMMETRY_AXES.get(args.object)
     for j, m in enumerate(dist.modes()[:5]):
-        say(args, f"  mode {j}: mass {m.mass:.3f} ({m.num_particles} particles), translation "
+        say(args, f"  mode {j}: mass {m.mass:.3f} ({m.num_particles} particles), "
+              f"{_mode_rotation(m.rotation, result, axis)}, translation "
               f"[{', '.join(f'{v:.4f}' for v in m.translation)}] m")
     if args.particles is not None:
         dist.save(args.particles)
         say(args, f"wrote {args.particles}")
     if args.plot is not None:
-        from certpose.estimation.pipeline import YCBV_SYMMETRY_AXES
         from certpose.sampling.plots import plot_marginals
 
-        axis = (0.0, 0.0, 1.0) if args.demo else YCBV_SYMMETRY_AXES.get(args.object)
         gt = result.T_camera_object_gt  # type: ignore[attr-defined]
         title = (f"{'demo mug' if args.demo else f'{args.frame} {args.object}'}: {method}, "
                  f"{len(dist)} particles" + ("" if gt is None else ", ground truth in red"))
