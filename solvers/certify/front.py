@@ -482,10 +482,17 @@ def _clique_bound(
         clique_number_bound,
         clique_optimum,
     )
+    from solvers.certify.groups import shared_source_bound
 
     t0 = time.perf_counter()
     budget = DEFAULT_DUAL_TIME_LIMIT if time_limit is None else time_limit
     u = pn.cost(R, t)
+    # Correspondences sharing a source point (eq. (2)'s candidates per model point): a bound
+    # that holds whatever the cliques give, in milliseconds; 0 for one-to-one correspondences.
+    shared = shared_source_bound(pn)
+    shared_note = (f"; bounded by the correspondences of each source point placed independently "
+                   f"({shared.groups} source points with several; the rigid motion left out)"
+                   if shared.lower > 0 else "")
     # The listing's share of the time limit becomes a node budget (it cannot read the clock).
     cliques, complete = candidate_cliques(
         pn, u, limit=MAX_CLIQUES, max_nodes=int(budget * LISTING_SHARE * LISTING_NODES_PER_SECOND))
@@ -496,23 +503,26 @@ def _clique_bound(
             best_gap, k = _clique_number_best_gap(pn, R, t)
             if best_gap > tol:
                 return _Bound(
-                    lower=0.0, accepted=True, status=CertificateStatus.ITERATION_LIMIT,
+                    lower=min(shared.lower, u), accepted=True,
+                    status=CertificateStatus.ITERATION_LIMIT,
                     backend_status="cliques:too_many; clique number not attempted",
-                    eigenvalue_ratio=np.nan, method="none",
+                    eigenvalue_ratio=np.nan, method="shared_source" if shared.lower > 0 else "none",
                     message=(f"more than {MAX_CLIQUES} maximal cliques could beat the pose, or "
                              "too many to list within the time limit; the clique-number bound "
                              f"not attempted: even a clique number of {k} (the candidate's "
-                             f"inliers) would leave a gap of {best_gap:.3g} > {tol:g}; bounded "
-                             "by 0 (TLS costs are non-negative)"))
+                             f"inliers) would leave a gap of {best_gap:.3g} > {tol:g}"
+                             + (shared_note or "; bounded by 0 (TLS costs are non-negative)")))
         remaining = max(budget - (time.perf_counter() - t0), 0.0)
         lower = clique_number_bound(pn, u, max_work=int(remaining / 2 * CLIQUE_WORK_PER_SECOND))
-        return _Bound(lower=lower, accepted=True, status=CertificateStatus.ITERATION_LIMIT,
+        return _Bound(lower=min(max(lower, shared.lower), u), accepted=True,
+                      status=CertificateStatus.ITERATION_LIMIT,
                       backend_status="cliques:too_many", eigenvalue_ratio=np.nan,
-                      method="clique_number",
+                      method="shared_source" if shared.lower > lower else "clique_number",
                       message=(f"more than {MAX_CLIQUES} maximal cliques could beat the pose, or "
                                "too many to list within the time limit; bounded by the clique "
                                "number (no pose keeps more inliers than the largest consistent "
-                               "set)"))
+                               "set)" + (shared_note.replace("; bounded", ", or, tighter here,")
+                                         if shared.lower > lower else "")))
     total = float(pn.weights.sum())
     c2 = pn.cbar2
     r2 = pn.residuals_sq(R, t)
@@ -580,7 +590,9 @@ def _clique_bound(
             if b.status is CertificateStatus.ITERATION_LIMIT:
                 stopped = True
         lower = min(lower, lb_sub + out_cost)
-    lower = min(lower, u)  # the bound never exceeds a pose's cost
+    if shared.lower > lower:
+        methods.add("shared-source bound")
+    lower = min(max(lower, shared.lower), u)  # the bound never exceeds a pose's cost
     rot, trans = (best_R, best_t) if best_R is not None else (None, None)
     return _Bound(
         lower=float(lower), accepted=True,
