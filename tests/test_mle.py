@@ -343,6 +343,9 @@ def test_certificate_says_what_it_covers():
         assert "CERTIFIED" in scope and "NOT the returned pose" in scope
     else:
         assert "CERTIFIED" not in scope and "no pose is certified" in scope
+        # The bound in the certificate's own numbers: how far above the optimum the cost can be.
+        c = res.certificate
+        assert f"its cost {c.upper_bound:.6g} at most {c.upper_bound - c.lower_bound:.4g} above" in scope
     at_eq2 = replace(res, T_scene_object=res.eq2_result.T_target_source)
     assert at_eq2.pose_is_certified == res.certificate.certified
     assert ("covers the returned pose" in at_eq2.certificate_scope()) == res.certificate.certified

@@ -691,8 +691,11 @@ class MLEResult:
         else:
             covers = (f"no pose is certified, the returned one (winner {self.hypothesis}, which "
                       "maximises eq. (1)) neither")
+        bound = ("" if c.certified or not np.isfinite(c.lower_bound) else
+                 f", its cost {c.upper_bound:.6g} at most {c.upper_bound - c.lower_bound:.4g} above the "
+                 f"optimum")
         return (f"eq. (2) minimiser {verdict} for the problem {c.problem} ({c.num_terms} TLS terms, "
-                f"gap {c.relative_gap:.3g}); {covers}")
+                f"gap {c.relative_gap:.3g}{bound}); {covers}")
 
 
 def _distinct_top(poses: NDArray[np.float64], values: NDArray[np.float64], m: int,
