@@ -3,7 +3,8 @@
 Owns the Black-Rangarajan relaxations (rotation over translation-invariant measurements, and the
 joint rotation-translation lifting), their interior-point (cvxpy + Clarabel) and first-order
 dual searches, the clique decomposition of the full problem with exact branch and bound
-per clique, and the front end that turns a bound into a :class:`solvers.Certificate`. May
+per clique, the shared-source bound of correspondences grouped by source point (eq. (2)'s
+candidates), and the front end that turns a bound into a :class:`solvers.Certificate`. May
 import the public modules of :mod:`solvers` and :mod:`solvers.registration`; nothing imports it
 but callers who ask for a certificate (it loads cvxpy on demand).
 """

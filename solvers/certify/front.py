@@ -19,6 +19,8 @@ Which problem is bounded (``scope``)
   branch and bound over its inlier sets (closed-form least squares per set); beyond the node
   budget (large cliques at low outlier rates) it is bounded by the joint relaxation's
   Douglas-Rachford dual search (:func:`solvers.certify.joint_dual.joint_dual_certificate`).
+  Correspondences that share a source point also bound it, each source point's image placed
+  freely (:mod:`solvers.certify.groups`); the larger of the two bounds is kept.
   ``method="dense"``/``"chordal"``/``"dual"`` bound the whole problem with the joint
   relaxation (lifting ``y = [1; vec(R); t]``) instead.
 * ``"pruned"``: the joint relaxation of the problem restricted to the max-clique survivors.
