@@ -203,7 +203,7 @@ def test_cli_pose_demo_samples_writes_particles(tmp_path, capsys):  # type: igno
     from certpose.data.synthetic import make_mug_scene
 
     gt = make_mug_scene(rng=0).T_camera_object  # the demo's scene at its default seed
-    for (angle, turn), T_ref in zip([found.group(1, 2), found.group(3, 4)], [T, gt]):
+    for (angle, turn), T_ref in zip([found.group(1, 2), found.group(3, 4)], [T, gt], strict=True):
         assert abs(float(angle) - rotation_error_deg(mode.rotation, T_ref[:3, :3])) < 0.06
         assert abs(float(turn) - np.degrees(axis_angles(mode.rotation[None], (0, 0, 1), T_ref)[0])) < 0.06
     # The demo has no YCB-Video frame or object (their defaults do not apply).

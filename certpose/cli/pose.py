@@ -1,4 +1,5 @@
-"""``certpose pose``: the MLE pose of an object in an RGB-D frame (YCB-Video or the demo)."""
+"""``certpose pose``: the MLE pose of an object in an RGB-D frame (YCB-Video, image files of any
+camera, or the demo)."""
 
 from __future__ import annotations
 
@@ -23,6 +24,8 @@ examples:
       --model ../shared/data/ycbv/models/025_mug/points.xyz --json pose.json
   certpose pose --ycbv ../shared/data/ycbv --frame 0050/000001 --object 006_mustard_bottle \\
       --classifier best-buddies --object-model mustard_0002.npz   # no mask: box.txt + best buddies
+  certpose pose --rgbd color.png depth.png --intrinsics 615.0 615.0 320.0 240.0 \
+      --depth-scale 1000 --mask mug_mask.png --model mug.ply   # your own camera's frame
   certpose pose --demo --samples 10000 --particles mug.npz --plot mug.png
   certpose pose --demo --samples 10000 --method de --plot mug_de.png   # the paper's sampler
   certpose pose --ycbv ../shared/data/ycbv --frame 0000/000001 0000/000002 \\
@@ -42,7 +45,7 @@ def add_parser(subparsers: Any) -> None:
 
     p = subparsers.add_parser(
         "pose",
-        help="estimate an object pose from an RGB-D frame (YCB-Video, or --demo)",
+        help="estimate an object pose from an RGB-D frame (YCB-Video, --rgbd files, or --demo)",
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -50,6 +53,19 @@ def add_parser(subparsers: Any) -> None:
     src.add_argument("--demo", action="store_true",
                      help="the embedded synthetic scene: a textureless mug, handle hidden")
     src.add_argument("--ycbv", metavar="DIR", help="YCB-Video folder (with <scene>/ and models/)")
+    src.add_argument("--rgbd", nargs=2, metavar=("COLOR", "DEPTH"), default=None,
+                     help="your own RGB-D frame: a colour image ('-': none, geometry-only models) "
+                          "and a one-channel depth image of the same size (with --intrinsics, "
+                          "--model or --object-model, and --mask or --classifier best-buddies "
+                          "--box)")
+    own = p.add_argument_group("your own RGB-D frame (--rgbd)")
+    own.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
+                     default=None, help="the depth camera's pinhole intrinsics, pixels")
+    own.add_argument("--depth-scale", type=float, default=None, metavar="S",
+                     help="raw depth units per metre (default: 1000, millimetre PNGs)")
+    own.add_argument("--mask", metavar="MASK.png", default=None,
+                     help="the object's segmentation, same size (non-zero: object); or use "
+                          "--classifier best-buddies --box instead")
     p.add_argument("--frame", metavar="SCENE/FRAME", nargs="+", default=None,
                    help="YCB-Video frame(s) (default: 0000/000001); with several frames or "
                         "objects, every pair is posed and --json writes a list of payloads")
@@ -150,6 +166,33 @@ def run(args: argparse.Namespace) -> int:
         if given:
             raise CLIError(f"{'/'.join(given)} {'need' if len(given) > 1 else 'needs'} --ycbv "
                            "(--demo poses its own synthetic mug)")
+    own = [f"--{opt.replace('_', '-')}" for opt in ("intrinsics", "depth_scale", "mask")
+           if getattr(args, opt) is not None]
+    if own and args.rgbd is None:
+        raise CLIError(f"{'/'.join(own)} {'need' if len(own) > 1 else 'needs'} --rgbd "
+                       "COLOR DEPTH")
+    if args.rgbd is not None:
+        if args.frame is not None:
+            raise CLIError("--frame needs --ycbv (--rgbd gives the frame's images)")
+        if args.object is not None and len(args.object) > 1:
+            raise CLIError("--rgbd poses one object: give one --object name")
+        if args.intrinsics is None:
+            raise CLIError("--rgbd needs --intrinsics FX FY CX CY")
+        if (args.model is None) == (args.object_model is None):
+            raise CLIError("--rgbd needs one of --model POINTS and --object-model MODEL.npz")
+        if args.classifier == "mask" and args.mask is None:
+            raise CLIError("--rgbd needs --mask MASK.png, or --classifier best-buddies with --box")
+        if args.classifier == "best-buddies" and (args.box is None or args.mask is not None):
+            raise CLIError("--classifier best-buddies with --rgbd needs --box X0 Y0 X1 Y1 "
+                           "(and no --mask)")
+        for opt in ("model", "object_model", "mask", *(() if args.rgbd[0] == "-" else ("rgbd",))):
+            paths = getattr(args, opt)
+            for path in ([paths] if isinstance(paths, str) or paths is None else paths):
+                if path is not None and path != "-" and not Path(path).is_file():
+                    raise CLIError(f"--{opt.replace('_', '-')} {path} does not exist")
+        if args.depth_scale is not None and not (math.isfinite(args.depth_scale)
+                                                 and args.depth_scale > 0):
+            raise CLIError(f"--depth-scale must be positive, got {args.depth_scale}")
     args.frame = args.frame or ["0000/000001"]
     args.object = args.object or ["025_mug"]
     pairs = [(f, o) for f in args.frame for o in args.object]  # frames outer
@@ -204,6 +247,8 @@ def run(args: argparse.Namespace) -> int:
         params = replace(params, sampler=ISParams(draws=max(10_000, args.samples),
                                                   resample=args.samples),
                          sampling_method=args.method)
+    if args.rgbd is not None:
+        return _run_rgbd(args, params)
     if args.demo:
         title = "synthetic mug scene (handle hidden behind an occluder)"
         with busy(args, "certpose pose"):
@@ -252,6 +297,35 @@ def run(args: argparse.Namespace) -> int:
               + (f" ({len(pairs) - len(codes)} skipped)" if len(codes) < len(pairs) else ""))
     sys.stdout.flush()
     return 0 if 0 in codes else 1
+
+
+def _run_rgbd(args: argparse.Namespace, params: Any) -> int:
+    """Pose one object in the user's own RGB-D frame (``--rgbd COLOR DEPTH``)."""
+    from certpose.cli import busy, emit_json
+    from certpose.estimation.pipeline import run_rgbd
+    from certpose.io.cache import default_cache_dir
+
+    color, depth = args.rgbd
+    built = None
+    if args.object_model is not None:
+        from certpose.geometry.appearance import BuiltObjectModel
+
+        built = BuiltObjectModel.load(args.object_model)
+    name = (args.object[0] if args.object else
+            built.model.name if built is not None and built.model.name else Path(args.model or "").stem)
+    boxed = args.classifier == "best-buddies"
+    title = (f"{name} in {depth}" + (", best buddies in the box given (no mask)" if boxed else "")
+             + (f" (appearance model from {', '.join(built.views) or 'unnamed views'})" if built else ""))
+    with busy(args, "certpose pose"):
+        result = run_rgbd(None if color == "-" else color, depth, args.intrinsics,
+                          model_path=args.model, object_model=built,
+                          depth_scale=1000.0 if args.depth_scale is None else args.depth_scale,
+                          mask_path=args.mask, box=args.box, name=name, params=params,
+                          rng=args.seed, cache_dir=default_cache_dir())
+    code, payload = _report(_for_pair(args, depth, name), params, title, result)
+    if args.json is not None:
+        emit_json(args, payload)
+    return code
 
 
 def _check_plot_format(path: str) -> None:

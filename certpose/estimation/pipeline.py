@@ -791,6 +791,131 @@ def run_ycbv(
     return result
 
 
+
+def run_rgbd(
+    color_path: str | Path | None,
+    depth_path: str | Path,
+    intrinsics: ArrayLike,
+    *,
+    model_path: str | Path | None = None,
+    object_model: BuiltObjectModel | None = None,
+    depth_scale: float = 1000.0,
+    mask_path: str | Path | None = None,
+    box: ArrayLike | None = None,
+    name: str = "",
+    params: PoseParams | None = None,
+    rng: np.random.Generator | int | None = 0,
+    cache_dir: str | Path | None = None,
+) -> PoseResult:
+    """Estimate an object's pose in one RGB-D frame read from image files (any camera).
+
+    The classifier ``p_O`` is the object's segmentation (``mask_path``) or, as the paper
+    intends, best-buddy similarity inside the object's 2-D box (``box``, what a detector
+    gives). No ground truth, so no errors.
+
+    Parameters
+    ----------
+    color_path : path or None
+        8-bit RGB image (needed by appearance models; geometry-only models use depth alone).
+    depth_path : path
+        Single-channel depth image; metres = value / ``depth_scale``.
+    intrinsics : (4,) array_like
+        ``(fx, fy, cx, cy)`` in pixels; the image size comes from the depth image.
+    model_path : path, optional
+        Object model points (metres; ``.xyz``/``.ply``/``.pcd``...), for a geometry-only model.
+    object_model : BuiltObjectModel, optional
+        A model with appearance (``certpose object build``); the scene is described with its
+        backbone. Exactly one of ``model_path`` and ``object_model``.
+    depth_scale : float
+        Raw depth units per metre (1000: millimetre PNGs).
+    mask_path : path, optional
+        The object's segmentation, same size as the depth image (non-zero: object).
+    box : (4,) array_like, optional
+        ``(x0, y0, x1, y1)`` pixels: best buddies inside it. Exactly one of ``mask_path`` and
+        ``box``.
+    name : str
+        The object's name, for messages.
+    params : PoseParams, optional
+    rng : numpy Generator, int or None
+    cache_dir : path, optional
+        As :func:`run_ycbv`'s (geometry-only models).
+
+    Returns
+    -------
+    PoseResult
+        ``T_camera_object`` maps model points into the camera frame.
+
+    Raises
+    ------
+    FileNotFoundError, OSError
+        Missing or unreadable files.
+    ValueError
+        Both or neither of a model and of a mask/box; intrinsics not four positive finite
+        numbers (focal lengths); images of different sizes; an empty mask; a malformed box.
+    """
+    from certpose.geometry.features import FPFHBackbone
+    from certpose.geometry.rgbd import CameraIntrinsics, load_rgbd, read_image
+    from certpose.io.cache import object_from_points_cached
+    from certpose.io.ycbv import load_model_points
+    from certpose.model.classifier import box_mask
+
+    params = params or PoseParams()
+    if (model_path is None) == (object_model is None):
+        raise ValueError("Give exactly one of `model_path` (model points) and `object_model`.")
+    if (mask_path is None) == (box is None):
+        raise ValueError("Give exactly one of `mask_path` (the object's segmentation) and `box` "
+                         "(its 2-D box, for best buddies).")
+    k = np.asarray(intrinsics, dtype=np.float64).reshape(-1)
+    if k.shape != (4,) or not np.all(np.isfinite(k)):
+        raise ValueError(f"Expected `intrinsics` to be (fx, fy, cx, cy), got {np.asarray(intrinsics).tolist()}.")
+    t = time.perf_counter()
+    depth_raw = read_image(depth_path, "depth")
+    if depth_raw.ndim != 2:
+        raise ValueError(f"Expected the depth image {depth_path} to have one channel, got shape "
+                         f"{depth_raw.shape}.")
+    height, width = depth_raw.shape
+    cam = CameraIntrinsics(float(k[0]), float(k[1]), float(k[2]), float(k[3]), width, height)
+    frame = load_rgbd(color_path, depth_path, cam, depth_scale=depth_scale)  # checks the sizes
+    if mask_path is not None:
+        raw = read_image(mask_path, "mask")
+        if raw.shape[:2] != (height, width):
+            raise ValueError(f"The mask {mask_path} is {raw.shape[1]}x{raw.shape[0]} pixels, the "
+                             f"depth image {width}x{height}.")
+        mask = (raw if raw.ndim == 2 else raw[..., :3].max(axis=2)) != 0
+        if not mask.any():
+            raise ValueError(f"The mask {mask_path} has no object pixel (all zero).")
+        roi, classifier = mask, "mask"
+        frame = frame.with_mask(mask)
+    else:
+        roi, classifier = box_mask(box, frame.shape, margin=params.classifier.box_margin), "best_buddies"
+    if object_model is not None:
+        if not math.isclose(object_model.voxel_size, params.voxel_size, rel_tol=1e-6):
+            log.warning("object model voxel size %g m differs from the scene's %g m",
+                        object_model.voxel_size, params.voxel_size)
+        backbone = object_model.backbone
+        from certpose.geometry.appearance import AppearanceBackbone
+
+        if isinstance(backbone, AppearanceBackbone) and frame.color is None:
+            raise ValueError("The object model has appearance: it needs the color image.")
+    else:
+        backbone = FPFHBackbone()
+        model_points = load_model_points(model_path)
+    t_load = time.perf_counter() - t
+    t = time.perf_counter()
+    scene = _scene_for(frame, roi, params, backbone)
+    t_scene = time.perf_counter() - t
+    t = time.perf_counter()
+    obj = (object_model.model if object_model is not None else
+           object_from_points_cached(model_points, backbone, voxel_size=params.voxel_size,
+                                     name=name or Path(str(model_path)).stem, cache_dir=cache_dir,
+                                     revolution="auto" if params.model_revolution else None))
+    t_obj = time.perf_counter() - t
+    result = estimate_pose(scene, obj, classifier=classifier, frame=frame, params=params, rng=rng,
+                           box=box)
+    result.timings.update({"load": t_load, "scene": t_scene, "object": t_obj})
+    return result
+
+
 def build_ycbv_object_model(
     root: str | Path,
     frames: Sequence[str],

@@ -1,0 +1,126 @@
+"""`certpose pose --rgbd COLOR DEPTH`: a user's own RGB-D frame from image files."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from certpose.cli import main
+from certpose.estimation.pipeline import run_rgbd
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ycbv"
+needs_ycbv = pytest.mark.skipif(not DATA.is_dir() and not os.environ.get("CI"),
+                                reason="YCB-Video data not found")
+FRAME = "0000/000001"
+
+
+def _ycbv_inputs(tmp_path: Path, obj: str = "025_mug") -> tuple[list[str], str, list[str]]:
+    """The frame's image paths, the object's mask written as a PNG (label == its class), and
+    the intrinsics from meta.mat: what a user of another camera would have."""
+    from certpose.io.ycbv import load_ycbv_frame
+
+    yf = load_ycbv_frame(DATA, FRAME)
+    k = yf.frame.intrinsics
+    mask = tmp_path / "mask.png"
+    Image.fromarray(yf.object_mask(obj).astype(np.uint8) * 255).save(mask)
+    images = [str(DATA / f"{FRAME}-color.png"), str(DATA / f"{FRAME}-depth.png")]
+    return images, str(mask), [repr(v) for v in (k.fx, k.fy, k.cx, k.cy)]
+
+
+@pytest.mark.slow
+@needs_ycbv
+def test_rgbd_files_give_the_ycbv_paths_pose(tmp_path: Path) -> None:
+    """The same frame given as plain files (images, a mask PNG, intrinsics and the depth scale
+    on the command line) gives the pose of `--ycbv`, bit for bit, with the mask and with best
+    buddies in the box."""
+    images, mask, k = _ycbv_inputs(tmp_path)
+    model = str(DATA / "models" / "025_mug" / "points.xyz")
+    common = ["--rgbd", *images, "--intrinsics", *k, "--depth-scale", "10000", "--model", model]
+    box = (DATA / f"{FRAME}-box.txt").read_text().split("025_mug")[1].split()[:4]
+    for extra, ycbv_extra in ((["--mask", mask], []),
+                              (["--classifier", "best-buddies", "--box", *box],
+                               ["--classifier", "best-buddies"])):
+        own, ref = tmp_path / "own.json", tmp_path / "ref.json"
+        assert main(["pose", "-q", *common, *extra, "--json", str(own)]) == 0
+        assert main(["pose", "-q", "--ycbv", str(DATA), "--frame", FRAME, *ycbv_extra,
+                     "--json", str(ref)]) == 0
+        a, b = json.loads(own.read_text()), json.loads(ref.read_text())
+        assert a["T_camera_object"] == b["T_camera_object"]
+        assert a["log_likelihood"] == b["log_likelihood"] and a["success"]
+        assert a["errors"] is None  # no ground truth for a user's frame
+
+
+def _tiny_frame(tmp_path: Path, *, size: tuple[int, int] = (40, 30)) -> tuple[str, str]:
+    w, h = size
+    color, depth = tmp_path / "c.png", tmp_path / "d.png"
+    Image.fromarray(np.full((h, w, 3), 128, np.uint8)).save(color)
+    Image.fromarray(np.full((h, w), 600, np.uint16)).save(depth)
+    return str(color), str(depth)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--intrinsics", "500", "500", "20", "15"], "--intrinsics needs --rgbd"),
+    (["--mask", "m.png"], "--mask needs --rgbd"),
+])
+def test_rgbd_options_need_rgbd(argv: list[str], message: str, capsys) -> None:  # noqa: ANN001
+    assert main(["pose", "--demo", *argv]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_rgbd_refuses_incomplete_or_contradictory_input(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    color, depth = _tiny_frame(tmp_path)
+    pts = tmp_path / "model.xyz"
+    np.savetxt(pts, np.random.default_rng(0).normal(scale=0.03, size=(200, 3)))
+    mask = tmp_path / "m.png"
+    Image.fromarray(np.ones((30, 40), np.uint8)).save(mask)
+    base = ["pose", "--rgbd", color, depth]
+    k = ["--intrinsics", "500", "500", "20", "15"]
+    cases = [
+        (base + ["--model", str(pts), "--mask", str(mask)], "--rgbd needs --intrinsics"),
+        (base + k + ["--mask", str(mask)], "--rgbd needs one of --model POINTS and --object-model"),
+        (base + k + ["--model", str(pts)], "--rgbd needs --mask MASK.png"),
+        (base + k + ["--model", str(pts), "--classifier", "best-buddies"], "needs --box"),
+        (base + k + ["--model", str(pts), "--mask", str(mask), "--frame", "0000/000001"],
+         "--frame needs --ycbv"),
+        (base + k + ["--model", str(tmp_path / "none.xyz"), "--mask", str(mask)], "does not exist"),
+        (["pose", "--rgbd", color, str(tmp_path / "none.png")] + k + ["--model", str(pts),
+                                                                      "--mask", str(mask)],
+         "does not exist"),
+        (base + k + ["--model", str(pts), "--mask", str(mask), "--depth-scale", "0"],
+         "--depth-scale must be positive"),
+    ]
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        assert message in capsys.readouterr().err, argv
+
+
+def test_run_rgbd_checks_image_sizes_and_the_mask(tmp_path: Path) -> None:
+    color, depth = _tiny_frame(tmp_path)
+    pts = tmp_path / "model.xyz"
+    np.savetxt(pts, np.random.default_rng(0).normal(scale=0.03, size=(200, 3)))
+    small = tmp_path / "small.png"
+    Image.fromarray(np.ones((10, 20), np.uint8)).save(small)
+    empty = tmp_path / "empty.png"
+    Image.fromarray(np.zeros((30, 40), np.uint8)).save(empty)
+    k = (500.0, 500.0, 20.0, 15.0)
+    with pytest.raises(ValueError, match=r"mask .* is 20x10 pixels, the depth image 40x30"):
+        run_rgbd(color, depth, k, model_path=pts, mask_path=small)
+    with pytest.raises(ValueError, match="no object pixel"):
+        run_rgbd(color, depth, k, model_path=pts, mask_path=empty)
+    (tmp_path / "other").mkdir()
+    other_color, _ = _tiny_frame(tmp_path / "other", size=(20, 10))
+    with pytest.raises(ValueError, match=r"`color` to have shape \(30, 40, 3\) to match `depth`"):
+        run_rgbd(other_color, depth, k, model_path=pts, mask_path=empty)
+    with pytest.raises(ValueError, match=r"`intrinsics` to be \(fx, fy, cx, cy\)"):
+        run_rgbd(color, depth, (500.0, 500.0, 20.0), model_path=pts, mask_path=empty)
+    with pytest.raises(ValueError, match="exactly one of `model_path`"):
+        run_rgbd(color, depth, k, mask_path=empty)
+    with pytest.raises(ValueError, match="exactly one of `mask_path`"):
+        run_rgbd(color, depth, k, model_path=pts)
+    with pytest.raises(ValueError, match="fx"):
+        run_rgbd(color, depth, (-500.0, 500.0, 20.0, 15.0), model_path=pts, mask_path=small)
