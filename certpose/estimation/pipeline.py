@@ -37,6 +37,7 @@ __all__ = [
     "pose_errors",
     "estimate_pose",
     "run_ycbv",
+    "run_rgbd",
     "run_demo",
     "build_ycbv_object_model",
     "likelihood_params_for",
