@@ -53,6 +53,9 @@ def test_rgbd_files_give_the_ycbv_paths_pose(tmp_path: Path) -> None:
         assert a["T_camera_object"] == b["T_camera_object"]
         assert a["log_likelihood"] == b["log_likelihood"] and a["success"]
         assert a["errors"] is None  # no ground truth for a user's frame
+        # What was posed, as given; no YCB-Video default (the mug) stands in for a name.
+        assert a["input"]["rgbd"] == images and a["input"]["object"] is None
+        assert a["input"]["frame"] is None and a["input"]["intrinsics"] == [float(v) for v in k]
 
 
 def _tiny_frame(tmp_path: Path, *, size: tuple[int, int] = (40, 30)) -> tuple[str, str]:

@@ -193,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
         if args.depth_scale is not None and not (math.isfinite(args.depth_scale)
                                                  and args.depth_scale > 0):
             raise CLIError(f"--depth-scale must be positive, got {args.depth_scale}")
+    rgbd_name = args.object  # a user's frame has no default object (YCB-Video's is the mug)
     args.frame = args.frame or ["0000/000001"]
     args.object = args.object or ["025_mug"]
     pairs = [(f, o) for f in args.frame for o in args.object]  # frames outer
@@ -248,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
                                                   resample=args.samples),
                          sampling_method=args.method)
     if args.rgbd is not None:
-        return _run_rgbd(args, params)
+        return _run_rgbd(argparse.Namespace(**{**vars(args), "object": rgbd_name}), params)
     if args.demo:
         title = "synthetic mug scene (handle hidden behind an occluder)"
         with busy(args, "certpose pose"):
@@ -312,17 +313,17 @@ def _run_rgbd(args: argparse.Namespace, params: Any) -> int:
 
         built = BuiltObjectModel.load(args.object_model)
     name = (args.object[0] if args.object else
-            built.model.name if built is not None and built.model.name else Path(args.model or "").stem)
+            built.model.name if built is not None and built.model.name else None)
     boxed = args.classifier == "best-buddies"
-    title = (f"{name} in {depth}" + (", best buddies in the box given (no mask)" if boxed else "")
+    title = (f"{name or 'the object of ' + str(args.model or args.object_model)} in {depth}" + (", best buddies in the box given (no mask)" if boxed else "")
              + (f" (appearance model from {', '.join(built.views) or 'unnamed views'})" if built else ""))
     with busy(args, "certpose pose"):
         result = run_rgbd(None if color == "-" else color, depth, args.intrinsics,
                           model_path=args.model, object_model=built,
                           depth_scale=1000.0 if args.depth_scale is None else args.depth_scale,
-                          mask_path=args.mask, box=args.box, name=name, params=params,
+                          mask_path=args.mask, box=args.box, name=name or "", params=params,
                           rng=args.seed, cache_dir=default_cache_dir())
-    code, payload = _report(_for_pair(args, depth, name), params, title, result)
+    code, payload = _report(_for_pair(args, None, name), params, title, result)
     if args.json is not None:
         emit_json(args, payload)
     return code
@@ -435,11 +436,15 @@ def _report(args: argparse.Namespace, params: Any, title: str,
     payload = None
     if args.json is not None:
         # The demo has no YCB-Video frame or object (their defaults do not apply to it).
+        rgbd = getattr(args, "rgbd", None)
         payload = {"input": {"demo": bool(args.demo), "ycbv": args.ycbv,
-                             "frame": None if args.demo else args.frame,
+                             "frame": None if args.demo or rgbd else args.frame,
                              "object": None if args.demo else args.object, "model": args.model,
                              "object_model": args.object_model, "seed": args.seed,
-                             "classifier": args.classifier, "box": args.box},
+                             "classifier": args.classifier, "box": args.box,
+                             **({"rgbd": rgbd, "intrinsics": args.intrinsics,
+                                 "depth_scale": args.depth_scale, "mask": args.mask}
+                                if rgbd else {})},
                    **result.to_dict()}
     sys.stdout.flush()
     if not result.success:
@@ -501,7 +506,10 @@ def _print_distribution(result: object, args: argparse.Namespace) -> None:
         from certpose.sampling.plots import plot_marginals
 
         gt = result.T_camera_object_gt  # type: ignore[attr-defined]
-        title = (f"{'demo mug' if args.demo else f'{args.frame} {args.object}'}: {method}, "
+        what = ("demo mug" if args.demo else
+                f"{Path(args.rgbd[1]).name} {args.object or ''}".rstrip() if getattr(args, "rgbd", None)
+                else f"{args.frame} {args.object}")
+        title = (f"{what}: {method}, "
                  f"{len(dist)} particles" + ("" if gt is None else ", ground truth in red"))
         arcs = None
         if args.demo:
