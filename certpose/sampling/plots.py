@@ -278,7 +278,7 @@ def plot_marginals(
     if spans and axis is None:
         raise ValueError("`arcs` are angles about `axis`; give `axis` too.")
     ms = marginals(dist, axis=axis, T_ref=T_ref, T_gt=T_gt)
-    ncol = 4 if axis is not None else 3
+    ncol = 4  # the fourth column: the turn about the axis (if any) above the diagnostics
     fig = Figure(figsize=size, dpi=int(dpi))
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, ncol, squeeze=False)
@@ -298,18 +298,20 @@ def plot_marginals(
         ax.set_yticks([])
     if T_gt is not None:
         axes[0, 0].legend(loc="upper right", fontsize=8)
-    if axis is not None:
-        info = axes[1, 3]
-        info.axis("off")
-        d = _check_dist(dist)
-        lines = list(notes or []) + [f"{len(d)} particles (ESS {d.ess:.0f})"]
-        if d.log_weights is not None:
-            try:
-                lines.append(f"Pareto-k {d.pareto_k():.2f}")
-            except Exception:  # noqa: BLE001 - a diagnostic for the caption only
-                pass
-        lines += [f"mode {k}: mass {mo.mass:.2f}" for k, mo in enumerate(d.modes()[:4]) if mo.mass >= 0.005]
-        info.text(0.0, 1.0, "\n".join(lines), va="top", family="monospace", fontsize=9)
+    if axis is None:
+        axes[0, 3].axis("off")
+    # The diagnostics, with or without an axis.
+    info = axes[1, 3]
+    info.axis("off")
+    d = _check_dist(dist)
+    lines = list(notes or []) + [f"{len(d)} particles (ESS {d.ess:.0f})"]
+    if d.log_weights is not None:
+        try:
+            lines.append(f"Pareto-k {d.pareto_k():.2f}")
+        except Exception:  # noqa: BLE001 - a diagnostic for the caption only
+            pass
+    lines += [f"mode {k}: mass {mo.mass:.2f}" for k, mo in enumerate(d.modes()[:4]) if mo.mass >= 0.005]
+    info.text(0.0, 1.0, "\n".join(lines), va="top", family="monospace", fontsize=9)
     fig.suptitle(title or "pose distribution: marginals (KDE)")
     fig.tight_layout()
     fig.savefig(p, dpi=int(dpi))
