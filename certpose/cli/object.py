@@ -1,4 +1,5 @@
-"""``certpose object build``: an object model with appearance from posed RGB-D views (YCB-Video)."""
+"""``certpose object build``: an object model with appearance from posed RGB-D views (YCB-Video's,
+or a JSON manifest of any camera's)."""
 
 from __future__ import annotations
 
@@ -14,9 +15,10 @@ FPFH (shape) to local colour statistics (print and texture), so that a box's pri
 from its back; points that no view saw carry "no information". The model is saved as .npz and used
 with `certpose pose --object-model`. Never evaluate a model on the scene whose views built it.
 
-example:
+examples:
   certpose object build --ycbv ../shared/data/ycbv --object 006_mustard_bottle \\
       --views 0002/000001 0002/000010 0002/000020 -o mustard_0002.npz
+  certpose object build --posed-views my_views.json --model mug.ply --object mug -o mug.npz
 """
 
 
@@ -29,17 +31,24 @@ def add_parser(subparsers: Any) -> None:
     sub = p.add_subparsers(dest="object_command", metavar="ACTION", required=True)
     b = sub.add_parser(
         "build",
-        help="colour and describe model points from posed YCB-Video views",
+        help="colour and describe model points from posed RGB-D views",
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    b.add_argument("--ycbv", metavar="DIR", required=True,
-                   help="YCB-Video folder (with <scene>/ and models/)")
-    b.add_argument("--views", metavar="SCENE/FRAME", nargs="+", required=True,
-                   help="frames whose ground-truth pose and label colour the model")
-    b.add_argument("--object", metavar="NAME", required=True, help="YCB-Video object name")
+    src = b.add_mutually_exclusive_group(required=True)
+    src.add_argument("--ycbv", metavar="DIR",
+                     help="YCB-Video folder (with <scene>/ and models/), with --views")
+    src.add_argument("--posed-views", metavar="VIEWS.json",
+                     help="your own posed views: a JSON manifest of colour, depth and mask images "
+                          "with each view's T_camera_object and the camera's intrinsics "
+                          "(certpose.io.views; needs --model)")
+    b.add_argument("--views", metavar="SCENE/FRAME", nargs="+", default=None,
+                   help="with --ycbv: frames whose ground-truth pose and label colour the model")
+    b.add_argument("--object", metavar="NAME", default=None,
+                   help="the object's name (YCB-Video's, with --ycbv)")
     b.add_argument("--model", metavar="POINTS", default=None,
-                   help="object model points, metres (default: DIR/models/NAME/points.xyz)")
+                   help="object model points, metres (default with --ycbv: "
+                        "DIR/models/NAME/points.xyz)")
     b.add_argument("--voxel-size", type=float, default=0.005, metavar="M",
                    help="voxel size in metres; use the one given to `certpose pose` (default: 0.005)")
     # Defaults: AppearanceBackbone's (one place; imported only when the command runs).
@@ -67,9 +76,19 @@ def run_build(args: argparse.Namespace) -> int:
     from certpose.geometry.appearance import AppearanceBackbone
 
     check_json_output(args)
-    root = Path(args.ycbv)
-    if not root.is_dir():
-        raise CLIError(f"--ycbv {root} is not a directory")
+    if args.ycbv is not None:
+        root = Path(args.ycbv)
+        if not root.is_dir():
+            raise CLIError(f"--ycbv {root} is not a directory")
+        if args.views is None or args.object is None:
+            raise CLIError("--ycbv needs --views SCENE/FRAME ... and --object NAME")
+    else:
+        if args.views is not None:
+            raise CLIError("--views needs --ycbv (--posed-views lists its own views)")
+        if args.model is None:
+            raise CLIError("--posed-views needs --model POINTS (the object's points, metres)")
+        if not Path(args.posed_views).is_file():
+            raise CLIError(f"--posed-views {args.posed_views} does not exist")
     if args.model is not None and not Path(args.model).is_file():
         raise CLIError(f"--model {args.model} does not exist")
     if not (math.isfinite(args.voxel_size) and args.voxel_size > 0):
@@ -88,19 +107,29 @@ def run_build(args: argparse.Namespace) -> int:
         raise CLIError(f"-o {out} must end in .npz")
     if not out.parent.is_dir():
         raise CLIError(f"-o {out}: the folder {out.parent} does not exist")
+    name = args.object or Path(args.model).stem
     with busy(args, "certpose object build"):
-        built = build_ycbv_object_model(
-            root, args.views, args.object, args.model,
-            backbone=backbone,
-            voxel_size=args.voxel_size, sampling=args.sampling)
+        if args.ycbv is not None:
+            built = build_ycbv_object_model(
+                root, args.views, args.object, args.model,
+                backbone=backbone,
+                voxel_size=args.voxel_size, sampling=args.sampling)
+        else:
+            from certpose.geometry.appearance import object_from_posed_views
+            from certpose.io.views import load_posed_views
+            from certpose.io.ycbv import load_model_points
+
+            built = object_from_posed_views(
+                load_model_points(args.model), load_posed_views(args.posed_views), backbone,
+                voxel_size=args.voxel_size, name=name, sampling=args.sampling)
     built.save(out)
     n, seen = len(built.model), int(built.observed.sum())
-    say(args, f"object model {args.object}: {n} points, {seen} seen by {len(built.views)} "
+    say(args, f"object model {name}: {n} points, {seen} seen by {len(built.views)} "
               f"view(s) ({100.0 * seen / n:.0f}%), the other {n - seen} carry no appearance "
               "information")
     say(args, f"built from scene(s) {', '.join(built.scenes)}: do not evaluate it on them")
     say(args, f"wrote {out}")
-    emit_json(args, {"object": args.object, "output": str(out), "points": n, "observed": seen,
+    emit_json(args, {"object": name, "output": str(out), "points": n, "observed": seen,
                      "views": list(built.views), "scenes": list(built.scenes),
                      "voxel_size": args.voxel_size, "color_weight": backbone.color_weight,
                      "similarity_scale": backbone.similarity_scale})
