@@ -1,4 +1,5 @@
-"""Reading data from disk: point and weight files, and YCB-Video frames with ground truth.
+"""Reading data from disk: point and weight files, YCB-Video frames with ground truth, and
+manifests of posed RGB-D views (any camera).
 
 Owns file formats and their strict checks (a malformed file is an error naming the file, never a
 silently wrong array). May import :mod:`certpose.geometry` (frames) and :mod:`solvers`' public
