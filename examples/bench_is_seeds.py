@@ -41,7 +41,8 @@ coverage 0.88-1.00: the computed arc (one-voxel tolerance) reaches 10-20 deg pas
 starts charging the handle's tip (seed 1: the last 20 deg of -138.5..72 deg empty), while
 inside the marginal is flat (0.9-1.3 times a uniform share per 5 deg).
 
-Printed per run: final ESS (Kish, of the 10,000 weighted draws), status, seconds of sampling,
+Printed per run: final ESS (Kish, of the 10,000 weighted draws), the Pareto k of their weights
+(PSIS; over 0.7: a few draws carry the estimate), status, seconds of sampling,
 the arc figures of ``bench_samplers.free_arc_metrics`` (arc coverage, mass in the arc, mass in
 the scene's other free runs, axis within 5 deg / 1 cm), then the least ESS and the means per scene.
 
@@ -168,7 +169,7 @@ def main() -> None:
 
     scenes = ([] if args.no_demo else ["demo"]) + ([] if args.no_ycbv else [f"0000/{f}" for f in args.frames])
     rows, warm = [], False
-    print(f"{'scene':12s} {'seed':>4s} {'K':>3s} {'load':>5s} {'ESS':>6s} {'status':8s} {'s':>5s} "
+    print(f"{'scene':12s} {'seed':>4s} {'K':>3s} {'load':>5s} {'ESS':>6s} {'k':>4s} {'status':8s} {'s':>5s} "
           f"{'arc cov':>7s} {'in arc':>6s} {'other':>6s} {'axis ok':>7s}  ESS per round")
     for name in scenes:
         for seed in args.seeds:
@@ -184,18 +185,20 @@ def main() -> None:
             res = sample_pose_distribution(lik, seeds, params=params, rng=seed)
             m = free_arc_metrics(res.distribution, gt, arc, centre)
             r = {"scene": name, "seed": seed, "num_seeds": len(seeds), "load": load,
-                 "ess": float(res.weighted.ess), "status": res.status, "seconds": res.seconds,
+                 "ess": float(res.weighted.ess), "pareto_k": res.weighted.pareto_k(), "status": res.status,
+                 "seconds": res.seconds,
                  "ess_per_round": list(res.ess_per_round), **m}
             rows.append(r)
-            print(f"{name:12s} {seed:4d} {len(seeds):3d} {load:5.2f} {r['ess']:6.0f} {r['status']:8s} "
+            print(f"{name:12s} {seed:4d} {len(seeds):3d} {load:5.2f} {r['ess']:6.0f} {r['pareto_k']:4.2f} {r['status']:8s} "
                   f"{r['seconds']:5.2f} {m['arc_coverage']:7.2f} {m['mass_in_arc']:6.2f} "
                   f"{m['mass_other_free']:6.2f} {m['axis_ok']:7.2f}  "
                   + " ".join(f"{e:.0f}" for e in res.ess_per_round), flush=True)
-    print(f"\n{'scene':12s} {'min ESS':>7s} {'low':>3s} {'max s':>5s} {'arc cov':>7s} {'in arc':>6s} "
+    print(f"\n{'scene':12s} {'min ESS':>7s} {'low':>3s} {'max k':>5s} {'max s':>5s} {'arc cov':>7s} {'in arc':>6s} "
           f"{'other':>6s} {'axis ok':>7s}  (means over seeds)")
     for name in scenes + ["all"]:
         rs = [r for r in rows if name in ("all", r["scene"])]
         print(f"{name:12s} {min(r['ess'] for r in rs):7.0f} {sum(r['ess'] < 1000 for r in rs):3d} "
+              f"{max(r['pareto_k'] for r in rs):5.2f} "
               f"{max(r['seconds'] for r in rs):5.2f} "
               + " ".join(f"{np.mean([r[k] for r in rs]):{w}.2f}" for k, w in
                          (("arc_coverage", 7), ("mass_in_arc", 6), ("mass_other_free", 6), ("axis_ok", 7))))

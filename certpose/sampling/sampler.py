@@ -183,11 +183,22 @@ class ISParams:
         New components sit at least this far apart along the swept circle (deg); it is also
         their standard deviation along it.
     sweep_components : int
-        Components swept per sweep round (the heaviest with a flat direction): one of them may
-        carry a poor estimate of the axis.
+        Components swept per sweep round in the heaviest basin (its heaviest with a flat
+        direction): one of them may carry a poor estimate of the axis.
     sweep_max_new : int
         Components added per sweep round, at most (each costs a Newton fit and a share of every
         later mixture density).
+    sweep_basins : int
+        Basins swept per sweep round, at most (>= 1; 1 = every sweep in the heaviest basin, the
+        sampler before 2026-11-26's evening). A flat component whose centre lies more than
+        ``2 sweep_spacing`` of rotation or ``2 max_translation_noise`` from every turn of the
+        sweeps so far starts a basin of its own: the heaviest of each such basin is swept once,
+        about the axis of the Laplace fit at its centre (73 evaluations; its own refits rest on
+        a dozen effective draws or none), with a budget of ``sweep_max_new`` components of its
+        own. The demo's mug upside down is such a basin: a ring as the upright mug's arc,
+        holding 1-6% of the mass, whose one or two half-turn components draw a few pilot draws
+        per round and never widen along it; its draws between them carried the weight.
+        ``examples/bench_is_seeds.py`` (2026-11-26, the same cached MLE seeds): FIGURES_DEMO
     birth_weight : float
         A pilot draw holding more than this share of its round's weight, more than 3 standard
         deviations from its component, gets a component of its own (:func:`_births`; 1 = never).
@@ -279,6 +290,7 @@ class ISParams:
     sweep_defensive: bool = True
     birth_weight: float = 0.02
     sweep_max_new: int = 8
+    sweep_basins: int = 3
     half_turns: bool = True
     half_turn_window: float = 20.0
     half_turn_share: float = 0.05
@@ -315,7 +327,7 @@ class ISParams:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"Expected `{name}` to be positive and finite, got {v}.")
-        for name in ("sweep_components", "sweep_max_new"):
+        for name in ("sweep_components", "sweep_max_new", "sweep_basins"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"Expected `{name}` >= 1, got {getattr(self, name)}.")
         if not self.half_turn_window > 0:
@@ -717,6 +729,11 @@ def _sweep(log_target: LogTarget, adapted: TangentMixture, temp: float, best: fl
            p: ISParams) -> tuple[tuple[NDArray, NDArray, NDArray, NDArray] | None, int]:
     """New components on the good, uncovered turns of the adapted components' flat directions.
 
+    Components are taken heaviest first, per basin (``ISParams.sweep_basins``): up to
+    ``sweep_components`` in the basin of the heaviest, one in each basin whose centre no circle
+    swept so far passes near (its axis from the Laplace fit at its centre), each basin with a
+    budget of ``sweep_max_new`` new components.
+
     For a component ``(R_k, t_k, C_k)`` whose widest rotational direction ``u`` (object frame)
     has a standard deviation of at least ``sweep_min_sd``, the regression of the translation on
     the angle along ``u``, ``s = C_tr u / (u' C_rr u)`` (scene frame), is the velocity of a turn
@@ -750,24 +767,53 @@ def _sweep(log_target: LogTarget, adapted: TangentMixture, temp: float, best: fl
                             T[:, :3, 3] - tj], axis=1)
         return np.sum(np.linalg.solve(Lj, x.T) ** 2, axis=0) <= 4.0
 
-    # The heaviest components with a flat direction: one of them may carry a poor estimate of
-    # the axis (a short arc seen), and the sweep is cheap next to a round.
-    swept = 0
+    # The heaviest components with a flat direction, per basin: one of them may carry a poor
+    # estimate of the axis (a short arc seen), and the sweep is cheap next to a round. A light
+    # component off every swept circle (the demo's mug upside down, a ring of its own) gets too
+    # few pilot draws to widen along its ring, so it is swept too, with a budget of its own.
+    rot_tol, trans_tol = 2.0 * spacing, 2.0 * float(p.max_translation_noise)
+    circles: list[list[NDArray]] = []  # per basin: the turns of its sweeps
+    swept: list[int] = []  # per basin: components swept
+    added: list[int] = []  # per basin: components placed
     for k in np.argsort(-adapted.weights):
-        if swept == p.sweep_components or len(ws) >= p.sweep_max_new:
-            break
         C = adapted.covariances[k]
         lam, V = np.linalg.eigh(C[:3, :3])
         if math.sqrt(lam[-1]) < math.radians(float(p.sweep_min_sd)):
             continue  # no flat rotational direction
-        swept += 1
-        u = V[:, -1]
         Rk, tk = adapted.rotations[k], adapted.translations[k]
+        b = _basin_of(Rk, tk, circles, rot_tol, trans_tol)
+        if b < 0:
+            if not circles or len(circles) < int(p.sweep_basins):
+                circles.append([])
+                swept.append(0)
+                added.append(0)
+                b = len(circles) - 1
+            else:
+                b = 0  # beyond sweep_basins: counted with the heaviest basin
+        # The heaviest basin's axis estimate may be poor (several sweeps); another basin gets
+        # one sweep: each sweep's circle lies a little off the others', and the components it
+        # leaves off the circle before add up (the mixture's density costs per component).
+        if swept[b] >= (p.sweep_components if b == 0 else 1) or added[b] >= p.sweep_max_new:
+            continue
+        swept[b] += 1
+        if b > 0:
+            # A light component's refits rest on a dozen effective draws (or none): its axis
+            # can be off by tens of degrees and millimetres. The Laplace fit at its centre gives
+            # the ridge's own direction (73 evaluations).
+            T_k = np.eye(4)
+            T_k[:3, :3], T_k[:3, 3] = Rk, tk
+            C = _laplace_covariances(_laplace_precisions(log_target, T_k[None], temp, p), p)[0]
+            n_eval += len(_stencil())
+            lam, V = np.linalg.eigh(C[:3, :3])
+            if math.sqrt(lam[-1]) < math.radians(float(p.sweep_min_sd)):
+                continue
+        u = V[:, -1]
         c = np.cross(u, Rk.T @ (C[3:, :3] @ u / lam[-1]))
         E = _so3_exp(phi[:, None] * u)
         T = np.tile(np.eye(4), (len(phi), 1, 1))
         T[:, :3, :3] = Rk @ E
         T[:, :3, 3] = tk + (c - E @ c) @ Rk.T
+        circles[b].append(T)
         f = np.asarray(log_target(T), dtype=np.float64).reshape(-1) / temp
         n_eval += len(phi)
         f = np.where(np.isfinite(f), f, -np.inf)
@@ -778,13 +824,14 @@ def _sweep(log_target: LogTarget, adapted: TangentMixture, temp: float, best: fl
         Cn = A @ C @ A
         Cn = 0.5 * (Cn + Cn.T)
         Ln = np.linalg.cholesky(Cn)
-        log.debug("sweep of component %d (sd %.1f deg): best %.1f, %s", k, math.degrees(math.sqrt(lam[-1])),
-                  float(f.max()) - best, " ".join(f"{x - best:.0f}" for x in f[::3]))
+        log.debug("sweep of component %d (basin %d, sd %.1f deg): best %.1f, %s", k, b,
+                  math.degrees(math.sqrt(lam[-1])), float(f.max()) - best,
+                  " ".join(f"{x - best:.0f}" for x in f[::3]))
         covered = np.zeros(len(phi), dtype=bool)
         for Rj, tj, Lj in comps:
             covered |= near(Rj, tj, Lj, T)
         for i in np.argsort(-f):
-            if f[i] < thresh or len(ws) >= p.sweep_max_new:
+            if f[i] < thresh or added[b] >= p.sweep_max_new:
                 break
             if covered[i]:
                 continue
@@ -793,10 +840,22 @@ def _sweep(log_target: LogTarget, adapted: TangentMixture, temp: float, best: fl
             Cs.append(Cn)
             covered |= near(T[i, :3, :3], T[i, :3, 3], Ln, T)
             ws.append(float(adapted.weights[k]) * max(0.1, math.exp(min(float(f[i] - f[0]), 0.0))))
+            added[b] += 1
     if not ws:
         return None, n_eval
     R_new, t_new, C_new, n_fit = _newton_fit(log_target, np.stack(Rs), np.stack(ts), np.stack(Cs), temp, p)
     return (R_new, t_new, C_new, np.asarray(ws)), n_eval + n_fit
+
+
+def _basin_of(R: NDArray, t: NDArray, circles: list[list[NDArray]], rot_tol: float, trans_tol: float) -> int:
+    """Index of the first basin one of whose swept circles (poses (m, 4, 4)) passes within
+    ``rot_tol`` (rad) and ``trans_tol`` (m) of the pose ``(R, t)``; -1 if none does."""
+    for b, turns in enumerate(circles):
+        for T in turns:
+            ang = np.linalg.norm(so3_log(np.einsum("ji,njk->nik", R, T[:, :3, :3])), axis=1)
+            if np.any((ang <= rot_tol) & (np.linalg.norm(T[:, :3, 3] - t, axis=1) <= trans_tol)):
+                return b
+    return -1
 
 
 def _newton_fit(log_target: LogTarget, R: NDArray, t: NDArray, C: NDArray, temp: float,
