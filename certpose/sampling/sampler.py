@@ -27,6 +27,9 @@ then carry the weight (the demo at seed 4: final ESS 563). With ``ISParams.half_
 first seed's half turns about the model's principal axes, refined on eq. (1)
 (:func:`half_turn_seeds`), join the seeds when they are within ``half_turn_window`` tempered nats
 of the best, each with a fixed initial share (``half_turn_share``); figures in :class:`ISParams`.
+Such a basin can be a ring too (the upside-down mug spins as freely as the upright one), and its
+light components draw too few pilot draws to widen along it, so the sweeps go per basin
+(``ISParams.sweep_basins``): a flat component off every circle swept so far is swept as well.
 
 Tangent chart (the one of :mod:`certpose.sampling.distribution`): around a centre ``(R_k, t_k)``
 a 6-vector ``x = (w, d)`` is the pose ``R = R_k exp([w]_x)``, ``t = t_k + d`` (rotation vector in
@@ -198,7 +201,21 @@ class ISParams:
         own. The demo's mug upside down is such a basin: a ring as the upright mug's arc,
         holding 1-6% of the mass, whose one or two half-turn components draw a few pilot draws
         per round and never widen along it; its draws between them carried the weight.
-        ``examples/bench_is_seeds.py`` (2026-11-26, the same cached MLE seeds): FIGURES_DEMO
+        ``examples/bench_is_seeds.py`` (2026-11-26, the same cached MLE seeds, 1 -> 3): the demo
+        at seeds 0-19, least final ESS 1,465 -> 3,241, 10% quantile 4,283 -> 4,319, median 6,154
+        -> 5,874, largest Pareto k 0.77 -> 0.68 (mean 0.36 -> 0.38); the upside-down share of the
+        weighted draws 0.2-4.7% -> 0.7-6.0% where the target's own is 0.8-5.7%
+        (:func:`~certpose.sampling.reference.axis_marginal` about the upright truth and about the
+        upside-down half turn, the ratio of their normalisers): the median ratio to it 0.44 ->
+        0.80, the largest shortfall 3.2 points (seed 1: 0.5% of 3.7%) -> 1.2, the largest excess
+        0 -> 1.6 points. YCB-Video 0000 frames 1-5 at seeds 0-4: bit for bit the same (no flat
+        component off the first circle). Sampling time, 1 and 3 interleaved on one tree (load
+        1.3-1.7): the demo 1.35 -> 1.53 s median (paired +0.14 s; 8-38 more components, about
+        1,500 more evaluations), max 1.98 -> 1.81 s; YCB-Video unchanged.
+        ``examples/bench_samplers.py --no-ycbv --seeds 0 1 2 3 4``: total variation from the
+        target's exact marginal 0.034 0.030 0.037 0.033 0.048 -> 0.034 0.035 0.042 0.028 0.030
+        (its own error 0.018); from the uniform on the rendered arc 0.060-0.106 -> 0.075-0.111,
+        since the 1-4% now drawn upside down (0-1% before) lies off that arc.
     birth_weight : float
         A pilot draw holding more than this share of its round's weight, more than 3 standard
         deviations from its component, gets a component of its own (:func:`_births`; 1 = never).
@@ -237,7 +254,9 @@ class ISParams:
         (since 2026-11-26): without it the sampler leaves out up to 4.7% of the target's mass on
         some seeds, silently; with it the Pareto k of the final weights rises on some seeds (demo
         seeds 0-19: mean 0.31 -> 0.36, largest 0.55 -> 0.77, seed 18), and single runs lose ESS
-        as above. ``False`` gives the former sampler bit for bit.
+        as above: the basin is a ring its one or two components under-cover (its share half the
+        target's, median). ``sweep_basins`` (the default since 2026-11-26's evening) covers it:
+        largest Pareto k 0.68, least ESS 3,241. ``False`` gives the former sampler bit for bit.
     half_turn_window : float
         Refined half turns more than this many tempered nats below the best seed are dropped:
         such a basin holds about ``e^-20`` of the peak's mass, nothing a draw could find, and
