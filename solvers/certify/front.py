@@ -20,7 +20,8 @@ Which problem is bounded (``scope``)
   budget (large cliques at low outlier rates) it is bounded by the joint relaxation's
   Douglas-Rachford dual search (:func:`solvers.certify.joint_dual.joint_dual_certificate`).
   Correspondences that share a source point also bound it, each source point's image placed
-  freely (:mod:`solvers.certify.groups`); the larger of the two bounds is kept.
+  freely and pairs of them at their distance (:mod:`solvers.certify.groups`); the larger of the
+  two bounds is kept.
   ``method="dense"``/``"chordal"``/``"dual"`` bound the whole problem with the joint
   relaxation (lifting ``y = [1; vec(R); t]``) instead.
 * ``"pruned"``: the joint relaxation of the problem restricted to the max-clique survivors.
@@ -493,8 +494,9 @@ def _clique_bound(
     # that holds whatever the cliques give, in milliseconds; 0 for one-to-one correspondences.
     shared = shared_source_bound(pn)
     shared_note = (f"; bounded by the correspondences of each source point placed independently "
-                   f"({shared.groups} source points with several; the rigid motion left out)"
-                   if shared.lower > 0 else "")
+                   f"({shared.groups} source points with several"
+                   + (f", {shared.pairs} pairs of them kept at their distance" if shared.pairs else "")
+                   + "; the rest of the rigid motion left out)" if shared.lower > 0 else "")
     # The listing's share of the time limit becomes a node budget (it cannot read the clock).
     cliques, complete = candidate_cliques(
         pn, u, limit=MAX_CLIQUES, max_nodes=int(budget * LISTING_SHARE * LISTING_NODES_PER_SECOND))
