@@ -127,3 +127,31 @@ def test_run_rgbd_checks_image_sizes_and_the_mask(tmp_path: Path) -> None:
         run_rgbd(color, depth, k, model_path=pts)
     with pytest.raises(ValueError, match="fx"):
         run_rgbd(color, depth, (-500.0, 500.0, 20.0, 15.0), model_path=pts, mask_path=small)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--axis", "0", "0", "1"], "--axis needs --samples N"),
+    (["--samples", "10", "--axis", "0", "0", "0"], "--axis must be a non-zero finite direction"),
+])
+def test_axis_option_is_checked(argv: list[str], message: str, capsys) -> None:  # noqa: ANN001
+    assert main(["pose", "--demo", *argv]) == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_axis_option_names_the_turn_the_modes_report(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    """`--axis` replaces the demo's own axis: each mode line's turn is about the given one."""
+    import re
+
+    from certpose.sampling import PoseDistribution
+    from certpose.sampling.plots import axis_angles
+
+    out, js = tmp_path / "p.npz", tmp_path / "p.json"
+    assert main(["pose", "--demo", "--samples", "300", "--axis", "1", "0", "0",
+                 "--particles", str(out), "--json", str(js)]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("  mode 0: "))
+    turn = float(re.search(r"\(([-+][\d.]+) about the axis\) from the returned pose", line).group(1))
+    T = np.asarray(json.loads(js.read_text())["T_camera_object"])
+    mode = PoseDistribution.load(out).modes()[0]
+    assert turn == pytest.approx(np.degrees(axis_angles(mode.rotation[None], (1, 0, 0), T)[0]), abs=0.06)
+    assert turn != pytest.approx(np.degrees(axis_angles(mode.rotation[None], (0, 0, 1), T)[0]), abs=0.5)

@@ -115,6 +115,10 @@ def add_parser(subparsers: Any) -> None:
     smp.add_argument("--plot", metavar="OUT.png", default=None,
                      help="plot the marginals (roll, pitch, yaw, x, y, z and, for a mug, the "
                           "rotation about its axis; the ground truth when known)")
+    smp.add_argument("--axis", type=float, nargs=3, metavar=("AX", "AY", "AZ"), default=None,
+                     help="the object's symmetry axis (object frame) for each mode's turn and the "
+                          "plot's turn-about-axis panel (default: the demo mug's, YCB-Video's "
+                          "known ones; none for --rgbd)")
     smp.add_argument("--method", choices=("is", "de", "mcmc", "calibrated"), default="is",
                      help="is: the importance sampler (default); de: Nevergrad TwoPointsDE with "
                           "its population weighted (the paper's sampler); mcmc: random-walk "
@@ -223,6 +227,11 @@ def run(args: argparse.Namespace) -> int:
         _check_plot_format(args.plot)
     if args.method != "is" and args.samples == 0:
         raise CLIError("--method needs --samples N")
+    if args.axis is not None:
+        if args.samples == 0:
+            raise CLIError("--axis needs --samples N (it names the turn the modes and the plot show)")
+        if not (all(math.isfinite(v) for v in args.axis) and any(v != 0 for v in args.axis)):
+            raise CLIError(f"--axis must be a non-zero finite direction, got {args.axis}")
     if not (math.isfinite(args.voxel_size) and args.voxel_size > 0):
         raise CLIError(f"--voxel-size must be positive, got {args.voxel_size}")
     boxed = args.classifier == "best-buddies"
@@ -494,7 +503,8 @@ def _print_distribution(result: object, args: argparse.Namespace) -> None:
              else "built") + f" in {info['seconds']:.2f} s; {info['message']}")
     from certpose.estimation.pipeline import YCBV_SYMMETRY_AXES
 
-    axis = (0.0, 0.0, 1.0) if args.demo else YCBV_SYMMETRY_AXES.get(args.object)
+    axis = (tuple(args.axis) if args.axis is not None else (0.0, 0.0, 1.0) if args.demo
+            else None if getattr(args, "rgbd", None) else YCBV_SYMMETRY_AXES.get(args.object))
     for j, m in enumerate(dist.modes()[:5]):
         say(args, f"  mode {j}: mass {m.mass:.3f} ({m.num_particles} particles), "
               f"{_mode_rotation(m.rotation, result, axis)}, translation "
