@@ -189,11 +189,12 @@ def run(args: argparse.Namespace) -> int:
         if args.classifier == "best-buddies" and (args.box is None or args.mask is not None):
             raise CLIError("--classifier best-buddies with --rgbd needs --box X0 Y0 X1 Y1 "
                            "(and no --mask)")
-        for opt in ("model", "object_model", "mask", *(() if args.rgbd[0] == "-" else ("rgbd",))):
-            paths = getattr(args, opt)
-            for path in ([paths] if isinstance(paths, str) or paths is None else paths):
-                if path is not None and path != "-" and not Path(path).is_file():
-                    raise CLIError(f"--{opt.replace('_', '-')} {path} does not exist")
+        for opt, path in [("model", args.model), ("object-model", args.object_model),
+                          ("mask", args.mask), ("rgbd", args.rgbd[0]), ("rgbd", args.rgbd[1])]:
+            if path is not None and path != "-" and not Path(path).is_file():
+                raise CLIError(f"--{opt} {path} does not exist")
+        if args.rgbd[1] == "-":
+            raise CLIError("--rgbd: the depth image is needed ('-' stands for no colour image only)")
         if args.depth_scale is not None and not (math.isfinite(args.depth_scale)
                                                  and args.depth_scale > 0):
             raise CLIError(f"--depth-scale must be positive, got {args.depth_scale}")
@@ -324,8 +325,11 @@ def _run_rgbd(args: argparse.Namespace, params: Any) -> int:
     name = (args.object[0] if args.object else
             built.model.name if built is not None and built.model.name else None)
     boxed = args.classifier == "best-buddies"
-    title = (f"{name or 'the object of ' + str(args.model or args.object_model)} in {depth}" + (", best buddies in the box given (no mask)" if boxed else "")
-             + (f" (appearance model from {', '.join(built.views) or 'unnamed views'})" if built else ""))
+    title = f"{name or 'the object of ' + str(args.model or args.object_model)} in {depth}"
+    if boxed:
+        title += ", best buddies in the box given (no mask)"
+    if built is not None:
+        title += f" (appearance model from {', '.join(built.views) or 'unnamed views'})"
     with busy(args, "certpose pose"):
         result = run_rgbd(None if color == "-" else color, depth, args.intrinsics,
                           model_path=args.model, object_model=built,

@@ -792,7 +792,6 @@ def run_ycbv(
     return result
 
 
-
 def run_rgbd(
     color_path: str | Path | None,
     depth_path: str | Path,
@@ -870,7 +869,7 @@ def run_rgbd(
     if k.shape != (4,) or not np.all(np.isfinite(k)):
         raise ValueError(f"Expected `intrinsics` to be (fx, fy, cx, cy), got {np.asarray(intrinsics).tolist()}.")
     t = time.perf_counter()
-    depth_raw = read_image(depth_path, "depth")
+    depth_raw = read_image(depth_path, "depth")  # its size sets the intrinsics' image size
     if depth_raw.ndim != 2:
         raise ValueError(f"Expected the depth image {depth_path} to have one channel, got shape "
                          f"{depth_raw.shape}.")
@@ -890,12 +889,12 @@ def run_rgbd(
     else:
         roi, classifier = box_mask(box, frame.shape, margin=params.classifier.box_margin), "best_buddies"
     if object_model is not None:
+        from certpose.geometry.appearance import AppearanceBackbone
+
         if not math.isclose(object_model.voxel_size, params.voxel_size, rel_tol=1e-6):
             log.warning("object model voxel size %g m differs from the scene's %g m",
                         object_model.voxel_size, params.voxel_size)
         backbone = object_model.backbone
-        from certpose.geometry.appearance import AppearanceBackbone
-
         if isinstance(backbone, AppearanceBackbone) and frame.color is None:
             raise ValueError("The object model has appearance: it needs the color image.")
     else:
