@@ -17,7 +17,9 @@ s, 8 runs over 2 s; the previous day's tree (1c51227, the Laplace fits not count
 s, max 2.22 s, ESS 563 on the demo at seed 4.
 ``ISParams.sweep_basins`` (the default since that evening) adds 0.14 s to the demo's runs
 (median, paired; 1.35 -> 1.53 s at load 1.3-1.7) and leaves YCB-Video's bit for bit; demo seeds
-0-19: least ESS 1,465 -> 3,241, largest Pareto k 0.77 -> 0.68 (the ``k`` column).
+0-19: least ESS 1,465 -> 3,241, largest Pareto k 0.77 -> 0.68 (the ``k`` column). With it,
+quiet (load 1.4, seeds 0-4, the same cached seeds): ESS >= 1,000 in 30/30 (least 1,671), sampling
+median 1.31 s, max 1.59 s.
 
 The arc's option set (``LikelihoodParams.field_blur``) as the target, with the Voronoi-area models
 (2026-11-26, seeds 0-4, frames 1-2): ESS >= 1000 in 8/10 (least 439, 0000/000002 seed 0, where the
