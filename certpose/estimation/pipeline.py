@@ -854,7 +854,7 @@ def run_rgbd(
         numbers (focal lengths); images of different sizes; an empty mask; a malformed box.
     """
     from certpose.geometry.features import FPFHBackbone
-    from certpose.geometry.rgbd import CameraIntrinsics, load_rgbd, read_image
+    from certpose.geometry.rgbd import CameraIntrinsics, load_rgbd, read_image, read_mask
     from certpose.io.cache import object_from_points_cached
     from certpose.io.ycbv import load_model_points
     from certpose.model.classifier import box_mask
@@ -877,13 +877,7 @@ def run_rgbd(
     cam = CameraIntrinsics(float(k[0]), float(k[1]), float(k[2]), float(k[3]), width, height)
     frame = load_rgbd(color_path, depth_path, cam, depth_scale=depth_scale)  # checks the sizes
     if mask_path is not None:
-        raw = read_image(mask_path, "mask")
-        if raw.shape[:2] != (height, width):
-            raise ValueError(f"The mask {mask_path} is {raw.shape[1]}x{raw.shape[0]} pixels, the "
-                             f"depth image {width}x{height}.")
-        mask = (raw if raw.ndim == 2 else raw[..., :3].max(axis=2)) != 0
-        if not mask.any():
-            raise ValueError(f"The mask {mask_path} has no object pixel (all zero).")
+        mask = read_mask(mask_path, (height, width))
         roi, classifier = mask, "mask"
         frame = frame.with_mask(mask)
     else:

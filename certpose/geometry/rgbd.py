@@ -29,6 +29,7 @@ __all__ = [
     "backproject",
     "load_rgbd",
     "read_image",
+    "read_mask",
     "check_mask",
     "normalize_rows",
     "check_descriptors",
@@ -461,6 +462,32 @@ def load_rgbd(
 #: PNG modes that Pillow decodes to the very array imageio returns (imageio converts the others:
 #: palettes to colours, 32-bit "I" to 16 bits).
 _PLAIN_PNG_MODES = frozenset({"L", "LA", "RGB", "RGBA", "I;16"})
+
+
+def read_mask(path: str | Path, shape: tuple[int, int]) -> NDArray[np.bool_]:
+    """Read an object mask image: non-zero pixels (any channel) are the object's.
+
+    Parameters
+    ----------
+    path : path
+    shape : (H, W)
+        The frame's image size, which the mask must have.
+
+    Raises
+    ------
+    FileNotFoundError, OSError
+        A missing or unreadable file.
+    ValueError
+        Another size, or no object pixel.
+    """
+    raw = read_image(path, "mask")
+    if raw.shape[:2] != tuple(shape):
+        raise ValueError(f"The mask {path} is {raw.shape[1]}x{raw.shape[0]} pixels, the depth image "
+                         f"{shape[1]}x{shape[0]}.")
+    mask = (raw if raw.ndim == 2 else raw[..., :3].max(axis=2)) != 0
+    if not mask.any():
+        raise ValueError(f"The mask {path} has no object pixel (all zero).")
+    return mask
 
 
 def read_image(path: str | Path, what: str = "image") -> NDArray[Any]:

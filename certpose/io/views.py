@@ -67,7 +67,7 @@ def load_posed_views(path: str | os.PathLike[str]) -> list[Any]:
         is not a rigid transform, images of different sizes, an empty mask.
     """
     from certpose.geometry.appearance import PosedView
-    from certpose.geometry.rgbd import CameraIntrinsics, load_rgbd, read_image
+    from certpose.geometry.rgbd import CameraIntrinsics, load_rgbd, read_image, read_mask
     from solvers.lie import make_transform, project_to_so3
     from solvers.validation import check_transform
 
@@ -106,12 +106,9 @@ def load_posed_views(path: str | os.PathLike[str]) -> list[Any]:
             raise _fail(path, f"{where}the depth image {depth} has shape {raw.shape}, not one channel")
         height, width = raw.shape
         frame = load_rgbd(color, depth, CameraIntrinsics(*k, width, height), depth_scale=float(scale))
-        m = read_image(mask_path, "mask")
-        if m.shape[:2] != (height, width):
-            raise _fail(path, f"{where}the mask {mask_path} is {m.shape[1]}x{m.shape[0]} pixels, "
-                              f"the depth image {width}x{height}")
-        mask = (m if m.ndim == 2 else m[..., :3].max(axis=2)) != 0
-        if not mask.any():
-            raise _fail(path, f"{where}the mask {mask_path} has no object pixel")
+        try:
+            mask = read_mask(mask_path, (height, width))
+        except ValueError as exc:
+            raise _fail(path, f"{where}{str(exc).rstrip('.')}") from exc
         views.append(PosedView(frame, mask, T, name=str(v.get("name", color.stem))))
     return views
