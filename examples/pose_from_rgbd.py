@@ -6,12 +6,16 @@ Usage::
     python examples/pose_from_rgbd.py --ycbv ../shared/data/ycbv --frame 0000/000001 --object 025_mug
     python examples/pose_from_rgbd.py --ycbv ../shared/data/ycbv --frame 0049/000001 \
         --object 010_potted_meat_can --box-only --views 0002/000001 0002/000010
+    python examples/pose_from_rgbd.py --files color.png depth.png --intrinsics 615 615 320 240 \
+        --depth-scale 1000 --mask mask.png --model mug.ply     # any camera's frame
 
 The YCB-Video path uses the frame's ground-truth mask as the classifier and the object's
 ``points.xyz`` as the model; it reports the errors against the frame's ground truth. With
 ``--box-only`` no mask is used: the object's 2-D box (``box.txt``, what a detector gives) is the
 region of interest and ``p_O`` comes from best buddies; ``--views`` builds the object model with
-appearance from posed views of another scene (never of the scene evaluated).
+appearance from posed views of another scene (never of the scene evaluated). ``--files`` poses an
+object in a frame of any camera: colour and depth images, pinhole intrinsics, the depth units per
+metre, the object's mask and its model points (``run_rgbd``; no ground truth, so no errors).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import sys
 
 import numpy as np
 
-from certpose.estimation.pipeline import build_ycbv_object_model, run_demo, run_ycbv
+from certpose.estimation.pipeline import build_ycbv_object_model, run_demo, run_rgbd, run_ycbv
 
 
 def main() -> int:
@@ -33,10 +37,21 @@ def main() -> int:
                         help="no mask: best buddies inside the object's box from box.txt")
     parser.add_argument("--views", nargs="+", default=None, metavar="SCENE/FRAME",
                         help="build an appearance model from these posed views (another scene)")
+    parser.add_argument("--files", nargs=2, metavar=("COLOR", "DEPTH"), default=None,
+                        help="a frame of any camera (with --intrinsics, --mask, --model)")
+    parser.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"))
+    parser.add_argument("--depth-scale", type=float, default=1000.0, help="depth units per metre")
+    parser.add_argument("--mask", help="the object's mask image (non-zero: object)")
+    parser.add_argument("--model", help="the object's model points, metres")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
 
-    if args.ycbv:
+    if args.files:
+        if args.intrinsics is None or args.mask is None or args.model is None:
+            parser.error("--files needs --intrinsics, --mask and --model")
+        res = run_rgbd(*args.files, args.intrinsics, depth_scale=args.depth_scale,
+                       mask_path=args.mask, model_path=args.model, rng=args.seed)
+    elif args.ycbv:
         model = None
         if args.views:
             if any(v.split("/")[0] == args.frame.split("/")[0] for v in args.views):

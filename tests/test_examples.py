@@ -73,6 +73,35 @@ def test_pose_from_rgbd_real_frame() -> None:
 
 
 @pytest.mark.slow
+def test_pose_from_rgbd_files_of_any_camera(tmp_path: Path) -> None:
+    """The `--files` path (run_rgbd) on a YCB-Video frame given as plain files: the pose of the
+    `--ycbv` path, printed without errors (no ground truth)."""
+    import re
+
+    from PIL import Image
+
+    from certpose.io.ycbv import load_ycbv_frame
+
+    require_data("ycbv", "0000")
+    yf = load_ycbv_frame(YCBV, "0000/000001")
+    mask = tmp_path / "mask.png"
+    Image.fromarray(yf.object_mask("025_mug").astype(np.uint8) * 255).save(mask)
+    k = yf.frame.intrinsics
+    files = _run("pose_from_rgbd.py", "--files", str(YCBV / "0000/000001-color.png"),
+                 str(YCBV / "0000/000001-depth.png"), "--intrinsics", *map(repr, (k.fx, k.fy, k.cx, k.cy)),
+                 "--depth-scale", "10000", "--mask", str(mask),
+                 "--model", str(YCBV / "models/025_mug/points.xyz"))
+    ycbv = _run("pose_from_rgbd.py", "--ycbv", str(YCBV), "--frame", "0000/000001", "--object", "025_mug")
+    assert files.returncode == 0 and ycbv.returncode == 0, files.stdout + files.stderr
+
+    def pose(text: str) -> str:
+        return re.search(r"T_camera_object =\n(.*?)\neq\. \(1\)", text, re.S).group(1)
+
+    assert pose(files.stdout) == pose(ycbv.stdout)
+    assert "errors against ground truth" not in files.stdout
+
+
+@pytest.mark.slow
 def test_pose_from_rgbd_box_only_with_views_of_another_scene() -> None:
     import re
 
