@@ -102,6 +102,12 @@ def test_rgbd_refuses_incomplete_or_contradictory_input(tmp_path: Path, capsys) 
         assert message in capsys.readouterr().err, argv
 
 
+def mask_ok(tmp_path: Path) -> Path:
+    path = tmp_path / "mask_ok.png"
+    Image.fromarray(np.ones((30, 40), np.uint8)).save(path)
+    return path
+
+
 def test_run_rgbd_checks_image_sizes_and_the_mask(tmp_path: Path) -> None:
     color, depth = _tiny_frame(tmp_path)
     pts = tmp_path / "model.xyz"
@@ -125,6 +131,15 @@ def test_run_rgbd_checks_image_sizes_and_the_mask(tmp_path: Path) -> None:
         run_rgbd(color, depth, k, mask_path=empty)
     with pytest.raises(ValueError, match="exactly one of `mask_path`"):
         run_rgbd(color, depth, k, model_path=pts)
+    # Depth in coarser units than the scale says (e.g. metres read as millimetres): refused,
+    # not posed at a millimetre from the camera.
+    coarse = tmp_path / "coarse.png"
+    Image.fromarray(np.full((30, 40), 1, np.uint16)).save(coarse)
+    with pytest.raises(ValueError, match=r"median depth of 1 mm: are its values metres already"):
+        run_rgbd(color, coarse, k, model_path=pts, mask_path=mask_ok(tmp_path))
+    Image.fromarray(np.zeros((30, 40), np.uint16)).save(coarse)
+    with pytest.raises(ValueError, match="no valid"):
+        run_rgbd(color, coarse, k, model_path=pts, mask_path=mask_ok(tmp_path))
     with pytest.raises(ValueError, match="fx"):
         run_rgbd(color, depth, (-500.0, 500.0, 20.0, 15.0), model_path=pts, mask_path=small)
 

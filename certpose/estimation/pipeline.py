@@ -851,7 +851,8 @@ def run_rgbd(
         Missing or unreadable files.
     ValueError
         Both or neither of a model and of a mask/box; intrinsics not four positive finite
-        numbers (focal lengths); images of different sizes; an empty mask; a malformed box.
+        numbers (focal lengths); images of different sizes; an empty mask; a malformed box; a
+        depth image without valid depth, or whose median depth is under 2 cm (a wrong scale).
     """
     from certpose.geometry.features import FPFHBackbone
     from certpose.geometry.rgbd import CameraIntrinsics, load_rgbd, read_image, read_mask
@@ -876,6 +877,14 @@ def run_rgbd(
     height, width = depth_raw.shape
     cam = CameraIntrinsics(float(k[0]), float(k[1]), float(k[2]), float(k[3]), width, height)
     frame = load_rgbd(color_path, depth_path, cam, depth_scale=depth_scale)  # checks the sizes
+    valid = frame.depth[frame.depth > 0]
+    if valid.size == 0:
+        raise ValueError(f"The depth image {depth_path} has no valid (positive) depth.")
+    if float(np.median(valid)) < 0.02:  # closer than any depth camera sees: the scale is wrong
+        raise ValueError(
+            f"The depth image {depth_path} divided by depth_scale={depth_scale:g} has a median "
+            f"depth of {1000 * float(np.median(valid)):.3g} mm: are its values metres already "
+            "(depth_scale=1)?")
     if mask_path is not None:
         mask = read_mask(mask_path, (height, width))
         roi, classifier = mask, "mask"
