@@ -132,12 +132,10 @@ def _ycbv(root: Path, frame: str, seed: int, cache: Path | None, lparams=None,  
 
 
 def main() -> None:
+    from bench_samplers import add_scene_args
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ycbv", type=Path,
-                    default=Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv")
-    ap.add_argument("--frames", nargs="+", default=["000001", "000002", "000003", "000004", "000005"])
-    ap.add_argument("--no-ycbv", action="store_true")
-    ap.add_argument("--no-demo", action="store_true")
+    add_scene_args(ap)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--cache", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)

@@ -447,12 +447,21 @@ def run_scene(name: str, lik, seeds: np.ndarray, T_gt: np.ndarray, arc, centre: 
     return rows
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_scene_args(ap: argparse.ArgumentParser, *, demo: bool = True) -> None:
+    """The scenes of the mug benchmarks (this one, bench_is_seeds, bench_target_arc): the
+    YCB-Video folder and scene 0000's frames, and the switches that leave the demo or YCB-Video
+    out."""
     ap.add_argument("--ycbv", type=Path,
                     default=Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv")
     ap.add_argument("--frames", nargs="+", default=["000001", "000002", "000003", "000004", "000005"])
     ap.add_argument("--no-ycbv", action="store_true", help="the demo scene only")
+    if demo:
+        ap.add_argument("--no-demo", action="store_true", help="YCB-Video only")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_scene_args(ap, demo=False)
     ap.add_argument("--seeds", nargs="+", type=int, default=None,
                     help="seeds of the MLE and the samplers (each scene is run once per seed); "
                          "the summary counts wins over every scene and seed")

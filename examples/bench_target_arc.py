@@ -65,7 +65,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_samplers import AXIS, demo_problem, support_normal, ycbv_mug  # noqa: E402
+from bench_samplers import AXIS, add_scene_args, demo_problem, support_normal, ycbv_mug  # noqa: E402
 
 
 def arc_figures(m, arc, up: np.ndarray | None = None) -> dict:  # noqa: ANN001
@@ -88,11 +88,7 @@ def arc_figures(m, arc, up: np.ndarray | None = None) -> dict:  # noqa: ANN001
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ycbv", type=Path,
-                    default=Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv")
-    ap.add_argument("--frames", nargs="+", default=["000001", "000002", "000003", "000004", "000005"])
-    ap.add_argument("--no-demo", action="store_true")
-    ap.add_argument("--no-ycbv", action="store_true")
+    add_scene_args(ap)
     ap.add_argument("--seed", type=int, default=0, help="the demo's scene and every reference's draws")
     ap.add_argument("--draws", type=int, default=60_000, help="importance draws per reference")
     ap.add_argument("--likelihood", nargs="+", default=[], metavar="NAME=VALUE",
