@@ -855,7 +855,7 @@ def run_rgbd(
         depth image without valid depth, or whose median depth is under 2 cm (a wrong scale).
     """
     from certpose.geometry.features import FPFHBackbone
-    from certpose.geometry.rgbd import CameraIntrinsics, load_rgbd, read_image, read_mask
+    from certpose.geometry.rgbd import load_rgbd, read_mask
     from certpose.io.cache import object_from_points_cached
     from certpose.io.ycbv import load_model_points
     from certpose.model.classifier import box_mask
@@ -866,17 +866,10 @@ def run_rgbd(
     if (mask_path is None) == (box is None):
         raise ValueError("Give exactly one of `mask_path` (the object's segmentation) and `box` "
                          "(its 2-D box, for best buddies).")
-    k = np.asarray(intrinsics, dtype=np.float64).reshape(-1)
-    if k.shape != (4,) or not np.all(np.isfinite(k)):
-        raise ValueError(f"Expected `intrinsics` to be (fx, fy, cx, cy), got {np.asarray(intrinsics).tolist()}.")
     t = time.perf_counter()
-    depth_raw = read_image(depth_path, "depth")  # its size sets the intrinsics' image size
-    if depth_raw.ndim != 2:
-        raise ValueError(f"Expected the depth image {depth_path} to have one channel, got shape "
-                         f"{depth_raw.shape}.")
-    height, width = depth_raw.shape
-    cam = CameraIntrinsics(float(k[0]), float(k[1]), float(k[2]), float(k[3]), width, height)
-    frame = load_rgbd(color_path, depth_path, cam, depth_scale=depth_scale)  # checks the sizes
+    # (fx, fy, cx, cy): the image size is the depth image's; load_rgbd checks the colour's.
+    frame = load_rgbd(color_path, depth_path, intrinsics, depth_scale=depth_scale)
+    height, width = frame.depth.shape
     valid = frame.depth[frame.depth > 0]
     if valid.size == 0:
         raise ValueError(f"The depth image {depth_path} has no valid (positive) depth.")

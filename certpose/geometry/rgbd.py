@@ -419,7 +419,7 @@ class RGBDFrame:
 def load_rgbd(
     color_path: str | Path | None,
     depth_path: str | Path,
-    intrinsics: CameraIntrinsics,
+    intrinsics: CameraIntrinsics | ArrayLike,
     *,
     depth_scale: float = 1000.0,
     T_world_camera: ArrayLike | None = None,
@@ -433,7 +433,8 @@ def load_rgbd(
         8-bit RGB image (an alpha channel is dropped, grey is replicated).
     depth_path : path
         Single-channel depth image; metres = value / ``depth_scale``.
-    intrinsics : CameraIntrinsics
+    intrinsics : CameraIntrinsics or (4,) array_like
+        Or ``(fx, fy, cx, cy)`` in pixels, the image size then the depth image's.
     depth_scale : float, optional
         Raw depth units per metre (1000 for millimetre PNGs; YCB-Video uses 10000).
     T_world_camera : array_like, shape (4, 4), optional
@@ -444,6 +445,12 @@ def load_rgbd(
     raw = read_image(depth_path, "depth")
     if raw.ndim != 2:
         raise ValueError(f"Expected the depth image {depth_path} to have one channel, got shape {raw.shape}.")
+    if not isinstance(intrinsics, CameraIntrinsics):
+        k = np.asarray(intrinsics, dtype=np.float64).reshape(-1)
+        if k.shape != (4,):
+            raise ValueError(f"Expected `intrinsics` to be (fx, fy, cx, cy), got "
+                             f"{np.asarray(intrinsics).tolist()}.")
+        intrinsics = CameraIntrinsics(*(float(v) for v in k), raw.shape[1], raw.shape[0])
     color = None
     if color_path is not None:
         color = read_image(color_path, "color")

@@ -67,7 +67,7 @@ def load_posed_views(path: str | os.PathLike[str]) -> list[Any]:
         is not a rigid transform, images of different sizes, an empty mask.
     """
     from certpose.geometry.appearance import PosedView
-    from certpose.geometry.rgbd import CameraIntrinsics, load_rgbd, read_image, read_mask
+    from certpose.geometry.rgbd import load_rgbd, read_mask
     from solvers.lie import make_transform, project_to_so3
     from solvers.validation import check_transform
 
@@ -101,11 +101,11 @@ def load_posed_views(path: str | os.PathLike[str]) -> list[Any]:
             raise _fail(path, f"{where}{exc}") from exc
         T = make_transform(project_to_so3(T[:3, :3]), T[:3, 3])
         color, depth, mask_path = (base / str(v[key]) for key in ("color", "depth", "mask"))
-        raw = read_image(depth, "depth")
-        if raw.ndim != 2:
-            raise _fail(path, f"{where}the depth image {depth} has shape {raw.shape}, not one channel")
-        height, width = raw.shape
-        frame = load_rgbd(color, depth, CameraIntrinsics(*k, width, height), depth_scale=float(scale))
+        try:  # the image size is the depth image's
+            frame = load_rgbd(color, depth, k, depth_scale=float(scale))
+        except ValueError as exc:
+            raise _fail(path, f"{where}{str(exc).rstrip('.')}") from exc
+        height, width = frame.depth.shape
         try:
             mask = read_mask(mask_path, (height, width))
         except ValueError as exc:

@@ -469,6 +469,20 @@ def _clique_number_best_gap(pn: WeightedTLSProblem, R: NDArray[np.float64],
     return undiluted_gap(pn.cost(R, t), best, _outlier_cost(pn, R, t)), k
 
 
+def _shared_source(pn: WeightedTLSProblem) -> tuple[Any, str]:
+    """The bound of correspondences sharing a source point (eq. (2)'s candidates per model
+    point; :mod:`solvers.certify.groups`), sound whatever the cliques give, and the message's
+    clause naming it ("" when it is 0, as for one-to-one correspondences)."""
+    from solvers.certify.groups import shared_source_bound
+
+    shared = shared_source_bound(pn)
+    note = (f"; bounded by the correspondences of each source point placed independently "
+            f"({shared.groups} source points with several"
+            + (f", {shared.pairs} pairs of them kept at their distance" if shared.pairs else "")
+            + "; the rest of the rigid motion left out)" if shared.lower > 0 else "")
+    return shared, note
+
+
 def _clique_bound(
     pn: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.float64], *, tol: float,
     max_iter: int | None, time_limit: float | None, eps: float, skip_futile: bool = False,
@@ -485,24 +499,17 @@ def _clique_bound(
         clique_number_bound,
         clique_optimum,
     )
-    from solvers.certify.groups import shared_source_bound
 
     t0 = time.perf_counter()
     budget = DEFAULT_DUAL_TIME_LIMIT if time_limit is None else time_limit
     u = pn.cost(R, t)
-    # Correspondences sharing a source point (eq. (2)'s candidates per model point): a bound
-    # that holds whatever the cliques give, in milliseconds; 0 for one-to-one correspondences.
-    shared = shared_source_bound(pn)
-    shared_note = (f"; bounded by the correspondences of each source point placed independently "
-                   f"({shared.groups} source points with several"
-                   + (f", {shared.pairs} pairs of them kept at their distance" if shared.pairs else "")
-                   + "; the rest of the rigid motion left out)" if shared.lower > 0 else "")
     # The listing's share of the time limit becomes a node budget (it cannot read the clock).
     cliques, complete = candidate_cliques(
         pn, u, limit=MAX_CLIQUES, max_nodes=int(budget * LISTING_SHARE * LISTING_NODES_PER_SECOND))
     if not complete:
         # Dense graphs (real features): too many maximal cliques to bound one by one. The
         # clique number still bounds every pose's inlier count: a weak but sound bound.
+        shared, shared_note = _shared_source(pn)
         if skip_futile:
             best_gap, k = _clique_number_best_gap(pn, R, t)
             if best_gap > tol:
@@ -594,9 +601,12 @@ def _clique_bound(
             if b.status is CertificateStatus.ITERATION_LIMIT:
                 stopped = True
         lower = min(lower, lb_sub + out_cost)
-    if shared.lower > lower:
-        methods.add("shared-source bound")
-    lower = min(max(lower, shared.lower), u)  # the bound never exceeds a pose's cost
+    if undiluted_gap(u, lower, _outlier_cost(pn, R, t)) > tol:  # the cliques leave a gap
+        shared, _ = _shared_source(pn)
+        if shared.lower > lower:
+            methods.add("shared-source bound")
+            lower = shared.lower
+    lower = min(lower, u)  # the bound never exceeds a pose's cost
     rot, trans = (best_R, best_t) if best_R is not None else (None, None)
     return _Bound(
         lower=float(lower), accepted=True,
