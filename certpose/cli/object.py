@@ -125,11 +125,12 @@ def run_build(args: argparse.Namespace) -> int:
     built.save(out)
     n, seen = len(built.model), int(built.observed.sum())
     say(args, f"object model {name}: {n} points, {seen} seen by {len(built.views)} "
-              f"view(s) ({100.0 * seen / n:.0f}%), the other {n - seen} carry no appearance "
-              "information")
+              f"view(s) ({100.0 * built.seen_fraction:.0f}% of its surface), the other {n - seen} "
+              "carry no appearance information")
     say(args, f"built from scene(s) {', '.join(built.scenes)}: do not evaluate it on them")
     say(args, f"wrote {out}")
     emit_json(args, {"object": name, "output": str(out), "points": n, "observed": seen,
+                     "seen_fraction": built.seen_fraction,
                      "views": list(built.views), "scenes": list(built.scenes),
                      "voxel_size": args.voxel_size, "color_weight": backbone.color_weight,
                      "similarity_scale": backbone.similarity_scale})

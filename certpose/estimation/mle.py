@@ -432,6 +432,10 @@ class MLEStatus(str, Enum):
     """The classifier marked fewer than :data:`LITTLE_EVIDENCE` voxels per model point as the
     object: the search ran and its pose is returned, but it rests on too little to trust (a
     5-pixel box: 2 voxels for 2,288 points, a pose 43 cm off)."""
+    UNEXPLAINED = "unexplained"
+    """The returned pose leaves most of the classifier's evidence unexplained: fewer than
+    :data:`EXPLAINED` of the positive voxels lie within :data:`EXPLAIN_DISTANCE` of the posed
+    model (:func:`explained_fraction`). The pose is returned, not trusted."""
 
     @property
     def success(self) -> bool:
@@ -1107,6 +1111,36 @@ def _modes(search: _Search, best: Hypothesis, object_model: ObjectModel) -> tupl
 LITTLE_EVIDENCE = 0.02
 
 
+#: Metres: a positive voxel within this of a posed model point is explained by the pose.
+EXPLAIN_DISTANCE = 0.015
+
+#: Least share of the positive voxels a pose must explain to be reported as converged.
+EXPLAINED = 0.5
+
+
+def explained_fraction(classification: ObjectClassification, object_model: ObjectModel,
+                       T_scene_object: ArrayLike, grid: Any, *,
+                       distance: float = EXPLAIN_DISTANCE) -> float:
+    """Share of the classifier's positive voxels that lie within ``distance`` metres of the
+    object model's points posed by ``T_scene_object`` (4, 4); 1 without positives. ``grid``: the
+    scene's :class:`~certpose.model.grid.GridSpec`.
+
+    A pose that explains under :data:`EXPLAINED` of them is reported as
+    :attr:`MLEStatus.UNEXPLAINED`: the evidence it was asked to explain lies elsewhere (a box
+    whose positives belong to another object as much as to this one, a pose that slid off).
+    """
+    from scipy.spatial import cKDTree
+
+    idx = np.argwhere(classification.positive)
+    if idx.shape[0] == 0:
+        return 1.0
+    centres = grid.centres(idx)
+    T = np.asarray(T_scene_object, dtype=np.float64)
+    posed = object_model.points @ T[:3, :3].T + T[:3, 3]
+    d = cKDTree(posed).query(centres, distance_upper_bound=distance)[0]
+    return float(np.mean(d <= distance))
+
+
 def _little_evidence(classification: ObjectClassification, object_model: ObjectModel) -> str | None:
     """The message (also logged as a warning) when the pose would rest on little evidence."""
     n_pos = int(np.count_nonzero(classification.positive))
@@ -1262,8 +1296,16 @@ def estimate_mle(
                 + " deg from the best)")
     log.info("MLE: %s", msg)
     status = MLEStatus.CONVERGED
+    explained = explained_fraction(classification, object_model, best.pose, grid)
+    msg += f"; the pose explains {100 * explained:.0f}% of the positive voxels"
     if little is not None:
         status, msg = MLEStatus.LITTLE_EVIDENCE, f"{little}; {msg}"
+    elif explained < EXPLAINED:
+        status = MLEStatus.UNEXPLAINED
+        msg = (f"the pose explains only {100 * explained:.0f}% of the classifier's positive voxels "
+               f"(within {100 * EXPLAIN_DISTANCE:g} cm; under {100 * EXPLAINED:.0f}%): the evidence "
+               f"lies elsewhere, do not trust it; {msg}")
+        log.warning("%s", msg.split("; ")[0])
     return MLEResult(best.pose, float(best.score), best.source, eq2_result, eq2_ll,
                      eq2_refined_ll, cert, int(search.n_eval), timings, status, msg,
                      tuple(finals), modes, eq2)

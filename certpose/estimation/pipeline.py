@@ -737,6 +737,7 @@ def run_ycbv(
     """
     from certpose.geometry.features import FPFHBackbone
     from certpose.io.cache import object_from_points_cached
+    from certpose.io.points import read_mesh
     from certpose.io.ycbv import load_model_points, load_ycbv_frame
     from certpose.model.classifier import box_mask
 
@@ -780,7 +781,8 @@ def run_ycbv(
     else:
         obj = object_from_points_cached(model_points, backbone, voxel_size=params.voxel_size,
                                         name=object_name, cache_dir=cache_dir,
-                                        revolution="auto" if params.model_revolution else None)
+                                        revolution="auto" if params.model_revolution else None,
+                                        mesh=read_mesh(model_path, name="model"))
     t_obj = time.perf_counter() - t
     result = estimate_pose(
         scene, obj, classifier=classifier,
@@ -857,6 +859,7 @@ def run_rgbd(
     from certpose.geometry.features import FPFHBackbone
     from certpose.geometry.rgbd import load_rgbd, read_mask
     from certpose.io.cache import object_from_points_cached
+    from certpose.io.points import read_mesh
     from certpose.io.ycbv import load_model_points
     from certpose.model.classifier import box_mask
 
@@ -904,7 +907,8 @@ def run_rgbd(
     obj = (object_model.model if object_model is not None else
            object_from_points_cached(model_points, backbone, voxel_size=params.voxel_size,
                                      name=name or Path(str(model_path)).stem, cache_dir=cache_dir,
-                                     revolution="auto" if params.model_revolution else None))
+                                     revolution="auto" if params.model_revolution else None,
+                                     mesh=read_mesh(model_path, name="model")))
     t_obj = time.perf_counter() - t
     result = estimate_pose(scene, obj, classifier=classifier, frame=frame, params=params, rng=rng,
                            box=box)
@@ -920,7 +924,7 @@ def build_ycbv_object_model(
     *,
     backbone: Any = None,
     voxel_size: float = 0.005,
-    unseen: str = "prior",
+    unseen: str = "shape",
     sampling: str = "voxel",
 ) -> BuiltObjectModel:
     """An object model with appearance from YCB-Video frames (their ground-truth poses and labels).
@@ -938,7 +942,7 @@ def build_ycbv_object_model(
         Default :class:`~certpose.geometry.appearance.AppearanceBackbone`.
     voxel_size : float, optional
         Metres (use the scene's).
-    unseen : {"prior", "palette", "shape", "zero"}, optional
+    unseen : {"shape", "zero", "prior", "palette"}, optional
         See :func:`~certpose.geometry.appearance.object_from_posed_views`.
     sampling : {"voxel", "surface"}, optional
         See :func:`~certpose.geometry.appearance.object_from_posed_views`.

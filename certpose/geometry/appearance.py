@@ -444,6 +444,13 @@ class BuiltObjectModel:
         object.__setattr__(self, "views", tuple(str(v) for v in self.views))
 
     @property
+    def seen_fraction(self) -> float:
+        """Share of the model's surface some view saw: by area when the model has
+        :attr:`~certpose.geometry.objects.ObjectModel.areas`, else by points."""
+        w = self.model.areas if self.model.areas is not None else np.ones(len(self.model))
+        return float(np.sum(w[self.observed]) / np.sum(w))
+
+    @property
     def scenes(self) -> tuple[str, ...]:
         """The scenes of :attr:`views` (the part before ``/``), sorted."""
         return tuple(sorted({v.split("/")[0] for v in self.views if "/" in v}))
@@ -499,7 +506,7 @@ def object_from_posed_views(
     voxel_size: float = 0.005,
     name: str = "",
     depth_tolerance: float = 0.01,
-    unseen: str = "prior",
+    unseen: str = "shape",
     sampling: str = "voxel",
 ) -> BuiltObjectModel:
     """Colour and describe model points from posed RGB-D views.
@@ -522,15 +529,15 @@ def object_from_posed_views(
     name : str, optional
     depth_tolerance : float, optional
         Visibility test, metres.
-    unseen : {"prior", "palette", "shape", "zero"}, optional
-        Descriptor of points no view saw: ``"prior"`` (default: shape block kept, colour block
-        the mean over the seen points: with a linear similarity, the expected match of an
-        unknown patch of the object), ``"palette"`` (colour block the unit colour descriptor of
-        all seen points together: it rewards showing the unseen side more; measured with
-        ``examples/bench_box.py``, it fixed the mustard bottle built from 0002 in 0050 and
-        turned potted-meat frames instead), ``"shape"`` (colour block zero) or ``"zero"`` (no
-        information at all; always so for a backbone other than :class:`AppearanceBackbone`).
-        See the module docstring.
+    unseen : {"shape", "zero", "prior", "palette"}, optional
+        Descriptor of points no view saw. ``"shape"`` (default): the shape block kept, the colour
+        block zero: no appearance information, so eq. (1)'s similarity of such a point is its
+        shape's alone. ``"zero"``: no information at all (always so for a backbone other than
+        :class:`AppearanceBackbone`). ``"prior"`` (colour block the mean over the seen points)
+        and ``"palette"`` (the unit colour descriptor of all seen points together) guess a
+        colour: a cracker box built from views of its front, posed on a frame that shows its
+        back, then scored its 180-degree flip (the seen front turned to where the back is)
+        136 nats above the truth for the descriptor term alone.
     sampling : {"voxel", "surface"}, optional
         How the model points are sampled (see
         :func:`~certpose.geometry.objects.object_from_points`). ``"voxel"`` stays the default

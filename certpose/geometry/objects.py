@@ -22,7 +22,8 @@ from solvers.validation import as_float_array, check_per_item, check_points, res
 if TYPE_CHECKING:
     from certpose.geometry.rgbd import RGBDFrame
 
-__all__ = ["ObjectModel", "fuse_views", "object_from_points", "object_from_views", "sample_surface"]
+__all__ = ["ObjectModel", "fuse_views", "object_from_points", "object_from_views", "sample_mesh",
+           "sample_surface"]
 
 log = logging.getLogger(__name__)
 
@@ -177,8 +178,8 @@ def _oriented_normals(points: NDArray[np.float64], radius: float) -> NDArray[np.
 VORONOI_PARTS = 16
 
 
-def _voronoi_areas(mesh: Any, points: NDArray[np.float64], samples: NDArray[np.float64], sample_area: float,
-                   vs: float) -> NDArray[np.float64]:
+def _voronoi_areas(mesh: Any, points: NDArray[np.float64] | None, samples: NDArray[np.float64],
+                   sample_area: float, vs: float) -> NDArray[np.float64]:
     """The mesh area nearer to each sample than to any other: every triangle cut into ``k**2``
     equal triangles (``k`` the least with parts of at most ``sample_area / VORONOI_PARTS``),
     each part's area given to the sample nearest its centroid; parts farther than ``vs`` from
@@ -206,9 +207,33 @@ def _voronoi_areas(mesh: Any, points: NDArray[np.float64], samples: NDArray[np.f
         centres.append(pts)
         weights.append(np.repeat(tri[sel] / kk**2, len(uv)))
     q, w = np.concatenate(centres), np.concatenate(weights)
-    near = cKDTree(points).query(q, distance_upper_bound=vs)[0] <= vs
+    near = np.ones(q.shape[0], dtype=bool) if points is None else _supported(points, q, vs)
     owner = cKDTree(samples).query(q[near])[1]
     return np.bincount(owner, weights=w[near], minlength=samples.shape[0])
+
+
+#: Neighbours whose distance measures the input's local spacing (:func:`_supported`).
+SUPPORT_NEIGHBOURS = 6
+
+#: A surface point is supported by an input point within this many local spacings of it.
+SUPPORT_SPACINGS = 1.0
+
+
+def _supported(points: NDArray[np.float64], q: NDArray[np.float64], vs: float) -> NDArray[np.bool_]:
+    """Whether each surface point of ``q`` (M, 3) lies on surface the input ``points`` support:
+    within ``max(vs, SUPPORT_SPACINGS * s_j)`` of its nearest input point ``j``, ``s_j`` the
+    distance from ``j`` to its ``SUPPORT_NEIGHBOURS``-th nearest neighbour. A fixed radius
+    (``vs``) cut holes into sparsely sampled faces and kept densely sampled ones whole: the
+    cracker box's two large faces (YCB-Video ``points.xyz``, 172 against 423 input points) came
+    out 200 and 244 cm^2; with the local spacing 2% apart."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(points)
+    k = min(SUPPORT_NEIGHBOURS + 1, points.shape[0])
+    spacing = tree.query(points, k=k)[0][:, -1]
+    radius = np.maximum(vs, SUPPORT_SPACINGS * spacing)
+    d, j = tree.query(q)
+    return d <= radius[j]
 
 
 #: Fewest input points :func:`sample_surface` reconstructs a surface from.
@@ -240,50 +265,29 @@ def sample_surface(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Points spread evenly over the surface the model points sample, with their areas.
 
-    The points get normals oriented consistently over the surface (open3d's tangent-plane
-    propagation), a screened Poisson surface is reconstructed from them (open3d, octree cells
-    of at most ``voxel_size / 4``, one thread so that it is deterministic), and the mesh is
-    sampled by Poisson-disk elimination (open3d, Yuksel 2015) at ``density`` points per
-    ``voxel_size**2`` of its area. Samples farther than ``voxel_size`` from every input point
-    lie on surface the Poisson fit invented (e.g. the bulge it puts past a mug's open rim) and
-    are dropped. With ``area_weights="voronoi"`` (default) every kept sample stands for the
-    part of the mesh nearer to it than to any other sample (its Voronoi cell on the surface:
-    the mesh's triangles cut into parts of at most ``1 / VORONOI_PARTS`` of a sample's area,
-    each given to its nearest sample; parts farther than ``voxel_size`` from every input point
-    left out as above); with ``"equal"`` (the default before 2026-11-26) for the same area,
-    ``mesh area / samples drawn``. Poisson-disk samples are even only on average: their cells vary by
-    18-23% (YCB-Video's mug, cracker box, power drill), and a region of a few hundred samples
-    holds a few percent more or fewer samples than its area (the halves of a synthetic
-    cylinder's band: 3.4-5.4%, with the cells 2.0-2.1%, tests/test_surface_sampling.py); the
-    cells weigh each region by its area.
-    On the mug's hidden-handle arc (``examples/bench_arc.py``, YCB-Video 0000 frames 1-5, 2-deg
-    steps, with ``free_space_at="point"``, ``field_blur=0.0075``, tolerance 3.5 mm, ramp
-    2.5 mm) the body's classifier term varies inside the arc by 1.5-4.8 nats instead of
-    3.8-7.8 over three sampling seeds (0 / 1 / 2), and eq. (1)'s range-to-drop ratio is 0.67 /
-    0.55 / 0.46 instead of 0.90 / 1.06 / 0.61 (with ``descriptor_blur=0.0035`` too: 0.56 /
-    0.46 / 0.40). Eq. (1) costs the same (the same points); building the model 0.02-0.13 s
-    more (0.50 -> 0.53 s the mug, 0.76 -> 0.89 s the cracker box, 0.63 -> 0.69 s the power
-    drill). As the default model (``examples/bench_basins.py``, the 60 YCB-Video pairs,
-    geometry-only models, mask classifier; equal -> Voronoi): returned eq. (1) >= refined
-    truth - 1 nat 60/60 -> 60/60, ADD-S <= 1 cm 60 -> 60 (median 0.29 -> 0.24 cm),
-    non-symmetric rotation <= 10 deg 15 -> 21 of 46 (the mug on 0000 frames 2-5: 64.9 / 133.8
-    / 73.1 / 80.0 -> 9.9 / 4.4 / 5.4 / 10.5 deg; the potted meat can twice from a flip to 3-5
-    deg), flips 20 -> 18; worse: the tomato soup can on 0050/000001, turned about its axis
-    51.6 -> 133.6 deg (ADD-S 0.32 -> 0.25 cm). With it eq. (1) rates the mug's other hiding
-    places (its handle behind the foam brick, or over pixels without depth) closer to the
-    arc, and the importance sampler needed components born at lighter stray draws
-    (``ISParams.birth_weight`` 0.05 -> 0.02, the same change).
+    The surface (:func:`_surface_mesh`): the points' convex hull when the points support it
+    (``CONVEX_SUPPORT`` of its area lies within the input's local spacing of an input point:
+    boxes, cans, bottles), so that opposite faces carry the area the object gives them however
+    unevenly the input was sampled; otherwise a screened Poisson surface (open3d, octree cells
+    of at most ``voxel_size / 4``, one thread so that it is deterministic) of the points with
+    normals oriented consistently over the surface (open3d's tangent-plane propagation). The
+    mesh is sampled by :func:`sample_mesh` at ``density`` points per ``voxel_size**2``; Poisson
+    samples the input does not support (:func:`_supported`: farther from the nearest input
+    point than the larger of ``voxel_size`` and that point's local spacing) lie on surface the
+    fit invented (the bulge past a mug's open rim) and are dropped. On YCB-Video's cracker box,
+    whose two large faces hold 172 and 423 input points, the faces carry 200 and 244 cm^2 with
+    a fixed ``voxel_size`` support radius, 302 and 298 with the local spacing, 328 and 320 as
+    the hull; the sugar box's 104 and 127 become 151 and 148 as the hull.
 
-    Thin walls: nothing is averaged per voxel, so no wall is merged in some places and not in
-    others. A wall sampled on both sides keeps both when the input is denser than the wall is
-    thick (a synthetic 4-mm cup from 20,000 points, 1.5 mm apart: both sides, area within 1%,
-    each side's density even to 15% around the axis). With sparser input the tangent-plane
-    propagation crosses the wall (its sides are parallel) and the sides merge into one rough
-    sheet (the same cup from 9,000 points: a third of the area lost, density following the
-    input's). YCB-Video's mug samples its outer wall only (its points lie within 2 mm of
-    radius 40 mm), so it becomes one even sheet. Orienting by visibility from outside
-    (open3d's hidden point removal from 40 directions) did not fix the sparse cup and made the
-    mug's arc worse (ratio 0.71 / 0.85 on frames 1 / 2 against 0.38 / 0.41); not used.
+    With ``area_weights="voronoi"`` (default) every kept sample stands for the part of the
+    mesh nearer to it than to any other sample (its Voronoi cell on the surface); with
+    ``"equal"`` for ``mesh area / samples drawn``. Poisson-disk samples are even only on
+    average (cells vary by 18-23% on YCB-Video's objects); the cells weigh each region by its
+    area.
+
+    Thin walls: a wall sampled on both sides keeps both when the input is denser than the wall
+    is thick; with sparser input the tangent-plane propagation crosses the wall and the sides
+    merge into one sheet (YCB-Video's mug samples its outer wall only).
 
     Parameters
     ----------
@@ -316,8 +320,6 @@ def sample_surface(
         Bad shapes, NaN or inf, fewer than ``MIN_SURFACE_POINTS`` points, degenerate (e.g.
         collinear) points, or a reconstruction with no surface near the points.
     """
-    import open3d as o3d
-
     pts = check_points(points, "points", min_points=MIN_SURFACE_POINTS)
     vs = _check_voxel_size(voxel_size)
     dens = float(density)
@@ -328,18 +330,104 @@ def sample_surface(
     extent = float(np.ptp(pts, axis=0).max())
     if np.linalg.matrix_rank(pts - pts.mean(axis=0), tol=1e-3 * max(extent, 1e-12)) < 2:
         raise ValueError("`points` are degenerate (coincident or collinear): no surface to sample.")
+    mesh, how = _surface_mesh(pts, vs)
+    return sample_mesh(mesh, voxel_size=vs, density=dens, rng=rng, area_weights=area_weights,
+                       support=None if how == "hull" else pts, _what=f"{how} surface of `points`")
+
+
+#: Share of the input points' convex hull (by area) that must lie on surface the points support
+#: (:func:`_supported`) for :func:`sample_surface` to take the hull as the object's surface.
+#: Measured on YCB-Video's ``points.xyz``: boxes and cans 0.935-1.0, the mustard bottle 0.945;
+#: the mug 0.75, the banana 0.67, the bowl 0.70, the power drill 0.46.
+CONVEX_SUPPORT = 0.93
+
+
+def _surface_mesh(pts: NDArray[np.float64], vs: float) -> tuple[Any, str]:
+    """The surface the points sample, as an open3d mesh, and how it was made: ``"hull"`` (the
+    convex hull, when the points support it: the exact surface of a convex object, whose
+    opposite faces then carry the area the object gives them however unevenly the points were
+    sampled) or ``"poisson"`` (a screened Poisson reconstruction, for other shapes)."""
+    import open3d as o3d
+
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    try:
+        hull, _ = pcd.compute_convex_hull()
+    except RuntimeError:  # Qhull: flat or degenerate input
+        hull = None
+    if hull is not None and len(hull.triangles):
+        o3d.utility.random.seed(0)
+        probe = np.asarray(hull.sample_points_uniformly(4000).points)
+        if float(np.mean(_supported(pts, probe, vs))) >= CONVEX_SUPPORT:
+            hull.orient_triangles()
+            return hull, "hull"
     pcd.normals = o3d.utility.Vector3dVector(_oriented_normals(pts, 3.0 * vs))
+    extent = float(np.ptp(pts, axis=0).max())
     # Octree cells no larger than a quarter voxel over the reconstruction's box (1.1 x extent).
     depth = int(np.clip(math.ceil(math.log2(max(1.1 * extent / (vs / 4.0), 1.0))), 5, 10))
     mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pcd, depth=depth, n_threads=1)
+    return mesh, "poisson"
+
+
+def sample_mesh(
+    mesh: Any,
+    *,
+    voxel_size: float,
+    density: float = 2.0,
+    rng: np.random.Generator | int | None = 0,
+    area_weights: str = "voronoi",
+    support: NDArray[np.float64] | None = None,
+    _what: str = "mesh",
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Points spread evenly over a triangle mesh, with their normals and areas.
+
+    Poisson-disk elimination (open3d, Yuksel 2015) at ``density`` samples per
+    ``voxel_size**2``; each sample stands for its Voronoi cell on the surface
+    (``area_weights="voronoi"``) or an equal share (``"equal"``), see :func:`sample_surface`.
+
+    Parameters
+    ----------
+    mesh : open3d.geometry.TriangleMesh or tuple of ((V, 3), (F, 3)) arrays
+        The surface, metres (vertices and triangles).
+    voxel_size, density, rng, area_weights
+        As :func:`sample_surface`.
+    support : (N, 3) ndarray, optional
+        Input points the mesh was reconstructed from: samples (and Voronoi parts) on surface they
+        do not support (:func:`_supported`) are dropped. None keeps the whole mesh.
+
+    Returns
+    -------
+    points : (M, 3) ndarray
+    normals : (M, 3) ndarray
+        Unit normals, pointing outwards on the whole.
+    areas : (M,) ndarray
+        m^2, summing to the (supported) area.
+    """
+    import open3d as o3d
+
+    vs = _check_voxel_size(voxel_size)
+    dens = float(density)
+    if not (math.isfinite(dens) and dens > 0):
+        raise ValueError(f"`density` must be positive and finite, got {density}.")
+    if area_weights not in ("equal", "voronoi"):
+        raise ValueError(f"`area_weights` must be 'equal' or 'voronoi', got {area_weights!r}.")
+    if isinstance(mesh, tuple):
+        V = as_float_array(mesh[0], "vertices")
+        F = np.asarray(mesh[1])
+        if V.ndim != 2 or V.shape[1] != 3 or not np.all(np.isfinite(V)):
+            raise ValueError(f"Expected finite `vertices` of shape (V, 3), got {V.shape}.")
+        if F.ndim != 2 or F.shape[1] != 3 or F.size == 0 or not np.issubdtype(F.dtype, np.integer) \
+                or F.min() < 0 or F.max() >= V.shape[0]:
+            raise ValueError(f"Expected `triangles` of shape (F, 3) indexing the {V.shape[0]} "
+                             f"vertices, got {F.shape} ({F.dtype}).")
+        mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(F))
     area = float(mesh.get_surface_area()) if len(mesh.triangles) else 0.0
     if not area > 0:
-        raise ValueError("The surface reconstruction of `points` is empty: too few or too scattered points.")
+        raise ValueError(f"The {_what} is empty: too few or too scattered points.")
     n_draw = max(int(math.ceil(dens * area / vs**2)), 1)
     if n_draw > MAX_SURFACE_SAMPLES:  # open3d would try to allocate them all (std::bad_alloc)
+        extent = float(np.ptp(np.asarray(mesh.vertices), axis=0).max())
         raise ValueError(
-            f"The surface of `points` ({area:.4g} m^2, extent {extent:.4g} m) would take "
+            f"The {_what} ({area:.4g} m^2, extent {extent:.4g} m) would take "
             f"{n_draw} samples at voxel_size {vs:g} m and density {dens:g}, more than "
             f"{MAX_SURFACE_SAMPLES}: are the points in metres?")
     gen = resolve_rng(rng)
@@ -349,19 +437,21 @@ def sample_surface(
     samples = mesh.sample_points_poisson_disk(n_draw, pcl=dense)
     sp = np.asarray(samples.points, dtype=np.float64).copy()
     sn = np.asarray(samples.normals, dtype=np.float64).copy()
-    nn = np.asarray(o3d.geometry.PointCloud(samples.points).compute_point_cloud_distance(pcd))
-    keep = nn <= vs
+    keep = np.ones(sp.shape[0], dtype=bool) if support is None else _supported(support, sp, vs)
     if keep.sum() < 3:
-        raise ValueError("The surface reconstruction of `points` lies away from them: no samples kept.")
+        raise ValueError(f"The {_what} lies away from the points: no samples kept.")
     sp, sn = sp[keep], sn[keep]
     sn /= np.linalg.norm(sn, axis=1, keepdims=True)
     if np.sum(sn * (sp - sp.mean(axis=0))) < 0:
         sn = -sn
     areas = np.full(sp.shape[0], area / n_draw)
     if area_weights == "voronoi":
-        areas = _voronoi_areas(mesh, pts, sp, area / n_draw, vs)
-    log.info("surface of %d points: area %.4g m^2 (depth %d), %d of %d samples kept",
-             pts.shape[0], area, depth, sp.shape[0], n_draw)
+        areas = _voronoi_areas(mesh, support, sp, area / n_draw, vs)
+        # A sample no quadrature part is nearest to stands for no surface (long thin triangles,
+        # e.g. a convex hull's, leave a few).
+        kept = areas > 0
+        sp, sn, areas = sp[kept], sn[kept], areas[kept]
+    log.info("%s: area %.4g m^2, %d of %d samples kept", _what, area, sp.shape[0], n_draw)
     return sp, sn, areas
 
 
@@ -401,8 +491,9 @@ def object_from_points(
     rng: np.random.Generator | int | None = 0,
     area_weights: str | None = None,
     revolution: str | None = None,
+    mesh: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> ObjectModel:
-    """Build an object model from model points (e.g. YCB-Video's ``points.xyz``).
+    """Build an object model from model points (e.g. YCB-Video's ``points.xyz``) or a mesh.
 
     Two samplings of the object (``sampling``):
 
@@ -460,6 +551,10 @@ def object_from_points(
         so that eq. (1) hardly changes when the model turns about the axis (the module
         docstring of :mod:`certpose.geometry.revolution` says why and what it measured).
         Samples off that surface (a mug's handle) are kept. None (default): no change.
+    mesh : tuple of (V, 3) and (F, 3) array_like, optional
+        The object's triangle mesh (metres; e.g. :func:`certpose.io.points.read_mesh`): with
+        ``"surface"`` the mesh itself is sampled (:func:`sample_mesh`) instead of a surface
+        reconstructed from ``points`` (which then only serve ``colors``).
 
     Returns
     -------
@@ -475,14 +570,18 @@ def object_from_points(
         raise ValueError("`area_weights` applies to sampling='surface' (voxel points weigh 1 each).")
     if revolution not in (None, "auto"):
         raise ValueError(f"`revolution` must be 'auto' or None, got {revolution!r}.")
-    if sampling == "voxel" and revolution is not None:
-        raise ValueError("`revolution` applies to sampling='surface'.")
+    if sampling == "voxel" and (revolution is not None or mesh is not None):
+        raise ValueError("`revolution` and `mesh` apply to sampling='surface'.")
     pts = check_points(points, "points", min_points=3)
     vs = _check_voxel_size(voxel_size)
     _check_metres(pts, vs)
     if sampling == "surface":
-        p, normals, areas = sample_surface(pts, voxel_size=vs, density=density, rng=rng,
-                                           area_weights=area_weights or "voronoi")
+        if mesh is not None:
+            p, normals, areas = sample_mesh((mesh[0], mesh[1]), voxel_size=vs, density=density, rng=rng,
+                                            area_weights=area_weights or "voronoi")
+        else:
+            p, normals, areas = sample_surface(pts, voxel_size=vs, density=density, rng=rng,
+                                               area_weights=area_weights or "voronoi")
         if revolution == "auto":
             p, normals, areas = _revolution_resample(pts, p, normals, areas, vs / math.sqrt(float(density)))
         cols = None

@@ -67,7 +67,8 @@ def _source_digest() -> bytes:
 
 
 def _key(points: np.ndarray, backbone: Any, voxel_size: float, name: str, rng: int,
-         revolution: str | None = None, colors: np.ndarray | None = None) -> str:
+         revolution: str | None = None, colors: np.ndarray | None = None,
+         mesh: tuple[Any, Any] | None = None) -> str:
     h = hashlib.sha256()
     h.update(_FORMAT.encode())
     h.update(_source_digest())
@@ -81,6 +82,10 @@ def _key(points: np.ndarray, backbone: Any, voxel_size: float, name: str, rng: i
     if colors is not None:  # likewise
         h.update(b"|colors")
         h.update(np.ascontiguousarray(colors, dtype=np.float64).tobytes())
+    if mesh is not None:
+        h.update(b"|mesh")
+        h.update(np.ascontiguousarray(mesh[0], dtype=np.float64).tobytes())
+        h.update(np.ascontiguousarray(mesh[1], dtype=np.int64).tobytes())
     return h.hexdigest()[:32]
 
 
@@ -127,6 +132,7 @@ def object_from_points_cached(
     cache_dir: str | os.PathLike[str] | None = None,
     revolution: str | None = None,
     colors: ArrayLike | None = None,
+    mesh: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> ObjectModel:
     """:func:`~certpose.geometry.objects.object_from_points` (surface sampling), read from
     ``cache_dir`` when built there before with the same inputs and code.
@@ -149,6 +155,9 @@ def object_from_points_cached(
         :func:`~certpose.geometry.objects.object_from_points`' option (part of the key).
     colors : (N, 3) array_like, optional
         RGB in ``[0, 1]`` (part of the key).
+    mesh : tuple of (V, 3) and (F, 3) array_like, optional
+        The object's mesh, sampled instead of a surface reconstructed from ``points`` (part of
+        the key).
 
     Returns
     -------
@@ -164,7 +173,7 @@ def object_from_points_cached(
     path = None
     if cache_dir is not None:
         try:
-            key = _key(pts, backbone, voxel_size, name, int(rng), revolution, cols)
+            key = _key(pts, backbone, voxel_size, name, int(rng), revolution, cols, mesh)
             path = Path(cache_dir) / "objects" / f"{key}.npz"
         except OSError as exc:
             log.debug("object cache off: %s", exc)
@@ -174,7 +183,7 @@ def object_from_points_cached(
             log.info("object model %r read from the cache (%s)", name, path)
             return model
     model = object_from_points(pts, backbone, voxel_size=voxel_size, name=name, rng=int(rng),
-                               revolution=revolution, colors=cols)
+                               revolution=revolution, colors=cols, mesh=mesh)
     if path is not None:
         _write(path, model)
     return model

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 __all__ = [
     "POINT_SUFFIXES",
     "WEIGHT_SUFFIXES",
+    "read_mesh",
     "read_points",
     "read_correspondences",
     "read_weights",
@@ -264,6 +265,46 @@ def read_points(path: PathType, *, name: str = "points") -> NDArray[np.float64]:
         raise ValueError(f"{name} file '{p}' holds no points.")
     _finite_rows(arr, p, name)
     return np.ascontiguousarray(arr)
+
+
+#: Suffixes :func:`read_mesh` reads triangles from.
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
+
+
+def read_mesh(path: PathType, *, name: str = "model") -> tuple[NDArray[np.float64], NDArray[np.int64]] | None:
+    """Read a triangle mesh (vertices and triangles) from a ``.ply``, ``.obj``, ``.stl`` or
+    ``.off`` file, as object models often ship (BOP's ``models/*.ply``).
+
+    Returns
+    -------
+    vertices : (V, 3) ndarray of float64
+        In the file's units.
+    triangles : (F, 3) ndarray of int64
+    None
+        When the file holds no triangles (a point cloud: read it with :func:`read_points`) or
+        has another suffix.
+
+    Raises
+    ------
+    OSError
+        The file is missing or unreadable.
+    ValueError
+        NaN or inf vertices, or triangles that index no vertex.
+    """
+    p = _check_file(path, name)
+    if p.suffix.lower() not in MESH_SUFFIXES:
+        return None
+    import open3d as o3d
+
+    mesh = o3d.io.read_triangle_mesh(str(p), print_progress=False)
+    V = np.asarray(mesh.vertices, dtype=np.float64).copy()
+    F = np.asarray(mesh.triangles, dtype=np.int64).copy()
+    if F.shape[0] == 0:
+        return None
+    _finite_rows(V, p, name)
+    if F.min() < 0 or F.max() >= V.shape[0]:
+        raise ValueError(f"{name} file '{p}' has triangles that index no vertex.")
+    return V, F
 
 
 def read_correspondences(

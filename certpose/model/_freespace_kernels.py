@@ -4,7 +4,8 @@ For each pose and object point: transform the point into every view's camera, pr
 nearest pixel and compare its depth ``z`` with that pixel's (min-filtered) measured depth ``d``.
 The point's free-space fraction is ``clip((d - z - tolerance) / ramp, 0, 1)`` (a step at
 ``tolerance`` when ``ramp`` is 0), 0 where the pixel has no depth (``d == 0``), outside the image or
-behind the camera; the largest fraction over the views counts.
+behind the camera. Each view holds ``levels`` consecutive depth images (min-filtered over growing
+windows): a view's fraction is their mean, and the largest fraction over the views counts.
 """
 
 from __future__ import annotations
@@ -19,14 +20,14 @@ F1, F2, F3 = nt.float64[::1], nt.float64[:, ::1], nt.float64[:, :, ::1]
 I1 = nt.int64[::1]
 f8 = nt.float64
 # After the poses and points: per-view depth (V, H, W), camera-from-world (V, 4, 4), intrinsics
-# (V, 4) = fx, fy, cx, cy, widths (V,), heights (V,), tolerance, ramp.
-_VIEWS = (F3, F3, F2, I1, I1, f8, f8)
+# (V, 4) = fx, fy, cx, cy, widths (V,), heights (V,), tolerance, ramp, depth images per view.
+_VIEWS = (F3, F3, F2, I1, I1, f8, f8, nt.int64)
 
 
 @njit(inline="always")
-def _fraction(qx, qy, qz, depth, T_cw, K, widths, heights, tol, ramp):  # pragma: no cover
+def _fraction(qx, qy, qz, depth, T_cw, K, widths, heights, tol, ramp, levels):  # pragma: no cover
     best = 0.0
-    for f in range(depth.shape[0]):
+    for f in range(T_cw.shape[0]):
         z = T_cw[f, 2, 0] * qx + T_cw[f, 2, 1] * qy + T_cw[f, 2, 2] * qz + T_cw[f, 2, 3]
         if z <= 1e-9:
             continue
@@ -36,21 +37,24 @@ def _fraction(qx, qy, qz, depth, T_cw, K, widths, heights, tol, ramp):  # pragma
         v = np.floor(K[f, 1] * y / z + K[f, 3] + 0.5)
         if u < 0.0 or v < 0.0 or u >= widths[f] or v >= heights[f]:
             continue
-        d = depth[f, int(v), int(u)]
-        if d <= 0.0:
-            continue
-        gap = d - z - tol
-        if ramp > 0.0:
-            frac = min(max(gap / ramp, 0.0), 1.0)
-        else:
-            frac = 1.0 if gap > 0.0 else 0.0
+        frac = 0.0
+        for lv in range(levels):
+            d = depth[f * levels + lv, int(v), int(u)]
+            if d <= 0.0:
+                break
+            gap = d - z - tol
+            if ramp > 0.0:
+                frac += min(max(gap / ramp, 0.0), 1.0)
+            elif gap > 0.0:
+                frac += 1.0
+        frac /= levels
         if frac > best:
             best = frac
     return best
 
 
 @kernel(F3, F2, F1, *_VIEWS, nogil=True)
-def free_batch(T, points, weights, depth, T_cw, K, widths, heights, tol, ramp):  # pragma: no cover
+def free_batch(T, points, weights, depth, T_cw, K, widths, heights, tol, ramp, levels):  # pragma: no cover
     """Weighted sum of the points' free-space fractions for each of the ``B`` poses ``T`` (B, 4, 4)."""
     out = np.zeros(T.shape[0])
     for b in range(T.shape[0]):
@@ -60,7 +64,7 @@ def free_batch(T, points, weights, depth, T_cw, K, widths, heights, tol, ramp): 
             qx = T[b, 0, 0] * px + T[b, 0, 1] * py + T[b, 0, 2] * pz + T[b, 0, 3]
             qy = T[b, 1, 0] * px + T[b, 1, 1] * py + T[b, 1, 2] * pz + T[b, 1, 3]
             qz = T[b, 2, 0] * px + T[b, 2, 1] * py + T[b, 2, 2] * pz + T[b, 2, 3]
-            frac = _fraction(qx, qy, qz, depth, T_cw, K, widths, heights, tol, ramp)
+            frac = _fraction(qx, qy, qz, depth, T_cw, K, widths, heights, tol, ramp, levels)
             if frac > 0.0:
                 total += weights[i] * frac
         out[b] = total
@@ -68,7 +72,7 @@ def free_batch(T, points, weights, depth, T_cw, K, widths, heights, tol, ramp): 
 
 
 @kernel(F2, F2, *_VIEWS, nogil=True)
-def free_points(T, points, depth, T_cw, K, widths, heights, tol, ramp):  # pragma: no cover
+def free_points(T, points, depth, T_cw, K, widths, heights, tol, ramp, levels):  # pragma: no cover
     """Free-space fraction of each point ``(N,)`` at one pose ``T`` (4, 4)."""
     out = np.empty(points.shape[0])
     for i in range(points.shape[0]):
@@ -76,5 +80,5 @@ def free_points(T, points, depth, T_cw, K, widths, heights, tol, ramp):  # pragm
         qx = T[0, 0] * px + T[0, 1] * py + T[0, 2] * pz + T[0, 3]
         qy = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
         qz = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
-        out[i] = _fraction(qx, qy, qz, depth, T_cw, K, widths, heights, tol, ramp)
+        out[i] = _fraction(qx, qy, qz, depth, T_cw, K, widths, heights, tol, ramp, levels)
     return out

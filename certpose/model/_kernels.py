@@ -291,3 +291,156 @@ def eq1_points_graded(T, points, weights, zdesc, index, cells, background, desc,
                                                           c_empty, c_unobs)
         out[i] = weights[i] * term
     return out
+
+
+# The visibility kernels' further arguments (certpose.model.visibility): the points' unit
+# normals, the self-occlusion table (N, cells; no columns for a convex surface), cells per cube
+# face side, the camera centres (K, 3) in the scene frame and the facing ramp's end.
+U2 = nt.uint8[:, ::1]
+_VISIBLE = (F2, U2, nt.int64, F2, f8)
+
+
+@njit(inline="always")
+def _occlusion(vtab, i, dx, dy, dz, faces):  # pragma: no cover
+    """Bilinear blend of point ``i``'s table at the direction ``(dx, dy, dz)`` (any length)."""
+    ax, ay, az = abs(dx), abs(dy), abs(dz)
+    if ax >= ay and ax >= az:
+        k = 0 if dx > 0 else 1
+        m, u, v = ax, dy, dz
+    elif ay >= az:
+        k = 2 if dy > 0 else 3
+        m, u, v = ay, dx, dz
+    else:
+        k = 4 if dz > 0 else 5
+        m, u, v = az, dx, dy
+    if m <= 0.0:
+        return 0.0
+    gx = (u / m + 1.0) * 0.5 * faces + 0.5
+    gy = (v / m + 1.0) * 0.5 * faces + 0.5
+    i0 = min(max(int(np.floor(gx)), 0), faces)
+    j0 = min(max(int(np.floor(gy)), 0), faces)
+    fx = gx - i0
+    fy = gy - j0
+    S = faces + 2
+    b = k * S * S + i0 * S + j0
+    return ((1.0 - fx) * ((1.0 - fy) * vtab[i, b] + fy * vtab[i, b + 1])
+            + fx * ((1.0 - fy) * vtab[i, b + S] + fy * vtab[i, b + S + 1]))
+
+
+@njit(inline="always")
+def _visibility(E, j, px, py, pz, nx, ny, nz, vtab, i, faces, grazing):  # pragma: no cover
+    """Largest visibility of point ``i`` over the cameras ``E[j, c]`` (object frame)."""
+    best = 0.0
+    for c in range(E.shape[1]):
+        dx = E[j, c, 0] - px
+        dy = E[j, c, 1] - py
+        dz = E[j, c, 2] - pz
+        dn = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if dn <= 0.0:
+            continue
+        f = (nx * dx + ny * dy + nz * dz) / (dn * grazing)
+        if f <= 0.0:
+            continue
+        if f > 1.0:
+            f = 1.0
+        if vtab.shape[1] > 0:
+            f *= _occlusion(vtab, i, dx, dy, dz, faces)
+        if f > best:
+            best = f
+    return best
+
+
+@njit(inline="always")
+def _cameras_in_object(T, cams, E, j):  # pragma: no cover
+    """``E[j, c] = R^T (cams[c] - t)`` for the pose ``T`` (4, 4)."""
+    for c in range(cams.shape[0]):
+        rx = cams[c, 0] - T[0, 3]
+        ry = cams[c, 1] - T[1, 3]
+        rz = cams[c, 2] - T[2, 3]
+        for a in range(3):
+            E[j, c, a] = T[0, a] * rx + T[1, a] * ry + T[2, a] * rz
+
+
+@kernel(F3, *_MODEL, *_VISIBLE, fastmath=True, nogil=True)
+def eq1_batch_visible(T, points, weights, zdesc, index, cells, background, desc, logp, origin, inv_vs,
+                      offset, beta, c_empty, c_unobs, normals, vtab, faces, cams,
+                      grazing):  # pragma: no cover - compiled
+    """:func:`eq1_batch` with each point's term blended by its visibility ``v`` from the cameras
+    (:mod:`certpose.model.visibility`): ``v term + (1 - v) c_unobs``. A point nobody sees costs
+    what unobserved space costs, whatever lies where it lands (observed free space is charged
+    per pixel, outside this kernel)."""
+    B = T.shape[0]
+    out = np.zeros(B)
+    R = np.empty((_POSE_BLOCK, 12))
+    E = np.empty((_POSE_BLOCK, cams.shape[0], 3))
+    cv = np.empty(8)
+    for b0 in range(0, B, _POSE_BLOCK):
+        nb = min(_POSE_BLOCK, B - b0)
+        for j in range(nb):
+            for r in range(3):
+                for c in range(4):
+                    R[j, 4 * r + c] = T[b0 + j, r, c]
+            _cameras_in_object(T[b0 + j], cams, E, j)
+        for i in range(points.shape[0]):
+            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+            nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+            zi = zdesc[i]
+            wi = weights[i]
+            lx = -1
+            ly = -1
+            lz = -1
+            for j in range(nb):
+                vis = _visibility(E, j, px, py, pz, nx, ny, nz, vtab, i, faces, grazing)
+                out[b0 + j] += wi * (1.0 - vis) * c_unobs
+                if vis <= 0.0:
+                    continue
+                qx = R[j, 0] * px + R[j, 1] * py + R[j, 2] * pz + R[j, 3]
+                qy = R[j, 4] * px + R[j, 5] * py + R[j, 6] * pz + R[j, 7]
+                qz = R[j, 8] * px + R[j, 9] * py + R[j, 10] * pz + R[j, 11]
+                x0, y0, z0, cell, ax, ay, az = _cell(cells, qx, qy, qz, origin, inv_vs, offset)
+                if x0 < 0:
+                    out[b0 + j] += wi * vis * c_unobs
+                    continue
+                if cell != MIXED:
+                    out[b0 + j] += wi * vis * _uniform_value(background, x0, y0, z0, cell, c_empty,
+                                                             c_unobs)
+                    continue
+                if x0 != lx or y0 != ly or z0 != lz:
+                    _corner_values(index, background, desc, logp, zi, x0, y0, z0, beta, c_unobs, cv)
+                    lx = x0
+                    ly = y0
+                    lz = z0
+                out[b0 + j] += wi * vis * _interpolate(cv, ax, ay, az)
+    return out
+
+
+@kernel(F2, *_MODEL, *_VISIBLE, fastmath=True, nogil=True)
+def eq1_points_visible(T, points, weights, zdesc, index, cells, background, desc, logp, origin, inv_vs,
+                       offset, beta, c_empty, c_unobs, normals, vtab, faces, cams,
+                       grazing):  # pragma: no cover - compiled
+    """Per-point terms ``(N,)`` of :func:`eq1_batch_visible` for one pose ``T`` (4, 4)."""
+    N = points.shape[0]
+    out = np.zeros(N)
+    cv = np.empty(8)
+    E = np.empty((1, cams.shape[0], 3))
+    _cameras_in_object(T, cams, E, 0)
+    for i in range(N):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        vis = _visibility(E, 0, px, py, pz, normals[i, 0], normals[i, 1], normals[i, 2], vtab, i,
+                          faces, grazing)
+        out[i] = weights[i] * (1.0 - vis) * c_unobs
+        if vis <= 0.0:
+            continue
+        qx = T[0, 0] * px + T[0, 1] * py + T[0, 2] * pz + T[0, 3]
+        qy = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
+        qz = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
+        x0, y0, z0, cell, ax, ay, az = _cell(cells, qx, qy, qz, origin, inv_vs, offset)
+        if x0 < 0:
+            term = c_unobs
+        elif cell != MIXED:
+            term = _uniform_value(background, x0, y0, z0, cell, c_empty, c_unobs)
+        else:
+            _corner_values(index, background, desc, logp, zdesc[i], x0, y0, z0, beta, c_unobs, cv)
+            term = _interpolate(cv, ax, ay, az)
+        out[i] += weights[i] * vis * term
+    return out

@@ -12,6 +12,14 @@ camera depth ``z`` at its nearest pixel ``u``:
 * is **unobserved** when the pixel has no depth (0), lies outside the image, or ``z <= 0``;
 * is **occluded** (behind the measured surface, ``z >= d(u)``): no penalty either.
 
+With several window widths the charge is graded in the image: the mean over the widths. The
+silhouettes of YCB-Video's annotated poses stand up to a few pixels past the observed ones (at
+the true pose, points charged with a single window of 0 / 5 / 10 / 15 pixels: median 4.0 / 0.7 /
+0 / 0% of the model over the 60 frame-object pairs of scenes 0000, 0002, 0049 and 0050; the power
+drill 18-19 / 13-14 / 3-6 / 0.2-1%), while a mug's handle turned out of hiding stands 10-30
+pixels past the mug's (0000/000001: 24-37 points charged with 10 pixels where the hidden arc has
+7-10, 4-19 against 0-4 with 15 pixels).
+
 Eq. (1) charges a point by its free-space fraction
 ``clip((d(u) - z - tolerance) / ramp, 0, 1)`` (a step at ``tolerance`` when ``ramp`` is 0): the
 point then costs ``c_empty`` instead of what unobserved space costs (see
@@ -35,7 +43,7 @@ from numpy.typing import ArrayLike, NDArray
 from solvers.jit import compiled
 from solvers.validation import as_float_array, check_points
 
-__all__ = ["PixelFreeSpace", "scene_frames"]
+__all__ = ["PixelFreeSpace", "check_windows", "scene_frames"]
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +67,19 @@ def scene_frames(scene: Any) -> tuple[Any, ...]:
     return frames
 
 
+def check_windows(window: Any) -> tuple[int, ...]:
+    """``window`` (an int or a non-empty sequence of ints, each >= 0) as a sorted tuple."""
+    items = (window,) if np.ndim(window) == 0 else tuple(window)
+    if not items:
+        raise ValueError("`window` is empty: give at least one width in pixels.")
+    out = []
+    for w in items:
+        if isinstance(w, (bool, np.bool_)) or int(w) != w or w < 0:
+            raise ValueError(f"`window` must hold non-negative integers (pixels), got {window!r}.")
+        out.append(int(w))
+    return tuple(sorted(out))
+
+
 class PixelFreeSpace:
     """The per-pixel free-space test of a set of depth views, vectorised over poses and points.
 
@@ -73,13 +94,17 @@ class PixelFreeSpace:
     ramp : float, optional
         Metres (>= 0). Beyond ``tolerance`` the charged fraction rises linearly to 1 over this
         distance (0: a step).
-    window : int, optional
+    window : int or sequence of int, optional
         Half-width in pixels (>= 0) of the min-filter applied to the valid depths (0: the nearest
-        pixel only). A pixel without depth stays unobserved whatever its neighbours hold.
+        pixel only). A pixel without depth stays unobserved whatever its neighbours hold. With
+        several widths a point's fraction is the mean of the fractions the filtered images give:
+        a charge that grows with the point's distance in pixels from where the image could
+        show it (e.g. ``(5, 10, 15)``: a third for a point within 5-10 pixels of the silhouette,
+        all of it past 15).
     """
 
     def __init__(self, frames: Sequence[Any], *, tolerance: float = 0.01, ramp: float = 0.0,
-                 window: int = 15) -> None:
+                 window: int | Sequence[int] = 15) -> None:
         from scipy.ndimage import minimum_filter
 
         frames = tuple(frames)
@@ -88,20 +113,22 @@ class PixelFreeSpace:
         for name, value in (("tolerance", tolerance), ("ramp", ramp)):
             if not (np.isfinite(value) and value >= 0):
                 raise ValueError(f"`{name}` must be a non-negative number of metres, got {value}.")
-        if int(window) != window or window < 0:
-            raise ValueError(f"`window` must be a non-negative integer, got {window}.")
-        self.tolerance, self.ramp, self.window = float(tolerance), float(ramp), int(window)
+        self.tolerance, self.ramp = float(tolerance), float(ramp)
+        self.windows = check_windows(window)
+        self.window = self.windows[0]
+        L = len(self.windows)
         H = max(f.depth.shape[0] for f in frames)
         W = max(f.depth.shape[1] for f in frames)
-        self._depth = np.zeros((len(frames), H, W))
+        self._depth = np.zeros((len(frames) * L, H, W))
         for k, f in enumerate(frames):
-            d = np.asarray(f.depth, dtype=np.float64)
-            if self.window > 0:
-                valid = d > 0
-                low = minimum_filter(np.where(valid, d, np.inf), size=2 * self.window + 1,
-                                     mode="nearest")
-                d = np.where(valid, low, 0.0)
-            self._depth[k, : d.shape[0], : d.shape[1]] = d
+            d0 = np.asarray(f.depth, dtype=np.float64)
+            valid = d0 > 0
+            for lv, w in enumerate(self.windows):
+                d = d0
+                if w > 0:
+                    low = minimum_filter(np.where(valid, d0, np.inf), size=2 * w + 1, mode="nearest")
+                    d = np.where(valid, low, 0.0)
+                self._depth[k * L + lv, : d.shape[0], : d.shape[1]] = d
         self._T_cw = np.ascontiguousarray(np.stack([np.linalg.inv(f.T_world_camera) for f in frames]))
         self._K = np.array([[f.intrinsics.fx, f.intrinsics.fy, f.intrinsics.cx, f.intrinsics.cy]
                             for f in frames], dtype=np.float64)
@@ -115,7 +142,7 @@ class PixelFreeSpace:
 
     def _views(self) -> tuple[Any, ...]:
         return (self._depth, self._T_cw, self._K, self._widths, self._heights, self.tolerance,
-                self.ramp)
+                self.ramp, np.int64(len(self.windows)))
 
     def weighted_sum(self, T: NDArray[np.float64], points: NDArray[np.float64],
                      weights: NDArray[np.float64], *, kernel: Any = None) -> NDArray[np.float64]:
@@ -151,7 +178,7 @@ class PixelFreeSpace:
         """
         q = check_points(points, "points", min_points=0)
         out = np.zeros(q.shape[0])
-        for k in range(self._depth.shape[0]):
+        for k in range(self._T_cw.shape[0]):
             c = q @ self._T_cw[k, :3, :3].T + self._T_cw[k, :3, 3]
             z = c[:, 2]
             ok = z > 1e-9
@@ -161,7 +188,7 @@ class PixelFreeSpace:
                 v = np.floor(fy * c[:, 1] / z + cy + 0.5)
             ok &= (u >= 0) & (v >= 0) & (u < self._widths[k]) & (v < self._heights[k])
             d = np.zeros(q.shape[0])
-            d[ok] = self._depth[k, v[ok].astype(np.int64), u[ok].astype(np.int64)]
+            d[ok] = self._depth[k * len(self.windows), v[ok].astype(np.int64), u[ok].astype(np.int64)]
             seen = ok & (d > 0)
             out[seen] = np.maximum(out[seen], d[seen] - z[seen])
         return out

@@ -200,6 +200,18 @@ class LikelihoodParams:
         0.66 / 0.53, but the axis still holds only 0.68-0.74 of the mass, and ``ycbv_eval.py``
         gives rotation <= 10 deg 20 of 46, median rotation error 19.7 deg, ADD-S 60/60 (the
         wood block 0.90-1.00 cm).
+    visibility : bool
+        Default True: each object point's descriptor and classifier terms are blended with the
+        unobserved prior by its visibility ``v`` from the scene's cameras at the pose (facing
+        the camera and not hidden by the object itself; :mod:`certpose.model.visibility`):
+        ``v term + (1 - v) log_p_unobserved``. A point the camera cannot see costs what
+        unobserved space costs, whatever lies where it lands; observed free space is charged for
+        every point. Needs per-pixel free space (``free_space`` resolved to ``"pixels"``: the
+        scene's views), and the model's normals; otherwise every point counts (the paper's
+        eq. (1)).
+    visibility_grazing : float
+        In ``(0, 1]``, default 0.25: ``n . d`` (unit normal and direction to the camera) at which
+        a point counts in full; faces seen closer to edge-on count in proportion.
     descriptor_blur : float
         Metres (>= 0, default 0: off). Standard deviation of a Gaussian that spreads the fused
         scene descriptors ``f_v`` of the occupied voxels over their neighbours before the
@@ -255,12 +267,14 @@ class LikelihoodParams:
     free_space_ramp: float = 0.005
     free_space_from: str = "boundary"
     free_space_at: str = "voxel"
-    free_space: str = "voxels"
+    free_space: str = "auto"
     depth_tolerance: float = 0.01
     depth_ramp: float = 0.0
-    depth_window: int = 15
+    depth_window: int | tuple[int, ...] = (5, 10, 15)
     field_blur: float = 0.0
     descriptor_blur: float = 0.0
+    visibility: bool = True
+    visibility_grazing: float = 0.25
 
     def __post_init__(self) -> None:
         for name in ("beta", "c_empty", "log_p_unobserved", "free_space_tolerance",
@@ -295,8 +309,20 @@ class LikelihoodParams:
                 "grade the voxel grid's free space; with free_space='pixels' use `depth_tolerance` "
                 "and `depth_ramp`."
             )
-        if int(self.depth_window) != self.depth_window or self.depth_window < 0:
-            raise ValueError(f"`depth_window` must be a non-negative integer, got {self.depth_window}.")
+        if not isinstance(self.visibility, (bool, np.bool_)):
+            raise TypeError(f"`visibility` must be a bool, got {type(self.visibility).__name__}.")
+        g = float(self.visibility_grazing)
+        if not (0.0 < g <= 1.0):
+            raise ValueError(f"`visibility_grazing` must be in (0, 1], got {self.visibility_grazing}.")
+        object.__setattr__(self, "visibility_grazing", g)
+        from certpose.model.freespace import check_windows
+
+        try:
+            windows = check_windows(self.depth_window)
+        except (TypeError, ValueError):
+            raise ValueError("`depth_window` must be a non-negative integer or a non-empty tuple of "
+                             f"them (pixels), got {self.depth_window!r}.") from None
+        object.__setattr__(self, "depth_window", windows[0] if len(windows) == 1 else windows)
         if int(self.free_space_erosion) != self.free_space_erosion or self.free_space_erosion < 0:
             raise ValueError(
                 f"`free_space_erosion` must be a non-negative integer, got {self.free_space_erosion}."
@@ -857,11 +883,53 @@ class PoseLikelihood:
         #: Sum of the point weights: the number of points for unweighted models.
         self.total_weight = float(self._weights.sum())
         self.centroid = object_model.points.mean(axis=0)
+        self._set_visibility(object_model)
+
+    def _set_visibility(self, object_model: ObjectModel) -> None:
+        """The visibility table of the kernels' point order, or None (every point counts)."""
+        from certpose.model.visibility import cached_visibility_table, scene_cameras
+
+        self._vis = None
+        cams = scene_cameras(self._scene)
+        pixels = resolve_free_space(self.params, self._scene).free_space == "pixels"
+        if not (self.params.visibility and pixels) or cams.shape[0] == 0 or object_model.normals is None:
+            return
+        table = cached_visibility_table(object_model.points, object_model.normals,
+                                        grazing=self.params.visibility_grazing)
+        vtab = (np.zeros((self.num_points, 0), dtype=np.uint8) if table.table is None
+                else np.ascontiguousarray(table.table[self._order]))
+        self._vis = (np.ascontiguousarray(table.normals[self._order]), vtab, np.int64(table.faces),
+                     cams, float(table.grazing))
+        self.visibility_table = table
+
+    @property
+    def visible(self) -> bool:
+        """Whether eq. (1) weighs the points by their visibility (``LikelihoodParams.visibility``
+        with cameras and normals)."""
+        return self._vis is not None
+
+    def visible_weight(self, T: ArrayLike) -> float:
+        """Sum of the point weights times their visibility at the pose ``T`` (4, 4): the weight
+        of the points eq. (1) scores by what the scene shows at that pose (``total_weight`` when
+        visibility is off)."""
+        poses, single = _as_poses(T)
+        if not single:
+            raise ValueError(f"Expected `T` to have shape (4, 4), got {poses.shape}.")
+        if self._vis is None:
+            return self.total_weight
+        v = np.zeros(self.num_points)
+        R, t = poses[0][:3, :3], poses[0][:3, 3]
+        inv = np.argsort(self._order)
+        for c in self._vis[3]:
+            v = np.maximum(v, self.visibility_table.visibility(self._points[inv], R.T @ (c - t))[self._order])
+        return float(np.sum(self._weights * v))
 
     def _args(self) -> tuple[Any, ...]:
         p = self.params
         # The graded kernels (free_space_at="point") take the distances into free space too.
         extra = (self._depth, self._fs_start, p.free_space_ramp) if self._graded else ()
+        if self._vis is not None:
+            extra = self._vis
         return (
             self._points, self._weights, self._z, self._index, self._cells, self._background, self._desc,
             self._logp, self.grid.origin, 1.0 / self.grid.voxel_size, self.grid.offset,
@@ -886,7 +954,8 @@ class PoseLikelihood:
             Log-likelihood up to the constant ``-N log Z`` (nats).
         """
         kernels = compiled("certpose.model._kernels")
-        eq1_batch = kernels.eq1_batch_graded if self._graded else kernels.eq1_batch
+        eq1_batch = (kernels.eq1_batch_graded if self._graded else
+                     kernels.eq1_batch_visible if self._vis is not None else kernels.eq1_batch)
         if self._pixels is not None:
             # The pixel kernel is loaded here, on the calling thread, not by the pool's threads.
             eq1_batch = functools.partial(_with_pixels, eq1_batch, self._pixels.batch_kernel(), self)
@@ -909,7 +978,8 @@ class PoseLikelihood:
         eq. (1) (``w_i = 1`` unless the model has :attr:`~certpose.geometry.objects.ObjectModel.areas`);
         they sum to eq. (1)."""
         kernels = compiled("certpose.model._kernels")
-        eq1_points = kernels.eq1_points_graded if self._graded else kernels.eq1_points
+        eq1_points = (kernels.eq1_points_graded if self._graded else
+                      kernels.eq1_points_visible if self._vis is not None else kernels.eq1_points)
 
         poses, single = _as_poses(T)
         if not single:
