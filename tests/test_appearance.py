@@ -71,10 +71,12 @@ def test_unseen_points_carry_no_appearance(gelatin):
     m, seen = gelatin.model, gelatin.observed
     assert 0 < seen.sum() < len(m)  # one camera sees one side of the box
     colour_block = m.descriptors[:, -(gelatin.backbone.hue_bins + 2):]
-    # Their colour block is the mean over the seen points (the object's palette, no print).
-    np.testing.assert_allclose(colour_block[~seen], colour_block[seen].mean(axis=0)[None].repeat(
-        int((~seen).sum()), axis=0), atol=1e-12)
+    # Their colour block is zero: no guessed colour, so no colour similarity either way.
+    assert np.all(colour_block[~seen] == 0.0)
     assert np.all(m.colors[~seen] == 0.0)
+    # The model says how much of its surface was seen.
+    assert gelatin.seen_fraction == pytest.approx(seen.mean())
+    assert 0.0 < gelatin.seen_fraction < 1.0
     assert np.all(np.linalg.norm(colour_block[seen], axis=1) > 0)
     # Their shape part is kept: it is known from the model points.
     assert np.all(np.linalg.norm(m.descriptors[~seen], axis=1) > 0)

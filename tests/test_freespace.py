@@ -245,8 +245,10 @@ def test_auto_reads_pixels_when_the_scene_keeps_its_depth_images() -> None:
         return PoseLikelihood(s, _Cls(s), _Obj(pts), params=LikelihoodParams(**kw)).point_terms(T)
 
     np.testing.assert_array_equal(terms(scene, free_space="auto"), terms(scene, free_space="pixels"))
-    np.testing.assert_array_equal(terms(bare, free_space="auto"), terms(bare))
+    np.testing.assert_array_equal(terms(scene), terms(scene, free_space="pixels"))  # the default
+    np.testing.assert_array_equal(terms(bare, free_space="auto"), terms(bare, free_space="voxels"))
     # Voxel grading options ask for voxels.
     graded = {"free_space_tolerance": 0.01}
-    np.testing.assert_array_equal(terms(scene, free_space="auto", **graded), terms(scene, **graded))
-    assert not np.array_equal(terms(scene, free_space="pixels"), terms(scene))
+    np.testing.assert_array_equal(terms(scene, free_space="auto", **graded),
+                                  terms(scene, free_space="voxels", **graded))
+    assert not np.array_equal(terms(scene, free_space="pixels"), terms(scene, free_space="voxels"))

@@ -246,3 +246,35 @@ def test_real_frame_cracker_box_truth_beats_its_flips() -> None:
         F[:3, :3] = Rotation.from_rotvec(np.pi * axes[:, k]).as_matrix()
         F[:3, 3] = c - F[:3, :3] @ c
         assert float(lik(G @ F)) < truth
+
+
+def test_explained_fraction_of_the_truth_and_of_a_pose_13_cm_off() -> None:
+    from certpose.estimation.mle import EXPLAINED, explained_fraction
+    from certpose.estimation.pipeline import ycbv_setup
+    from certpose.model.grid import scene_grid_spec
+
+    s = ycbv_setup(require_data("ycbv"), "0050/000001", "006_mustard_bottle")
+    grid = scene_grid_spec(s.scene)
+    G = s.frame.poses["006_mustard_bottle"]
+    assert explained_fraction(s.classification, s.object_model, G, grid) > 0.9
+    off = G.copy()
+    off[:3, 3] += [0.13, 0.0, 0.0]
+    assert explained_fraction(s.classification, s.object_model, off, grid) < EXPLAINED
+
+
+@pytest.mark.slow
+def test_a_pose_that_leaves_most_positives_unexplained_is_not_converged() -> None:
+    # The classifier marks the mug and the two objects beside it (their masks' union): whatever
+    # the mug's pose, most positives lie elsewhere; the result must say so instead of
+    # "converged". The mug's own mask gives "converged".
+    from certpose.estimation.mle import MLEStatus, estimate_mle
+    from certpose.estimation.pipeline import ycbv_setup
+
+    s = ycbv_setup(require_data("ycbv"), "0000/000001", "025_mug")
+    union = s.frame.label > 0
+    cls = classify_from_mask(s.scene, s.frame.frame.with_mask(union))
+    res = estimate_mle(s.scene, cls, s.object_model, rng=0)
+    assert res.status is MLEStatus.UNEXPLAINED and not res.success
+    assert "explains only" in res.message
+    res = estimate_mle(s.scene, s.classification, s.object_model, rng=0)
+    assert res.status is MLEStatus.CONVERGED

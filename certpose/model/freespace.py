@@ -75,7 +75,8 @@ def check_windows(window: Any) -> tuple[int, ...]:
     out = []
     for w in items:
         if isinstance(w, (bool, np.bool_)) or int(w) != w or w < 0:
-            raise ValueError(f"`window` must hold non-negative integers (pixels), got {window!r}.")
+            raise ValueError(f"`window` must be a non-negative integer or a sequence of them "
+                             f"(pixels), got {window!r}.")
         out.append(int(w))
     return tuple(sorted(out))
 

@@ -892,9 +892,10 @@ class PoseLikelihood:
         self._vis = None
         cams = scene_cameras(self._scene)
         pixels = resolve_free_space(self.params, self._scene).free_space == "pixels"
-        if not (self.params.visibility and pixels) or cams.shape[0] == 0 or object_model.normals is None:
+        normals = getattr(object_model, "normals", None)
+        if not (self.params.visibility and pixels) or cams.shape[0] == 0 or normals is None:
             return
-        table = cached_visibility_table(object_model.points, object_model.normals,
+        table = cached_visibility_table(object_model.points, normals,
                                         grazing=self.params.visibility_grazing)
         vtab = (np.zeros((self.num_points, 0), dtype=np.uint8) if table.table is None
                 else np.ascontiguousarray(table.table[self._order]))
