@@ -23,8 +23,9 @@ median spacing) an axis holds 0.87-0.88 of the cans' points, 0.93 of the mug's, 
 large marker's and all of the bowl's; the boxes, the mustard bottle, the banana, the drill and
 the wood block 0.08-0.40 (none: the least share is 0.6).
 
-Measured (2026-11-26, ``examples/bench_arc.py --step 5 [--revolution auto]``, frames 1-5, the
-computed arc, ratio of eq. (1)'s range inside to its drop outside; issue 10's target <= 0.25):
+Measured (``examples/benchmarks/bench_arc.py --step 5 [--revolution auto]``, frames 1-5, the
+computed arc, ratio of eq. (1)'s range inside to its drop outside; a flat arc with a steep drop
+would read <= 0.25):
 
 ================================================  ==============================  ===============
 likelihood                                        without (mean)                  with (mean)

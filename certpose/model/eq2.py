@@ -1,12 +1,13 @@
 r"""Eq. (2) of the paper as a weighted TLS problem: its construction, solution and certificate.
 
 **Eq. (2) and its weights.** For object points ``p_i`` and grid points ``y_j`` (the centres of
-occupied voxels: neither empty nor unobserved, NOTES.md 1.4),
+occupied voxels: neither empty nor unobserved; empty space is ``-inf`` and unobserved 0 in
+eq. (1), so only occupied voxels can attract a point),
 
 .. math:: c_{ij} = \log p_O(y_j) + \beta f_{scn}(y_j)^T z_i .
 
 ``c_ij`` is a log-probability (usually negative), but a TLS cost ``sum w_ij min(r_ij^2, eps^2)``
-only pulls ``p_i`` towards ``y_j`` when ``w_ij >= 0``. We use the mapping of NOTES.md 1.2:
+only pulls ``p_i`` towards ``y_j`` when ``w_ij >= 0``. We use the mapping
 
 .. math:: w_{ij} = c_{ij} - c_{floor}, \qquad c_{floor} = c_{min} - \beta ,
 
@@ -15,7 +16,7 @@ with the least similar unit descriptors, ``f^T z = -1``), so every weight is ``>
 clipping. Minimising eq. (2) then maximises ``sum_ij w_ij (eps^2 - r_ij^2)_+``, an Epanechnikov
 kernel smoothing of eq. (1) restricted to occupied voxels (up to the constant ``N c_floor``).
 
-**Sparsification (NOTES.md 1.3).** Which pairs ``(i, j)`` the problem keeps is ours to choose
+**Sparsification.** The ``N x M`` pairs of object and grid points are far too many. Which pairs ``(i, j)`` the problem keeps is ours to choose
 (the weights are ``c_ij - c_floor`` either way):
 
 * *by descriptor* (no seeds): each of ``num_object_points`` object points (farthest-point
