@@ -28,10 +28,10 @@ about x (stated, lenient), and they are reported apart. A run whose effective sa
 
 usage::
 
-    python examples/bench_calibration.py --appearance --cache calib-cache     # default temperature
-    python examples/bench_calibration.py --appearance --cache calib-cache --fit 0000,0002
-    python examples/bench_calibration.py --appearance --scales 0.5 1 2 4 --out calib.jsonl
-    python examples/bench_calibration.py --appearance --cache calib-cache --calibrated --loso
+    python examples/benchmarks/bench_calibration.py --appearance --cache calib-cache     # default temperature
+    python examples/benchmarks/bench_calibration.py --appearance --cache calib-cache --fit 0000,0002
+    python examples/benchmarks/bench_calibration.py --appearance --scales 0.5 1 2 4 --out calib.jsonl
+    python examples/benchmarks/bench_calibration.py --appearance --cache calib-cache --calibrated --loso
 """
 
 from __future__ import annotations
@@ -308,7 +308,7 @@ def run_calibrated(args, jobs: list, infos: list[dict], fit_scenes: set[str]) ->
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    here = Path(__file__).resolve().parents[1]
+    here = Path(__file__).resolve().parents[2]
     ap.add_argument("--data", type=Path, default=here.parent / "shared" / "data" / "ycbv")
     ap.add_argument("--scenes", default="0000,0002,0049,0050")
     ap.add_argument("--frames", default="", help="comma-separated frame numbers to keep (e.g. 000001)")

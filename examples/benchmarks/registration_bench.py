@@ -1,6 +1,6 @@
 """Run the issue-2 registration benchmark (bunny, NOTES.md section 3) with every peer.
 
-Usage: ``python examples/registration_bench.py [--out DIR] [--trials-1000 T]``. Writes
+Usage: ``python examples/benchmarks/registration_bench.py [--out DIR] [--trials-1000 T]``. Writes
 ``DIR/n100`` and ``DIR/n1000`` (CSV, JSON, PNG) and prints both tables. Needs
 ``../shared/data/bunny`` beside the repository.
 """
@@ -13,7 +13,7 @@ from pathlib import Path
 
 from certpose.cli import main
 
-BUNNY = Path(__file__).resolve().parents[2] / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
+BUNNY = Path(__file__).resolve().parents[3] / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
 
 
 def run() -> int:

@@ -70,10 +70,10 @@ round of ``--commands pose --repeat 2``): cold 8.31 / 10.09 against 14.45 / 19.1
 
 usage::
 
-    python examples/bench_cold_start.py               # both commands, 1 cold + 1 warm run each
-    python examples/bench_cold_start.py --repeat 3    # best and median of 3 of each
-    python examples/bench_cold_start.py --commands register
-    python examples/bench_cold_start.py --fresh-model-cache   # a fresh install: both caches empty
+    python examples/benchmarks/bench_cold_start.py               # both commands, 1 cold + 1 warm run each
+    python examples/benchmarks/bench_cold_start.py --repeat 3    # best and median of 3 of each
+    python examples/benchmarks/bench_cold_start.py --commands register
+    python examples/benchmarks/bench_cold_start.py --fresh-model-cache   # a fresh install: both caches empty
 """
 
 from __future__ import annotations
@@ -136,7 +136,7 @@ def _run(args: list[str], cache_dir: str, model_cache: str | None) -> tuple[floa
     env = dict(os.environ, NUMBA_CACHE_DIR=cache_dir)
     if model_cache is not None:
         env["CERTPOSE_CACHE_DIR"] = model_cache
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(root), env.get("PYTHONPATH")]))
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()

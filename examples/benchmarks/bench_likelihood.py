@@ -2,7 +2,7 @@
 
 Usage::
 
-    python examples/bench_likelihood.py [--ycbv ../shared/data/ycbv] [--points 2000]
+    python examples/benchmarks/bench_likelihood.py [--ycbv ../shared/data/ycbv] [--points 2000]
 
 The scene is YCB-Video frame 0000/000001 (whole frame, 5 mm voxels, FPFH descriptors, d = 33)
 and the object the mug's model points; without the data folder, the synthetic mug scene. Poses
@@ -49,7 +49,7 @@ def main() -> None:
     from solvers.lie import make_transform
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ycbv", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv")
+    ap.add_argument("--ycbv", type=Path, default=Path(__file__).resolve().parents[3] / "shared" / "data" / "ycbv")
     ap.add_argument("--points", type=int, default=2000)
     ap.add_argument("--voxel-size", type=float, default=0.005)
     ap.add_argument("--repeats", type=int, default=3)

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python examples/bench_ycbv.py [--ycbv ../shared/data/ycbv] [--global-budget 20000]
+    python examples/benchmarks/bench_ycbv.py [--ycbv ../shared/data/ycbv] [--global-budget 20000]
                                   [--frames 000001 000002] [--objects 025_mug] [--json OUT]
 
 For every frame and object: the scene field (5 mm voxels, FPFH, cropped to the object's mask
@@ -49,7 +49,7 @@ def main() -> None:
     from certpose.model.scene import build_scene_field
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ycbv", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv")
+    ap.add_argument("--ycbv", type=Path, default=Path(__file__).resolve().parents[3] / "shared" / "data" / "ycbv")
     ap.add_argument("--frames", nargs="+", default=list(FRAMES))
     ap.add_argument("--objects", nargs="+", default=list(OBJECTS))
     ap.add_argument("--global-budget", type=int, default=0)

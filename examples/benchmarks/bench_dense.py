@@ -16,8 +16,8 @@ The load average is printed with the figures: the machine is shared.
 
 Usage::
 
-    python examples/bench_dense.py [--repeats 21] [--n 1000] [--trials 50] [--json OUT]
-    python examples/bench_dense.py --quick          # a tiny run (the test's)
+    python examples/benchmarks/bench_dense.py [--repeats 21] [--n 1000] [--trials 50] [--json OUT]
+    python examples/benchmarks/bench_dense.py --quick          # a tiny run (the test's)
 
 Measured (2-core machine shared with other sessions, load average 2.8 -> 2.6 over the run;
 ``--trials 50``, defaults otherwise):
@@ -68,7 +68,7 @@ from certpose.data.threedmatch import (
 from certpose.io.points import load_bunny
 from solvers.lie import rotation_error_deg, translation_error
 
-BUNNY = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
+BUNNY = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
 SIGMA = 0.01
 
 

@@ -2,7 +2,7 @@
 
 Target: 10,000 resampled particles with ESS >= 1,000 in <= 2 s of sampling.
 
-    PYTHONPATH=. python examples/bench_sampler.py [--draws 10000] [--rounds 6] [--repeats 3]
+    PYTHONPATH=. python examples/benchmarks/bench_sampler.py [--draws 10000] [--rounds 6] [--repeats 3]
 """
 
 from __future__ import annotations

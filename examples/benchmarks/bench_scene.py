@@ -2,7 +2,7 @@
 
 Usage::
 
-    python examples/bench_scene.py [--ycbv ../shared/data/ycbv] [--frame 0000/000001] [--repeat 5]
+    python examples/benchmarks/bench_scene.py [--ycbv ../shared/data/ycbv] [--frame 0000/000001] [--repeat 5]
 
 Reports the wall time of :func:`certpose.model.scene.build_scene_field` (FPFH descriptors, free-space
 carving) for a few regions of interest: the first call and the median of the following calls
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-DEFAULT_ROOT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ycbv"
+DEFAULT_ROOT = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "ycbv"
 
 
 def main() -> None:

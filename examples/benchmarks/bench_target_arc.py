@@ -2,7 +2,7 @@
 
 Usage::
 
-    PYTHONPATH=. python examples/bench_target_arc.py [--ycbv ../shared/data/ycbv] [--frames 000001 ...]
+    PYTHONPATH=. python examples/benchmarks/bench_target_arc.py [--ycbv ../shared/data/ycbv] [--frames 000001 ...]
                                                      [--no-demo] [--no-ycbv] [--draws N]
                                                      [--likelihood NAME=VALUE ...] [--revolution auto]
                                                      [--temperature-scale S] [--json OUT]
@@ -12,7 +12,7 @@ classifier, geometry-only model), the marginal of the target ``exp(eq. (1) / T)`
 axis at the default temperature rule (times ``--temperature-scale``) is computed exactly
 (:func:`certpose.sampling.reference.axis_marginal`, ``--draws`` importance draws with the angle
 drawn uniformly; the axis within 30 deg of the truth's), and read as
-``examples/bench_samplers.py`` reads a sampler's distribution: ``in arc`` (the free run that holds
+``examples/benchmarks/bench_samplers.py`` reads a sampler's distribution: ``in arc`` (the free run that holds
 the truth), ``in U`` and ``cov U`` (every free run: mass and 5-deg bin coverage, a bin counting
 when it holds a quarter of a uniform share), ``axis ok`` (axis within 5 deg of the truth's, or of
 the table's normal, and within 1 cm of the truth's axis line). A sampler can do no better than

@@ -26,7 +26,7 @@ and certifies eq. (2) (faster, for exploring settings).
 
 Usage::
 
-    python examples/bench_eq2.py [--ycbv DIR] [--scenes 0000,0002,0049,0050] [--frames 000001 ...]
+    python examples/benchmarks/bench_eq2.py [--ycbv DIR] [--scenes 0000,0002,0049,0050] [--frames 000001 ...]
         [--objects 025_mug ...] [--num-object-points N] [--top-k K] [--noise-bound M]
         [--num-seeds S] [--gnc-seeds G] [--no-mle] [--json OUT]
 """

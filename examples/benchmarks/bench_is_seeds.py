@@ -1,7 +1,7 @@
 """Robustness of the importance sampler over seeds (issue 11): ESS, status, time and the arc figures.
 
 For every seed and scene (the demo mug, and YCB-Video 0000 frames 1-5 with the mug and the
-ground-truth mask classifier, as ``examples/bench_samplers.py``) the MLE runs with that seed and
+ground-truth mask classifier, as ``examples/benchmarks/bench_samplers.py``) the MLE runs with that seed and
 the sampler (``ISParams(resample=10_000)``, default temperature) with the same seed; nothing else
 runs (no baselines). ``--cache DIR`` keeps each (scene, seed)'s MLE seeds in ``DIR`` so that
 sampler variants are compared on the same seeds (the MLE is then not rerun). ``--likelihood``
@@ -27,7 +27,7 @@ defaults give 2475) and the mug's axis within 5 deg / 1 cm 0.63-0.67 of the mass
 0.90-0.91); without its field blur 10/10 (least 1065) and 0.88-0.89; the blur alone (voxel-centre
 free space) 10/10 (least 1607) and 0.70-0.71::
 
-    python examples/bench_is_seeds.py --no-demo --frames 000001 000002 --likelihood \
+    python examples/benchmarks/bench_is_seeds.py --no-demo --frames 000001 000002 --likelihood \
         free_space_at=point field_blur=0.0075 free_space_tolerance=0.0035 free_space_ramp=0.0025
 
 The demo's mug with its body sampled by its axial symmetry (``run_demo``'s model since
@@ -53,7 +53,7 @@ the scene's other free runs, axis within 5 deg / 1 cm), then the least ESS and t
 
 usage::
 
-    PYTHONPATH=. python examples/bench_is_seeds.py --seeds 0 1 2 3 4 [--no-ycbv] [--frames 000001]
+    PYTHONPATH=. python examples/benchmarks/bench_is_seeds.py --seeds 0 1 2 3 4 [--no-ycbv] [--frames 000001]
                                                    [--cache /tmp/is_cache] [--json OUT]
                                                    [--param rounds=10 sweep_rounds=()]
                                                    [--likelihood field_blur=0.0075 ...]

@@ -30,7 +30,7 @@ every pair within 1 cm ADD-S.
 
 Usage::
 
-    python examples/bench_box.py [--models geometry|appearance] [--classifier best-buddies|mask]
+    python examples/benchmarks/bench_box.py [--models geometry|appearance] [--classifier best-buddies|mask]
         [--seed S] [--scenes 0000,0002,0049,0050]
         [--frames 000001 ...] [--objects NAME ...] [--scene-neighbors K] [--min-similarity S]
         [--box-margin PX] [--log-p-box L] [--num-seeds S] [--gnc-seeds G] [--json OUT]

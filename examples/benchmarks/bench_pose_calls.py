@@ -22,8 +22,8 @@ equal, and equal to those before.
 
 usage::
 
-    python examples/bench_pose_calls.py                        # frame 000001 of the four scenes
-    python examples/bench_pose_calls.py --scenes 0000 --rounds 3
+    python examples/benchmarks/bench_pose_calls.py                        # frame 000001 of the four scenes
+    python examples/benchmarks/bench_pose_calls.py --scenes 0000 --rounds 3
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def objects_of(root: Path, frame: str, min_px: int, limit: int | None) -> list[str]:

@@ -15,7 +15,7 @@ beta = 5.54 sigma, uniform weights):
 
 Usage::
 
-    python examples/bench_full_certificate.py [--reps 18] [--quick] [--tim] [--out full_cert.png]
+    python examples/benchmarks/bench_full_certificate.py [--reps 18] [--quick] [--tim] [--out full_cert.png]
 
 Results are printed as a table and plotted (certified fraction and median time per cell).
 """
@@ -42,7 +42,7 @@ CELLS = [(1000, 0.95), (1000, 0.97), (1000, 0.99), (100, 0.8), (100, 0.9), (100,
          (100, 0.0), (100, 0.2), (100, 0.5)]
 
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
 
 
 def load_bunny() -> np.ndarray:

@@ -13,7 +13,7 @@ pose refined locally on the same eq. (1) (:func:`certpose.estimation.mle.refine_
 
 Usage::
 
-    python examples/bench_basins.py [--ycbv DIR] [--scenes 0000,0002,0049,0050]
+    python examples/benchmarks/bench_basins.py [--ycbv DIR] [--scenes 0000,0002,0049,0050]
                                     [--frames 000001 ...] [--objects 024_bowl ...] [--json OUT]
 """
 
@@ -107,7 +107,7 @@ def diagnose(root: Path, frame: str, name: str, *, seed: int = 0, free_space: st
 
 def add_pair_arguments(ap: argparse.ArgumentParser) -> None:
     """The options that choose the YCB-Video pairs (see :func:`pairs`) and the JSON output."""
-    ap.add_argument("--ycbv", type=Path, default=HERE.parents[2] / "shared" / "data" / "ycbv")
+    ap.add_argument("--ycbv", type=Path, default=HERE.parents[3] / "shared" / "data" / "ycbv")
     ap.add_argument("--scenes", default="0000,0002,0049,0050")
     ap.add_argument("--frames", nargs="+", default=None)
     ap.add_argument("--objects", nargs="+", default=None)

@@ -1,6 +1,6 @@
 """Benchmark: certification of the FULL weighted TLS problem (rotation and translation).
 
-Bunny protocol of ``examples/bench_certify.py`` (sigma = 0.01, beta = 5.54 sigma, outliers
+Bunny protocol of ``examples/benchmarks/bench_certify.py`` (sigma = 0.01, beta = 5.54 sigma, outliers
 uniform in a ball of radius 5); the candidate is :func:`solvers.registration.solve_registration`'s
 pose. Prints, per K and outlier ratio and per method, the certified fraction, the median relative
 gap and the median time:
@@ -37,7 +37,7 @@ all of them, and neither search gets close.
 
 Usage::
 
-    python examples/bench_joint_dual.py [--ks 10 20 50] [--ratios 0 0.5 0.8] [--reps 5]
+    python examples/benchmarks/bench_joint_dual.py [--ks 10 20 50] [--ratios 0 0.5 0.8] [--reps 5]
         [--methods joint dense] [--time-limit 60]
 """
 

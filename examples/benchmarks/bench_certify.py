@@ -5,7 +5,7 @@ success (rotation error < 5 deg and translation error < 0.05), for
 
 * ``gnc+certify``: :func:`solvers.solve_registration` then :func:`solvers.certify.certify_result`
   with ``--scope`` (default ``rotation``, the scope of the figures below; the full problem's
-  certificate has its own benchmark, ``examples/bench_full_certificate.py``);
+  certificate has its own benchmark, ``examples/benchmarks/bench_full_certificate.py``);
 * ``sdp``: :func:`solvers.certify.solve_sdp` (the relaxation's own pose);
 
 then the rotation subproblem over TIMs (what TEASER++'s certifier bounds) at K = 20/50/100,
@@ -14,7 +14,7 @@ tightness plot (relative gap against outlier ratio) as a PNG.
 
 Usage::
 
-    python examples/bench_certify.py [--reps 10] [--quick] [--out bench_certify.png]
+    python examples/benchmarks/bench_certify.py [--reps 10] [--quick] [--out bench_certify.png]
 
 Measured (2-core machine, otherwise quiet; ``--reps 10``; every certificate bounds the
 rotation subproblem over the TIMs of the max-clique survivors):
@@ -49,7 +49,7 @@ from solvers.certify.sdp_dual import rotation_dual_certificate
 from solvers.lie import rotation_error_deg, translation_error
 from solvers.problem import WeightedTLSProblem
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
 SIGMA = 0.01
 BETA = 5.54 * SIGMA
 SCOPE = "rotation"

@@ -13,9 +13,9 @@ ratio is only meaningful when it is near zero) and the 1-minute load average at 
 
 Usage::
 
-    python examples/bench_dask_scaling.py --instances 1000 10000 --workers 0 2 \\
+    python examples/benchmarks/bench_dask_scaling.py --instances 1000 10000 --workers 0 2 \\
         --solvers gnc-only
-    python examples/bench_dask_scaling.py --instances 1000 --workers 0 2   # default solvers
+    python examples/benchmarks/bench_dask_scaling.py --instances 1000 --workers 0 2   # default solvers
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import tempfile
 from pathlib import Path
 
 RATIOS = ("0", "0.5", "0.8", "0.9", "0.95")
-BUNNY = Path(__file__).resolve().parents[2] / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
+BUNNY = Path(__file__).resolve().parents[3] / "shared" / "data" / "bunny" / "bun_zipper_res3.ply"
 
 
 def _bench(instances: int, workers: int, solvers: list[str], shape: str | None,
@@ -44,7 +44,7 @@ def _bench(instances: int, workers: int, solvers: list[str], shape: str | None,
         cmd += ["--solvers", *solvers]
     if batch is not None:
         cmd += ["--batch-size", str(batch)]
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     load = os.getloadavg()[0]
     busy0, cpu0 = _machine_busy(), _children_cpu()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)

@@ -2,7 +2,7 @@
 
 Usage::
 
-    PYTHONPATH=. python examples/bench_samplers.py [--ycbv ../shared/data/ycbv] [--frames 000001 ...]
+    PYTHONPATH=. python examples/benchmarks/bench_samplers.py [--ycbv ../shared/data/ycbv] [--frames 000001 ...]
                                                    [--no-ycbv] [--seeds 0 1 2] [--json OUT]
                                                    [--kde-check] [--temperature-scale S]
                                                    [--target-marginal demo|all|none] [--target-draws N]
@@ -452,7 +452,7 @@ def add_scene_args(ap: argparse.ArgumentParser, *, demo: bool = True) -> None:
     YCB-Video folder and scene 0000's frames, and the switches that leave the demo or YCB-Video
     out."""
     ap.add_argument("--ycbv", type=Path,
-                    default=Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv")
+                    default=Path(__file__).resolve().parents[3] / "shared" / "data" / "ycbv")
     ap.add_argument("--frames", nargs="+", default=["000001", "000002", "000003", "000004", "000005"])
     ap.add_argument("--no-ycbv", action="store_true", help="the demo scene only")
     if demo:

@@ -255,7 +255,7 @@ Voronoi 5.8-8.3 / 4.3-5.3 / 3.7-7.4, with the descriptor blur as well 3.7-6.2 / 
 2.7-6.4; the similarity then carries most of it.) With the default likelihood, Voronoi areas
 alone: range 21.7 / 26.2 / 25.0 / 16.8 / 22.3 nats (body 14-21; equal areas 22-37), drop 6.8 /
 4.2 / -0.4 / 12.4 / 14.2, ratio 3.20 / 6.27 / inf / 1.35 / 1.57 (equal areas 3.27 / 4.52 / inf /
-9.52 / 1.02). On ``examples/bench_basins.py`` (60 pairs) Voronoi areas as the default model
+9.52 / 1.02). On ``examples/benchmarks/bench_basins.py`` (60 pairs) Voronoi areas as the default model
 keep 60/60 basins and ADD-S <= 1 cm, and non-symmetric rotation <= 10 deg goes 15 -> 21 of 46
 (the mug on frames 2-5 within 10.5 deg of the truth, was 65-134 deg off). The default model
 since 2026-11-26 (with the importance sampler's ``birth_weight`` 0.05 -> 0.02: the mug's other
@@ -276,18 +276,18 @@ into its descriptor similarity, free-space charge and classifier term (``body.de
 
 usage::
 
-    python examples/bench_arc.py                                   # frames 1-5
-    python examples/bench_arc.py --frames 000001 --c-empty -30 --erosion 2
-    python examples/bench_arc.py --tolerance 0.0075 --ramp 0.005 --c-empty -20
-    python examples/bench_arc.py --sampling surface --density 4
-    python examples/bench_arc.py --json arc.json                  # the profiles, for plotting
-    python examples/bench_arc.py --plot arc.png                   # eq. (1) against the angle, per frame
-    python examples/bench_arc.py --free-space pixels --arc-free-space pixels --arc-max-violations 10
-    python examples/bench_arc.py --field-blur 0.0075              # the classifier's term spread
-    python examples/bench_arc.py --free-space-at point            # free space charged at the point
-    python examples/bench_arc.py --free-space-at point --field-blur 0.0075 --tolerance 0.0035 \
+    python examples/benchmarks/bench_arc.py                                   # frames 1-5
+    python examples/benchmarks/bench_arc.py --frames 000001 --c-empty -30 --erosion 2
+    python examples/benchmarks/bench_arc.py --tolerance 0.0075 --ramp 0.005 --c-empty -20
+    python examples/benchmarks/bench_arc.py --sampling surface --density 4
+    python examples/benchmarks/bench_arc.py --json arc.json                  # the profiles, for plotting
+    python examples/benchmarks/bench_arc.py --plot arc.png                   # eq. (1) against the angle, per frame
+    python examples/benchmarks/bench_arc.py --free-space pixels --arc-free-space pixels --arc-max-violations 10
+    python examples/benchmarks/bench_arc.py --field-blur 0.0075              # the classifier's term spread
+    python examples/benchmarks/bench_arc.py --free-space-at point            # free space charged at the point
+    python examples/benchmarks/bench_arc.py --free-space-at point --field-blur 0.0075 --tolerance 0.0035 \
         --ramp 0.0025 --descriptor-blur 0.0035                    # the scene descriptors spread too
-    python examples/bench_arc.py --area-weights voronoi --sampling-seed 1   # the model's sampling
+    python examples/benchmarks/bench_arc.py --area-weights voronoi --sampling-seed 1   # the model's sampling
 
 The model's body sampled with its axial symmetry (2026-11-26, ``--revolution auto``,
 :func:`certpose.geometry.objects.object_from_points` ``revolution="auto"``: one wedge of the
@@ -485,7 +485,7 @@ def plot_profiles(angles: np.ndarray, dump: list[dict], guard: float, path: Path
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    here = Path(__file__).resolve().parents[1]
+    here = Path(__file__).resolve().parents[2]
     ap.add_argument("--data", type=Path, default=here.parent / "shared" / "data" / "ycbv")
     ap.add_argument("--frames", default="000001,000002,000003,000004,000005")
     ap.add_argument("--step", type=float, default=2.0, help="degrees between angles")
