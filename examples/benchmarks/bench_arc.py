@@ -1,4 +1,4 @@
-"""Shape of eq. (1) along the mug's hidden-handle arc (issue #10 item 5, issue #11's arc target).
+"""Shape of eq. (1) along the mug's hidden-handle arc: flat inside, steep outside?
 
 YCB-Video scene 0000: the mug's handle is hidden for a range of rotations about the mug's own
 axis. For every angle on a grid (default every 2 deg over the whole circle) the pose is the
@@ -7,17 +7,17 @@ ground truth turned about the mug's axis, with the other five degrees of freedom
 
 Two arcs are compared:
 
-* **computed** (issue #11's definition): per frame, the arc of angles about the axis through the
+* **computed** (the free-space definition): per frame, the arc of angles about the axis through the
   ground truth on which no point of the mug (``points.xyz``) stands deeper than ``--arc-tolerance``
   (default one voxel) in the scene's observed free space, brute force on a 0.5 deg grid
   (:func:`certpose.model.arc.free_space_arc`), independent of eq. (1) and the sampler. The arc is
   the free run that holds the ground truth; the other free runs (where the handle hides behind
   the foam brick or in pixels without depth) are printed with the best eq. (1) found in them.
   Outside = angles at least ``--guard`` degrees from every free run.
-* **stated**: the issue's rough statement, -15..+80 deg, with outside = at least ``--guard`` deg
+* **stated**: the rough statement, -15..+80 deg, with outside = at least ``--guard`` deg
   beyond its ends within -60..120 deg (the window of the earlier figures).
 
-Figures (defaults, 2026-11-23, deterministic): computed arcs -26..80.5, -25..98.5, -27.5..80.5,
+Figures (defaults, deterministic): computed arcs -26..80.5, -25..98.5, -27.5..80.5,
 -25..82, -29..83 deg; ratio on them 1.83 / 1.75 / 1.95 / 0.96 / 1.05 (mean 1.51), on the stated
 arc 0.39. Inside the computed arc the handle's share varies by 68-142 nats, all of it in the
 last 10-15 deg of each end, where its tip stands 3-5 mm deep in free space (within the arc's
@@ -31,7 +31,7 @@ flattens the inside to 23-32 nats but the refinement then escapes the outside to
 With eq. (1)'s free space read per pixel of the depth image (``--free-space pixels``,
 ``LikelihoodParams.free_space="pixels"``) and the arc computed with the same test
 (``--arc-free-space pixels --arc-max-violations 10``; arcs -25..86, -23.5..86, -21..85, -26..94,
--27.5..85 deg), 2026-11-23, ``--step 5``: the handle's share is flat inside (exactly its
+-27.5..85 deg), ``--step 5``: the handle's share is flat inside (exactly its
 unobserved value over -25..70 deg unrefined on frame 1) and eq. (1)'s range inside falls to 34-38 nats on
 four frames (59 on frame 5; the body's own roughness, 24-38 nats, is now most of it), but the
 refined drop to the best angle outside falls too, to 31-39 nats (voxels: 73-109): the best
@@ -39,7 +39,7 @@ outside angles lie 10 deg beyond the other free runs, where the handle is barely
 Ratio on these arcs 0.98 / 1.12 / 1.16 / 0.96 / 1.66 (mean 1.18) against 1.40 / 0.56 / 1.27 /
 1.60 / 1.13 (mean 1.19) with the voxel default; the mean |step| falls from 9.3-13.0 to 4.6-6.8.
 
-Where the body's roughness comes from (2026-11-26, graded voxel free space, ``--step 5``):
+Where the body's roughness comes from (graded voxel free space, ``--step 5``):
 the body is round (its outer wall within 0.1 mm of a circle), the axis fit is right (the
 circle's centre moves < 0.3 mm with height), and the Powell refinement is not the noise
 (restarts and four more starts move the refined values by < 2 nats). The refined body's range
@@ -67,7 +67,7 @@ classifier blur 7.5 mm      13.3 17.5 15.7 14.4  9.1 (body 7-9)    0.45 0.71 0.7
 classifier blur 10 mm       10.4 19.7 16.2 13.1  8.5 (body 6-8)    0.35 0.78 0.71 0.97 0.36 (0.63)
 ==========================  =====================================  ===========================
 
-At the default 2-deg step (2026-11-26, graded voxel free space): default range inside 38.4 /
+At the default 2-deg step (graded voxel free space): default range inside 38.4 /
 33.0 / 39.0 / 32.1 / 23.8 nats (body 22-37), drop 11.7 / 7.3 / -3.0 / 3.4 / 23.4, ratio 3.27 /
 4.52 / inf / 9.52 / 1.02; ``--field-blur 0.0075`` range 15.9 / 29.3 / 18.9 / 11.7 / 12.8 (body
 6.6-10.0), drop 26.6 / 24.4 / 19.1 / 14.7 / 24.5, ratio 0.60 / 1.20 / 0.99 / 0.80 / 0.52 (mean
@@ -96,7 +96,7 @@ Why the target (<= 0.25) is still out of reach with the blur (7.5 mm, ``--step 5
   (6.2-9.5 nats) but the drop falls to -1.7..8.7. Per-pixel free space with the blur
   (``--free-space pixels --arc-free-space pixels --arc-max-violations 10``): mean 1.17.
 
-Free space charged at the point (2026-11-26, ``--free-space-at point``,
+Free space charged at the point (``--free-space-at point``,
 ``LikelihoodParams.free_space_at="point"``): the distances into free space are blended and the
 ramp applied to the point's own depth (the arc's measure), so nothing is charged before a point
 passes the tolerance. The arc's ends are then flat: the handle's share varies by 0.0-0.1 nats
@@ -162,7 +162,7 @@ frame 4's drop stays at 10-16 nats. Cheaper, 2 deg, tolerance 3.5 mm at the poin
 points (``--density 4``) 0.32 1.09 0.47 0.53 0.32 (mean 0.54, body 4.1-6.6 nats); a 10-mm blur
 at the default density 0.50 0.94 0.61 1.36 0.39 (mean 0.76, body 6.3-9.4).
 
-Which term carries the body's range (2026-11-26, the option set above: ``--free-space-at point
+Which term carries the body's range (the option set above: ``--free-space-at point
 --field-blur 0.0075 --tolerance 0.0035 --ramp 0.0025``, 2 deg). The body's share at the refined
 poses is split into the descriptor similarity (``body.desc``: eq. (1) minus its beta = 0 value),
 the free-space charge (``body.free``: beta = 0 minus beta = 0 without a charge, ``c_empty`` =
@@ -258,7 +258,7 @@ alone: range 21.7 / 26.2 / 25.0 / 16.8 / 22.3 nats (body 14-21; equal areas 22-3
 9.52 / 1.02). On ``examples/benchmarks/bench_basins.py`` (60 pairs) Voronoi areas as the default model
 keep 60/60 basins and ADD-S <= 1 cm, and non-symmetric rotation <= 10 deg goes 15 -> 21 of 46
 (the mug on frames 2-5 within 10.5 deg of the truth, was 65-134 deg off). The default model
-since 2026-11-26 (with the importance sampler's ``birth_weight`` 0.05 -> 0.02: the mug's other
+now (with the importance sampler's ``birth_weight`` 0.05 -> 0.02: the mug's other
 hiding places score closer to the arc, and stray heavy draws there need components sooner).
 The rows "seed 0 (the default model)" above are the equal areas of before.
 
@@ -268,7 +268,7 @@ model's own z axis through the origin would move the body and roughen the profil
 
 Printed per frame: the range of eq. (1) inside the arc, the drop from the inside's mean to the
 best value outside (outside: at least ``--guard`` degrees beyond the arc's ends), their ratio
-(issue #10's target: <= 1/4), the mean absolute step between neighbouring angles (roughness),
+(a flat arc with a steep drop reads <= 1/4), the mean absolute step between neighbouring angles (roughness),
 and the same for the part of eq. (1) without the descriptor similarity (beta = 0), for the
 body's and the handle's shares of eq. (1) at the refined poses, and for the body's share split
 into its descriptor similarity, free-space charge and classifier term (``body.desc``,
@@ -289,7 +289,7 @@ usage::
         --ramp 0.0025 --descriptor-blur 0.0035                    # the scene descriptors spread too
     python examples/benchmarks/bench_arc.py --area-weights voronoi --sampling-seed 1   # the model's sampling
 
-The model's body sampled with its axial symmetry (2026-11-26, ``--revolution auto``,
+The model's body sampled with its axial symmetry (``--revolution auto``,
 :func:`certpose.geometry.objects.object_from_points` ``revolution="auto"``: one wedge of the
 body's samples turned about the axis, the same number of points), ``--step 5``, ratio per frame
 1-5 (mean): default likelihood 1.69 2.63 2.88 1.47 1.16 (1.97) -> 0.30 0.92 0.83 0.60 0.54 (0.64;
@@ -309,7 +309,7 @@ from pathlib import Path
 
 import numpy as np
 
-ARC = (-15.0, 80.0)  # the issue's rough statement of the arc, degrees
+ARC = (-15.0, 80.0)  # the rough statement of the arc, degrees
 WINDOW = (-60.0, 120.0)  # where the stated arc's outside was measured (earlier figures)
 
 

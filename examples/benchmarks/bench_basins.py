@@ -1,4 +1,4 @@
-"""Missed basins: eq. (1) at the returned pose against the ground truth refined locally (issue 10).
+"""Missed basins: eq. (1) at the returned pose against the ground truth refined locally.
 
 For every visible (frame, object) pair of the given YCB-Video scenes (the pairs
 ``../shared/tools/ycbv_eval.py`` scores: more than ``--min-px`` labelled pixels), with the
@@ -7,7 +7,7 @@ pose refined locally on the same eq. (1) (:func:`certpose.estimation.mle.refine_
 ``eq1(returned) - eq1(refined truth)`` splits the failures in two:
 
 * gap < -1 nat: **the search missed a better basin** (the likelihood prefers the truth's basin,
-  the returned pose is worse): issue 10's target asks for gap >= -1 in >= 95% of pairs;
+  the returned pose is worse): the target is gap >= -1 in >= 95% of pairs;
 * gap >= -1 with a large error: **the likelihood prefers the wrong pose** (a model problem, e.g.
   a box's flips without appearance).
 
@@ -85,7 +85,7 @@ def diagnose(root: Path, frame: str, name: str, *, seed: int = 0, free_space: st
     err = pose_errors(mle.T_scene_object, T_gt, points, symmetry_axis=axis).to_dict()
     err_ref = pose_errors(T_ref, T_gt, points, symmetry_axis=axis).to_dict()
     gap = ll_ret - float(ll_ref)
-    # Issue 10's geometry-only target: where a flip ties, the truth is among the reported modes.
+    # The geometry-only target: where a flip ties, the truth is among the reported modes.
     mode_err = [pose_errors(m.T_scene_object, T_gt, points, symmetry_axis=axis).to_dict()
                 for m in mle.modes] or [err]
     k = int(np.argmin([e["rotation_deg"] for e in mode_err]))

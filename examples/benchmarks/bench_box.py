@@ -1,4 +1,4 @@
-"""Pose with appearance models and without a mask (issue 10, items 1 and 6).
+"""Pose with appearance models and without a mask.
 
 For every visible (frame, object) pair of the given YCB-Video scenes (the pairs
 ``../shared/tools/ycbv_eval.py`` scores: more than ``--min-px`` labelled pixels), the pose is
@@ -24,7 +24,7 @@ Object models (``--models``):
   model is built from every frame of the *other* scene(s) that hold the object
   (:func:`certpose.estimation.pipeline.build_ycbv_object_model`), never from the scene evaluated.
 
-Issue 10's targets: box-only, ADD-S <= 1 cm in >= 80% of pairs; appearance models (item 1),
+Targets: box-only, ADD-S <= 1 cm in >= 80% of pairs; appearance models (item 1),
 non-symmetric objects: rotation <= 10 deg or ADD <= 10% of the diameter in >= 90% of pairs and
 every pair within 1 cm ADD-S.
 

@@ -1,11 +1,11 @@
-"""Calibration of the pose distribution on the shared YCB-Video frames (issue #11).
+"""Calibration of the pose distribution on the shared YCB-Video frames.
 
 For every visible (frame, object) pair of the given scenes, with the frame's ground-truth mask
 as the classifier, the MLE is found once (cached with ``--cache DIR``: the seeds, the MLE and the
 truth's eq. (1) values), then the importance sampler is run at one or more temperatures and the
 ground-truth pose's highest-density credible level is recorded: the truth lies inside the 90%
 (50%) credible region when its level is <= 0.9 (0.5). A calibrated distribution puts it inside
-the 90% region in 80-100% of pairs and inside the 50% region in 35-65% (the issue's target).
+the 90% region in 80-100% of pairs and inside the 50% region in 35-65% (the target).
 Models: geometry-only (``points.xyz``) on every pair, and, with ``--appearance``, appearance models
 built from the views of the *other* scene for the objects seen in two scenes (never evaluated on
 the scene whose views built them).

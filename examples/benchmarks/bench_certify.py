@@ -1,4 +1,4 @@
-"""Benchmark of the certifier on the bunny protocol (NOTES.md section 3).
+"""Benchmark of the certifier on the bunny (the TEASER++/QUASAR protocol).
 
 Prints, per N and outlier ratio: fraction certified, median relative gap, median time and
 success (rotation error < 5 deg and translation error < 0.05), for

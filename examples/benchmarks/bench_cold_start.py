@@ -15,7 +15,7 @@ operating system does not add it to the command's). ``--fresh-model-cache`` give
 run an empty model cache too (``CERTPOSE_CACHE_DIR``; the warm run reuses it): a fresh install.
 Without it the user's model cache is used (the demo's model is built once, then read).
 
-Issue #8's targets: cold ``register --demo`` <= 5 s, cold ``pose --demo`` <= 12 s.
+Targets: cold ``register --demo`` <= 5 s, cold ``pose --demo`` <= 12 s.
 
 Measured on the 2-core VM, idle (load 1.2-1.5), two runs of ``--repeat 3``, best / median wall
 s: cold ``register --demo`` 4.90 / 5.05 and 5.28 / 5.57 (8.9-10 CPU s: the warm-up's helper
@@ -31,22 +31,22 @@ and 4.76 / 4.90. Interleaved with the code before them (8 runs each, fresh cache
 cold register median 5.81 -> 4.71 s. The VM's speed varies by up to 2x within minutes: only
 interleaved figures compare code.
 
-2026-11-26, quiet (load 0.6-1.2), ``--repeat 2``, after the eq. (1) kernel's kept corner values
+quiet (load 0.6-1.2), ``--repeat 2``, after the eq. (1) kernel's kept corner values
 (9758705) and the deferred NumPy tool packages (3b1f607): cold ``register --demo`` 3.26 / 3.33 s
 (5.84 CPU s), ``pose --demo`` 6.75 / 6.76 s (12.49 CPU s); warm 0.62 / 0.63 and 2.53 / 2.54 s.
 
-2026-11-26, loaded (load 3-7, other sessions' jobs), ``--commands pose``, one cold + one warm run
+loaded (load 3-7, other sessions' jobs), ``--commands pose``, one cold + one warm run
 each, interleaved with the code before the scene's FPFH kernels (certpose.geometry._fpfh_kernels,
 deferred: compiled by the helper last, waited for at the end of the run): cold CPU s 22.4 / 26.5
 against 17.8 / 17.6 before; warm 5.95 / 6.42 against 5.58 / 5.14 (``pose --demo`` builds its
 object model from views every run). The walls (33-65 s cold) say only how loaded the machine was.
 
-2026-11-26, quiet (load 0.3-0.7), ``--commands pose``, after the demo's model became the
+quiet (load 0.3-0.7), ``--commands pose``, after the demo's model became the
 axially resampled one (built about 2 s, then kept in the model cache): cold 13.77 s (21.0 CPU s)
 with the demo's model in the model cache, 16.88 s (24.9 CPU s) with ``CERTPOSE_CACHE_DIR`` empty
-too (a fresh install); warm 2.60 / 2.98 s. Issue #8's 12 s is no longer met.
+too (a fresh install); warm 2.60 / 2.98 s. The 12-s target is no longer met.
 
-2026-11-26 afternoon, after the detached compilation of the deferred kernels (solvers.jit) and
+after the detached compilation of the deferred kernels (solvers.jit) and
 the demo's model without the unused per-view normals, ``--commands pose register
 --fresh-model-cache``, interleaved with the code before (four rounds, two of them at
 ``nice -n -15``; load 7-9.5 from other sessions, so every wall is 2-3x a quiet machine's): cold

@@ -1,5 +1,5 @@
 """Does eq. (2) carry the MLE? Per YCB-Video pair: its inliers at the true pose, its raw pose, and
-whether its pose, refined on eq. (1), wins (issue 10, item 2).
+whether its pose, refined on eq. (1), wins.
 
 For every visible (frame, object) pair of the given scenes (the pairs
 ``../shared/tools/ycbv_eval.py`` scores: more than ``--min-px`` labelled pixels), with the
@@ -20,7 +20,7 @@ x ``--top-k``, as the MLE built eq. (2) before; ``--no-mle`` always builds that 
 * solve and certify times (the certifier runs in a thread beside the coarse search), and the
   MLE's total.
 
-The summary line gives the two fractions issue 10 targets: raw ADD-S <= 1 cm in >= 80% of
+The summary line gives the two target fractions: raw ADD-S <= 1 cm in >= 80% of
 pairs, eq. (2) wins (or is within 0.5 cm / 2 deg) in >= 80%. ``--no-mle`` only builds, solves
 and certifies eq. (2) (faster, for exploring settings).
 

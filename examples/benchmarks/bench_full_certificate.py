@@ -1,7 +1,7 @@
 """Benchmark of the full-problem certificate (clique decomposition) on the bunny protocol.
 
-Measures the targets of the certificates issue, per cell (N, outlier ratio), on ``--reps``
-instances (default 18; NOTES.md section 3: bunny in the unit cube, sigma = 0.01,
+Measures the certificate's targets, per cell (N, outlier ratio), on ``--reps``
+instances (default 18; the TEASER++/QUASAR protocol: bunny in the unit cube, sigma = 0.01,
 beta = 5.54 sigma, uniform weights):
 
 * ``cert``: fraction of ``register(certify=True)`` poses certified for the full problem, and the

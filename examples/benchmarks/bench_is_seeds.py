@@ -1,4 +1,4 @@
-"""Robustness of the importance sampler over seeds (issue 11): ESS, status, time and the arc figures.
+"""Robustness of the importance sampler over seeds: ESS, status, time and the arc figures.
 
 For every seed and scene (the demo mug, and YCB-Video 0000 frames 1-5 with the mug and the
 ground-truth mask classifier, as ``examples/benchmarks/bench_samplers.py``) the MLE runs with that seed and
@@ -8,8 +8,8 @@ sampler variants are compared on the same seeds (the MLE is then not rerun). ``-
 sets eq. (1)'s constants for the MLE and the target (as ``bench_samplers.py --likelihood``; its
 cached seeds are kept apart from the defaults').
 
-Issue 11's speed target (10,000 resampled particles, ESS >= 1,000, <= 2 s of sampling), quiet
-(load 0.3-1.4), 2026-11-26 afternoon, ``--seeds 0 1 2 3 4 --cache DIR``, the half-turn seeds on
+The sampler's speed target (10,000 resampled particles, ESS >= 1,000, <= 2 s of sampling), quiet
+(load 0.3-1.4), ``--seeds 0 1 2 3 4 --cache DIR``, the half-turn seeds on
 (the default) and the proposal density compiled: ESS >= 1,000 in 30/30 runs (least 1,670; the
 demo 5,799-6,640), sampling median 1.48 s, max 1.61 s (the seeds' Laplace fits and the half turns'
 search now counted). The same seeds just before (NumPy density): median 1.81-1.83 s, max 2.22-2.38
@@ -22,7 +22,7 @@ quiet (load 1.4, seeds 0-4, the same cached seeds): ESS >= 1,000 in 30/30 (least
 median 1.31 s, max 1.59 s.
 
 The arc's option set (``LikelihoodParams.field_blur``) as the target, with the Voronoi-area models
-(2026-11-26, seeds 0-4, frames 1-2): ESS >= 1000 in 8/10 (least 439, 0000/000002 seed 0, where the
+(seeds 0-4, frames 1-2): ESS >= 1000 in 8/10 (least 439, 0000/000002 seed 0, where the
 defaults give 2475) and the mug's axis within 5 deg / 1 cm 0.63-0.67 of the mass (defaults
 0.90-0.91); without its field blur 10/10 (least 1065) and 0.88-0.89; the blur alone (voxel-centre
 free space) 10/10 (least 1607) and 0.70-0.71::
@@ -30,14 +30,14 @@ free space) 10/10 (least 1607) and 0.70-0.71::
     python examples/benchmarks/bench_is_seeds.py --no-demo --frames 000001 000002 --likelihood \
         free_space_at=point field_blur=0.0075 free_space_tolerance=0.0035 free_space_ramp=0.0025
 
-The demo's mug with its body sampled by its axial symmetry (``run_demo``'s model since
-2026-11-26; 2026-11-26, seeds 0-4, load 6): final ESS 2,303-6,159 (YCB-Video frames 1-5
-unchanged: least 1,671); after the faster axis search (a597463, the model moved by hundredths
+The demo's mug with its body sampled by its axial symmetry (``run_demo``'s model;
+seeds 0-4, load 6): final ESS 2,303-6,159 (YCB-Video frames 1-5
+unchanged: least 1,671); after the faster axis search (the model moved by hundredths
 of a degree), quiet, seeds 0-9: 6,059 4,938 5,601 6,182 **563** 6,391 6,072 6,642 2,856 6,154.
 Seed 4's heaviest final draws are the mug upside down (tilt 177 deg, its refined peak 4.2
 tempered nats below the MLE), a basin no pilot round reached. ``ISParams.half_turns`` (the
-default since 2026-11-26's afternoon; ``--param half_turns=False`` for the former sampler: the MLE's half turns about the model's principal axes, refined, as
-seeds within 20 tempered nats of the best, 5% of the initial mixture each; 2026-11-26, the same
+default now; ``--param half_turns=False`` for the former sampler: the MLE's half turns about the model's principal axes, refined, as
+seeds within 20 tempered nats of the best, 5% of the initial mixture each; the same
 cached MLE seeds): demo seeds 0-19, least ESS 563 -> 1,465, median 6,113 -> 6,154 (seed 4 563
 -> 6,193); YCB-Video 0000 frames 1-5 seeds 0-4 unchanged but for 000002 seed 2 (2,399 ->
 2,738; the mug's half turns there lie 18-102 nats below, all but that one beyond the window).
@@ -80,7 +80,7 @@ def _demo(seed: int, cache: Path | None, lparams=None, tag: str = ""):  # noqa: 
     from certpose.geometry.features import FPFHBackbone
     from certpose.model.arc import free_space_arc
 
-    # "rev": the demo's model has had its body sampled with its symmetry since 2026-11-26.
+    # "rev": the demo's model has had its body sampled with its symmetry now.
     f = cache / f"demo_{seed}{tag}_rev.npz" if cache else None
     if f is not None and f.exists():
         from dataclasses import replace

@@ -9,12 +9,12 @@ object model from its cache, the MLE, printing), so it moves with the machine's 
 The poses of the two ways must be equal: the script checks them (largest difference of the
 4x4 ``T_camera_object`` entries).
 
-Issue #10 item 7: the MLE in <= 1 s median per frame, <= 2 s including scene building. Measured
-2026-11-26, quiet 2-core VM (load 1.2-1.3), ``--rounds 2``, frame 000001 of scenes 0000, 0002, 0049,
+Target: the MLE in <= 1 s median per frame, <= 2 s including scene building. Measured
+quiet 2-core VM (load 1.2-1.3), ``--rounds 2``, frame 000001 of scenes 0000, 0002, 0049,
 0050 (18 pairs): one call per pair, median 1.94 s (37.1 s a round); one call per frame, 20.9 s a
 round, 1.16 s per pair; the poses of the two ways equal.
 
-2026-11-26, load 2.6-4.1 (other sessions' jobs), ``--rounds 1`` twice per tree, alternating,
+load 2.6-4.1 (other sessions' jobs), ``--rounds 1`` twice per tree, alternating,
 before and after the scene's FPFH kernels (no open3d import) and the other exact speed-ups of
 that day: one call per pair, median 2.70 / 2.57 -> 2.20 / 2.26 s (52.4 / 49.6 -> 42.9 / 41.0 s a
 round); one call per frame, 1.65 / 1.66 -> 1.51 / 1.37 s per pair; the poses of the two ways

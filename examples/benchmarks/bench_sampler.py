@@ -1,4 +1,4 @@
-"""Benchmark of the noise-injected importance sampler on the demo mug (issue #11's speed target).
+"""Benchmark of the noise-injected importance sampler on the demo mug.
 
 Target: 10,000 resampled particles with ESS >= 1,000 in <= 2 s of sampling.
 

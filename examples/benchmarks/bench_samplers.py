@@ -26,10 +26,9 @@ Reported per scene and method:
 * ``arc cov``: the fraction of the reference arc of rotations about the mug's axis (relative
   to the ground truth) that gets mass: the arc is cut in 5 deg bins and a bin counts when it
   holds at least a quarter of the mass a uniform distribution over the arc would put in it (a
-  bin the arc covers for 1 deg of its 5 is asked for a fifth of a full bin's share; until
-  2026-11-26 every bin was asked for a full bin's, which a uniform distribution fails at ends
-  that cover under 1.25 deg of their bin). The reference arc is
-  issue 11's: the arc of angles about the mug's axis through the ground truth on which no
+  bin the arc covers for 1 deg of its 5 is asked for a fifth of a full bin's share; asking every bin for a full
+  bin's would fail a uniform distribution at ends that cover under 1.25 deg of their bin). The reference arc is
+  the free-space definition: the arc of angles about the mug's axis through the ground truth on which no
   model point stands in observed free space (:func:`certpose.model.arc.free_space_arc`, brute
   force on a 0.5 deg grid with its default one-voxel tolerance, independent of eq. (1) and of
   the samplers). With ``--arc slice`` on the demo: the angles whose tempered eq. (1) is within
@@ -38,32 +37,32 @@ Reported per scene and method:
   handle hides elsewhere, e.g. behind the foam brick in scene 0000).
 * ``axis ok``: the mass whose axis direction is within 5 deg of the truth's and whose axis
   passes within 1 cm of the truth's (distance of the particle's axis point at the body centre
-  from the true axis line). Issue 11's "right ambiguity" target, for ours at the default
+  from the true axis line). The "right ambiguity" target, for ours at the default
   temperature: ``arc cov`` 1, ``in arc`` >= 0.95, ``axis ok`` >= 0.95 (printed as a verdict
   per frame).
 * ``axis ok`` against the table: the same with the axis's direction measured against the normal
   of the plane the mug stands on (:func:`support_normal`, fitted to the frame's depth pixels,
   independent of the ground truth). In scene 0000 the ground truth's axis lies about 2 deg from
   that normal in every frame (1.9-2.4 deg on frames 1-5, the base 0.1-0.6 mm above the plane),
-  while ours' weighted mean axis lies 0.4-0.7 deg from it (2026-11-26): a flat-bottomed mug
+  while ours' weighted mean axis lies 0.4-0.7 deg from it : a flat-bottomed mug
   standing on the table cannot tilt by 2 deg, so that share of the tilt is the ground truth's.
-  No temperature meets the right-ambiguity verdict (2026-11-26, seed 0, frames 1-5, union
+  No temperature meets the right-ambiguity verdict (seed 0, frames 1-5, union
   reading, axis against the table): at the default rule ``axis ok`` 0.84-0.96, ``in U``
   0.84-0.95, ``cov U`` 0.82-0.87; ``--temperature-scale 0.5``: 0.95-0.99, 0.79-0.98 but ``cov U``
   0.51-0.71; 0.25: 0.99-1.00, 0.72-1.00, ``cov U`` 0.23-0.39. Sharper targets uncover eq. (1)'s
-  unevenness along the arc (issue 10 item 5).
-  With the mug's body sampled with its axial symmetry (``--revolution auto``, 2026-11-26, seed
+  unevenness along the arc.
+  With the mug's body sampled with its axial symmetry (``--revolution auto``, seed
   0): at the default rule ``cov U`` 0.90-0.98, ``in U`` 0.90-0.95, ``axis ok`` (truth) 0.78-0.91,
   the true arc holding 0.60-0.66 (more in the other free runs); at ``--temperature-scale 0.5``
   ``in U`` 0.95-0.99 and ``axis ok`` 0.90-0.99 (table 0.94-0.99) but ``cov U`` 0.79-0.87 (some bins
   of the other free runs hold less than a quarter of a uniform share): still no verdict.
-* the demo's arc (``--demo-arc render``, the default since 2026-11-26) is exact: the angles at
+* the demo's arc (``--demo-arc render``, the default now) is exact: the angles at
   which the turned mug's handle shows in no pixel of the rendered scene
   (:meth:`~certpose.data.synthetic.SyntheticScene.hidden_handle_arc`), where the image is the
   scene's own and the exact marginal about the axis is uniform. ``--demo-arc voxels`` gives the
   free-space test instead, whose one-voxel tolerance reaches 8-20 deg further (seeds 0-1:
   -162..49.5 against -153.5..35, -138.5..72 against -131..53). The demo's figures, its mug
-  sampled by its symmetry (2026-11-26, seeds 0-4, default temperature): ``arc cov`` 0.97-1.00,
+  sampled by its symmetry (seeds 0-4, default temperature): ``arc cov`` 0.97-1.00,
   ``in arc`` 0.89-0.96, ``axis ok`` 0.97-0.99, and the total variation of the marginal (5 deg
   bins) from the uniform on the arc 0.060-0.109 (Nevergrad DE 0.42-0.86, MCMC 0.16-0.23; the same seeds on
   1c51227, loaded: 0.064-0.133, seed 4 the sampler's least ESS, 563). The
@@ -76,15 +75,15 @@ Reported per scene and method:
   marginal of ``exp(eq. (1) / T)`` itself about the axis, its other five degrees of freedom
   integrated at every angle (:func:`certpose.sampling.reference.axis_marginal`, ``--target-draws``
   importance draws with the angle drawn uniformly; the axis within 30 deg of the truth's), and
-  each method's total variation from it (5 deg bins) with its mass beyond 30 deg: issue 11's
-  known answer as the issue words it, a test of the sampler alone. 2026-11-26, seeds 0-4, load
+  each method's total variation from it (5 deg bins) with its mass beyond 30 deg: the
+  known-answer test, a test of the sampler alone. seeds 0-4, load
   5-8: ours 0.034-0.044 (0.030-0.048 with the half-turn seeds, the default since; the reference's own expected error 0.018, 25-43 s each), Nevergrad DE
   0.42-0.84, MCMC 0.072-0.099 with 13-25% of its mass beyond 30 deg; against the rendered arc's
   uniform (the model and the sampler together) ours 0.064-0.133 on the same runs.
 * ``cov|arc``: ``arc cov`` of the distribution conditioned on the arc (a bin counts when it
   holds a quarter of a uniform share of the mass *in the arc*): whether the mass that is in the
   arc spreads over all of it, whatever share the scene's other free runs take.
-* ``cov U``, ``in U``: the same with the issue's definition read literally, the arc being *every*
+* ``cov U``, ``in U``: the same with the definition read literally, the arc being *every*
   angle at which no model point stands in observed free space (the union of all free runs,
   brute force as above): the handle hidden behind the foam brick is such a pose as much as one
   in the run that holds the truth. The right-ambiguity verdict is printed for both readings.
@@ -279,7 +278,7 @@ def arc_metrics(dist, T_gt: np.ndarray, arc_deg: np.ndarray,  # noqa: ANN001
 
 def free_arc_metrics(dist, T_gt: np.ndarray, arc, centre: np.ndarray,  # noqa: ANN001
                      up: np.ndarray | None = None) -> dict:
-    """Issue 11's "right ambiguity" figures of a distribution against a :class:`FreeSpaceArc`:
+    """The "right ambiguity" figures of a distribution against a :class:`FreeSpaceArc`:
     bin coverage of its arc, mass inside it (exact ends) and in its other free runs, and the mass
     whose axis is within 5 deg and 1 cm of the truth's (and, given the support plane's normal
     ``up``, within 5 deg of ``up`` and 1 cm of the truth's axis)."""

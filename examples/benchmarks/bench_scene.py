@@ -6,7 +6,7 @@ Usage::
 
 Reports the wall time of :func:`certpose.model.scene.build_scene_field` (FPFH descriptors, free-space
 carving) for a few regions of interest: the first call and the median of the following calls
-(open3d's one-off import, ~1.5-2 s, is timed separately). Target (issue 4): <= 3 s per frame.
+(open3d's one-off import, ~1.5-2 s, is timed separately). Target: <= 3 s per frame.
 """
 
 from __future__ import annotations

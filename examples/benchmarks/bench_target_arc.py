@@ -1,4 +1,4 @@
-"""Issue 11's right-ambiguity figures of the target itself, no sampler: does eq. (1) allow them?
+"""The right-ambiguity figures of the target itself, no sampler: does eq. (1) allow them?
 
 Usage::
 
@@ -21,7 +21,7 @@ total variation 0.03-0.07 of this marginal), so they say whether an eq. (1) conf
 (``--likelihood``, ``--revolution``) can meet the right-ambiguity target at all, in about 20-30 s
 per frame instead of a sampler run's noise.
 
-2026-11-26, YCB-Video 0000 frames 1-5, 60,000 draws, loaded machine (reference error 0.027-0.030):
+YCB-Video 0000 frames 1-5, 60,000 draws, loaded machine (reference error 0.027-0.030):
 
 ======================================================  ===========  ===========  ==========
 configuration                                           in U         cov U        in arc

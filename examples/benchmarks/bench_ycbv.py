@@ -15,7 +15,7 @@ is not counted).
 With ``--global-budget N`` it also runs a long Nevergrad search of eq. (1) (TwoPointsDE, N
 evaluations, then the same local refinement) and prints how the eq. (2) minimiser and the MLE
 pose score on eq. (1) against the best pose that search found.
-Targets (issue 4): translation <= 1 cm, symmetry axis <= 5 deg (mug), ADD-S <= 1 cm, MLE <= 2 s.
+Targets: translation <= 1 cm, symmetry axis <= 5 deg (mug), ADD-S <= 1 cm, MLE <= 2 s.
 """
 
 from __future__ import annotations

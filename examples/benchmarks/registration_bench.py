@@ -1,4 +1,4 @@
-"""Run the issue-2 registration benchmark (bunny, NOTES.md section 3) with every peer.
+"""Run the registration benchmark (bunny, the TEASER++/QUASAR protocol) with every peer.
 
 Usage: ``python examples/benchmarks/registration_bench.py [--out DIR] [--trials-1000 T]``. Writes
 ``DIR/n100`` and ``DIR/n1000`` (CSV, JSON, PNG) and prints both tables. Needs
