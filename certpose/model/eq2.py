@@ -510,11 +510,7 @@ def solve_eq2_about_seeds(
 
     With ``seed_mode="each"`` one problem per seed is solved; with ``"union"`` one problem over
     all the seeds' candidates, whose minimiser is the only one. No local rounds yet (see
-    :meth:`SeededEq2.local_rounds`).
-
-    Parameters
-    ----------
-    As :func:`estimate_eq2`.
+    :meth:`SeededEq2.local_rounds`). The parameters are those of :func:`estimate_eq2`.
 
     Returns
     -------
