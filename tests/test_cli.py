@@ -247,14 +247,15 @@ def test_register_certificate_options_with_a_certificate(capsys):  # type: ignor
 
 
 def _documented_command_lines() -> list[str]:
-    """Every `certpose ...` line of the README's shell blocks and of the commands' --help
+    """Every `certpose ...` line of the README's and the docs' shell blocks and of the commands' --help
     examples (continuation lines joined, comments cut; optional [...] parts kept, lines with
     alternatives a|b skipped)."""
     import re
 
     from certpose.cli import build_parser
 
-    texts = re.findall(r"```bash\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    texts = [t for page in pages for t in re.findall(r"```bash\n(.*?)```", page.read_text(), re.S)]
     n_readme = len(texts)
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
@@ -276,7 +277,7 @@ def _documented_command_lines() -> list[str]:
 
 
 def test_documented_command_lines_parse():
-    # The README and the --help examples cannot name an option the parser lost or renamed.
+    # The README, the docs and the --help examples cannot name an option the parser lost or renamed.
     import shlex
 
     from certpose.cli import build_parser
