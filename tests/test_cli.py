@@ -268,8 +268,8 @@ def _documented_command_lines() -> list[str]:
         readme = k < n_readme
         for line in text.replace("\\\n", " ").splitlines():
             line = line.split("  #")[0].strip()
-            if readme and "certpose " in line:  # e.g. "pip install ... && certpose pose --demo"
-                line = line[line.find("certpose "):]
+            if readme and "&& certpose " in line:  # e.g. "pip install ... && certpose pose --demo"
+                line = line[line.rfind("&& certpose ") + 3:]
             if (line.startswith("certpose ") and "|" not in line and "..." not in line
                     and "`" not in line and "[-h]" not in line):
                 lines.append(line.replace("[", "").replace("]", ""))

@@ -408,7 +408,7 @@ def _teaser(inst: Instance) -> _Outcome:
         import teaserpp_python as tpp
     except ImportError as exc:
         raise ImportError("the teaser++ peer needs teaserpp_python, built from TEASER++'s "
-                          "sources (see the README)") from exc
+                          "sources (see docs/how-to/teaser.md)") from exc
     params = tpp.RobustRegistrationSolver.Params()
     params.cbar2 = 1.0
     params.noise_bound = inst.scalar_noise_bound
