@@ -4,7 +4,7 @@ Usage::
 
     python examples/certify_pose.py [--n 60] [--outliers 0.5] [--seed 0]
 
-Builds a bunny-protocol instance (NOTES.md section 3; a synthetic shape when the bunny is not in
+Builds a bunny-protocol instance (the TEASER++/QUASAR protocol; a synthetic shape when the bunny is not in
 ``../shared/data``), registers it with ``certify=True``, and then certifies the same pose, and a
 pose rotated 5 degrees away from it, with :func:`solvers.certify.certify_pose`. A certificate
 vouches only for the pose it is attached to, on the problem it names.

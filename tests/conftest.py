@@ -34,12 +34,12 @@ def require_data(*parts: str) -> Path:
 def mug_on_0000(frame: str = "000001"):
     """The mug on YCB-Video 0000/``frame`` for the hidden-handle arc tests: the pipeline's set-up,
     its ground truth ``T_camera_object``, the body axis' offset in the model frame and
-    ``bench_arc.turned_pose`` (examples/bench_arc.py)."""
+    ``bench_arc.turned_pose`` (examples/benchmarks/bench_arc.py)."""
     import sys
 
     from certpose.estimation.pipeline import ycbv_setup
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "benchmarks"))
     from bench_arc import body_axis_offset, turned_pose
 
     s = ycbv_setup(require_data("ycbv"), f"0000/{frame}", "025_mug")
@@ -53,7 +53,7 @@ def mug_body(obj):  # noqa: ANN001, ANN201
 
 def refined_turn(lik, G: np.ndarray, C: np.ndarray, turned_pose, angle: float) -> np.ndarray:  # noqa: ANN001
     """``G`` turned by ``angle`` deg about the body axis through ``C``, the other five degrees of
-    freedom refined on ``lik`` (Powell, the settings of examples/bench_arc.py): the pose (4, 4)."""
+    freedom refined on ``lik`` (Powell, the settings of examples/benchmarks/bench_arc.py): the pose (4, 4)."""
     from scipy.optimize import minimize
 
     scale = np.array([0.05, 0.05, 0.005, 0.005, 0.005])

@@ -1,4 +1,4 @@
-"""The arc-coverage reading of examples/bench_samplers.py (issue 11's right-ambiguity figures)."""
+"""The arc-coverage reading of examples/benchmarks/bench_samplers.py (the sampler's right-ambiguity figures)."""
 
 import sys
 from pathlib import Path
@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from certpose.sampling.distribution import PoseDistribution
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "benchmarks"))
 from bench_samplers import AXIS, arc_metrics  # noqa: E402
 
 T_REF = np.eye(4)

@@ -247,14 +247,15 @@ def test_register_certificate_options_with_a_certificate(capsys):  # type: ignor
 
 
 def _documented_command_lines() -> list[str]:
-    """Every `certpose ...` line of the README's shell blocks and of the commands' --help
+    """Every `certpose ...` line of the README's and the docs' shell blocks and of the commands' --help
     examples (continuation lines joined, comments cut; optional [...] parts kept, lines with
     alternatives a|b skipped)."""
     import re
 
     from certpose.cli import build_parser
 
-    texts = re.findall(r"```bash\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    texts = [t for page in pages for t in re.findall(r"```bash\n(.*?)```", page.read_text(), re.S)]
     n_readme = len(texts)
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
@@ -267,8 +268,8 @@ def _documented_command_lines() -> list[str]:
         readme = k < n_readme
         for line in text.replace("\\\n", " ").splitlines():
             line = line.split("  #")[0].strip()
-            if readme and "certpose " in line:  # e.g. "pip install ... && certpose pose --demo"
-                line = line[line.find("certpose "):]
+            if readme and "&& certpose " in line:  # e.g. "pip install ... && certpose pose --demo"
+                line = line[line.rfind("&& certpose ") + 3:]
             if (line.startswith("certpose ") and "|" not in line and "..." not in line
                     and "`" not in line and "[-h]" not in line):
                 lines.append(line.replace("[", "").replace("]", ""))
@@ -276,7 +277,7 @@ def _documented_command_lines() -> list[str]:
 
 
 def test_documented_command_lines_parse():
-    # The README and the --help examples cannot name an option the parser lost or renamed.
+    # The README, the docs and the --help examples cannot name an option the parser lost or renamed.
     import shlex
 
     from certpose.cli import build_parser

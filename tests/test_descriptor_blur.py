@@ -130,7 +130,7 @@ def test_descriptor_blur_flattens_the_similarity_of_the_mug_body_along_its_arc()
     # arc where the handle is hidden, the other five degrees of freedom refined on eq. (1) with
     # the classifier's term blurred (7.5 mm). The descriptor similarity's share of the refined
     # body varied by 3.0 nats; with the descriptors blurred by 7.5 mm as well, by 1.0 (every
-    # 5 deg over -20..70 deg; examples/bench_arc.py has the whole arc and its split per term,
+    # 5 deg over -20..70 deg; examples/benchmarks/bench_arc.py has the whole arc and its split per term,
     # where the drop outside the arc falls with it).
     s, G, C, turned_pose = mug_on_0000("000001")
     body = mug_body(s.object_model)

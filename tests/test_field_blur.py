@@ -121,7 +121,7 @@ def test_field_blur_flattens_the_mug_body_along_its_hidden_handle_arc():
     # points per voxel face the refinement finds sub-voxel shifts where the points fall
     # favourably on the one-voxel-thick shell of classifier terms. Spread over 1.5 voxels the
     # shell is smoother than the points' spacing (measured every 10 deg over -20..70 deg:
-    # 28.6 nats unblurred, 6.7 with field_blur=7.5 mm; examples/bench_arc.py has the whole arc).
+    # 28.6 nats unblurred, 6.7 with field_blur=7.5 mm; examples/benchmarks/bench_arc.py has the whole arc).
     s, G, C, turned_pose = mug_on_0000("000001")
     body = mug_body(s.object_model)
     ranges = {}

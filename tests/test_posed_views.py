@@ -137,11 +137,11 @@ def test_object_build_refuses_mixed_sources(tmp_path: Path, capsys) -> None:  # 
     assert not Path(out).exists()
 
 
-def test_the_readmes_manifest_example_loads(tmp_path: Path) -> None:
-    """The manifest shown in README.md ("Your own data") is one the loader reads."""
+def test_the_docs_manifest_example_loads(tmp_path: Path) -> None:
+    """The manifest shown in the object-models how-to is one the loader reads."""
     import re
 
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    readme = (Path(__file__).resolve().parents[1] / "docs" / "how-to" / "object-models.md").read_text()
     doc = json.loads(re.search(r"```json\n(.*?)```", readme, re.S).group(1))
     for view in doc["views"]:  # tiny images under the names it gives
         k = doc["intrinsics"]

@@ -195,7 +195,7 @@ def test_revolution_flattens_the_mug_body_along_its_hidden_handle_arc():
     # YCB-Video 0000/000001: the mug's body (handle dropped) turned about its axis inside the
     # arc where the handle is hidden, the other five degrees of freedom refined on the default
     # eq. (1). The surface is round, so eq. (1) should not move; the Poisson-disk samples do, the
-    # wedge-symmetric samples (revolution="auto") hardly (examples/bench_arc.py has the arc).
+    # wedge-symmetric samples (revolution="auto") hardly (examples/benchmarks/bench_arc.py has the arc).
     from certpose.geometry.features import FPFHBackbone
     from certpose.geometry.objects import object_from_points
     from certpose.model.likelihood import PoseLikelihood

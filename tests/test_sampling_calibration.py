@@ -114,7 +114,7 @@ def test_find_basins_on_the_demo_finds_the_flips():
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "benchmarks"))
     from bench_sampler import build_demo
 
     from certpose.sampling.sampler import seeds_from_mle

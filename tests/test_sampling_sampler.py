@@ -330,7 +330,7 @@ def test_demo_scene_real_likelihood_concentrates_on_truth():
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "benchmarks"))
     from bench_sampler import build_demo
 
     from certpose.sampling.sampler import sample_pose_distribution, seeds_from_mle
@@ -360,7 +360,7 @@ def test_demo_scene_keeps_its_ess(seed):
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "benchmarks"))
     from bench_sampler import build_demo
 
     from certpose.sampling.sampler import sample_pose_distribution, seeds_from_mle
@@ -386,7 +386,7 @@ def test_ycbv_mug_mass_in_the_arc_does_not_hang_on_the_seed():
     from tests.conftest import require_data
 
     root = require_data("ycbv", "0000")
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "benchmarks"))
     from bench_samplers import free_arc_metrics, support_normal, ycbv_problem
 
     from certpose.sampling.sampler import sample_pose_distribution
@@ -418,7 +418,7 @@ def demo_seed1():
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "benchmarks"))
     from bench_samplers import demo_problem
 
     from certpose.sampling.sampler import sample_pose_distribution
@@ -441,7 +441,7 @@ def test_demo_marginal_about_the_axis_is_uniform_on_the_exact_hidden_arc(demo_se
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "benchmarks"))
     from bench_samplers import free_arc_metrics, tv_uniform
 
     _, gt, arc, centre, res = demo_seed1
@@ -462,7 +462,7 @@ def test_demo_marginal_about_the_axis_is_the_targets_exact_marginal(demo_seed1):
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "benchmarks"))
     from bench_samplers import AXIS
 
     from certpose.sampling.plots import axis_angles
@@ -559,7 +559,7 @@ def test_half_turns_option_seeds_the_upside_down_basin():
     import sys
     from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "benchmarks"))
     from bench_sampler import build_demo
 
     from certpose.sampling.sampler import half_turn_seeds, sample_pose_distribution, seeds_from_mle

@@ -291,7 +291,7 @@ def test_voronoi_areas_flatten_the_mug_body_along_its_hidden_handle_arc():
     # term blurred by 7.5 mm, free space charged at the point from 3.5 mm). With equal areas
     # the body's value drifts along the arc by 7.1 nats (the samples' count per region varies by
     # a few percent), with the samples' Voronoi cells by 2.6 (every 5 deg over -20..70 deg;
-    # examples/bench_arc.py has the whole arc).
+    # examples/benchmarks/bench_arc.py has the whole arc).
     from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 
     s, G, C, turned_pose = mug_on_0000("000001")

@@ -1,6 +1,6 @@
 """Registration benchmark: certpose's solvers and peers side by side on the same instances.
 
-Instances come from suites (:mod:`certpose.bench.suites`): the protocol of NOTES.md section 3
+Instances come from suites (:mod:`certpose.bench.suites`): the TEASER++/QUASAR protocol
 on the built-in shape or the Stanford bunny (``N`` points in the unit cube, a random pose,
 Gaussian noise ``sigma`` on the inliers, outliers uniform in a ball of radius 5, noise bound
 ``beta = 5.54 sigma``; success: rotation error < 5 deg and translation error < 0.05), the real
@@ -408,7 +408,7 @@ def _teaser(inst: Instance) -> _Outcome:
         import teaserpp_python as tpp
     except ImportError as exc:
         raise ImportError("the teaser++ peer needs teaserpp_python, built from TEASER++'s "
-                          "sources (see the README)") from exc
+                          "sources (see docs/how-to/teaser.md)") from exc
     params = tpp.RobustRegistrationSolver.Params()
     params.cbar2 = 1.0
     params.noise_bound = inst.scalar_noise_bound

@@ -5,7 +5,7 @@ place, a file path, a data folder) from which any process draws or loads the ins
 (:func:`load_instance`), so Dask workers receive specs, never arrays. Suites (:data:`SUITES`):
 
 ``synthetic``, ``bunny``
-    The protocol of NOTES.md section 3 (:mod:`certpose.data.instances`) on the built-in shape
+    The TEASER++/QUASAR protocol (:mod:`certpose.data.instances`) on the built-in shape
     or the Stanford bunny (``DATA/bunny/bun_zipper_res3.ply``), over the grid of N, outlier
     ratios and trials. Success: rotation error < 5 deg and translation error < 0.05.
 ``3dmatch``

@@ -99,7 +99,7 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--revolution", action="store_true",
                    help="geometry-only model: sample a surface of revolution (a can, a mug's body) "
                         "with its symmetry, so that eq. (1) is flat along a turn about its axis "
-                        "(object_from_points revolution='auto'; not the default, see README)")
+                        "(object_from_points revolution='auto'; not the default: certpose.geometry.revolution has the figures)")
     p.add_argument("--no-certify", action="store_true", help="skip the eq. (2) certificate")
     p.add_argument("--require-certificate", action="store_true",
                    help="exit with code 1 unless the eq. (2) solution is certified")
@@ -124,7 +124,7 @@ def add_parser(subparsers: Any) -> None:
                           "its population weighted (the paper's sampler); mcmc: random-walk "
                           "Metropolis on SE(3). The baselines get the same target and number of "
                           "eq. (1) evaluations. calibrated: exact draws of the calibrated "
-                          "distribution (eq. (1)'s basins and flips, a model-error kernel; README)")
+                          "distribution (eq. (1)'s basins and flips, a model-error kernel; docs/concepts.md)")
     add_common(p, seed_help="random seed (default: 0)")
     p.set_defaults(func=run)
 

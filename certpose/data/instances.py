@@ -1,4 +1,4 @@
-"""Registration instances with ground truth: the protocol of NOTES.md section 3.
+"""Registration instances with ground truth: the TEASER++/QUASAR benchmark protocol.
 
 ``N`` points sampled from a shape scaled into the unit cube, a random rotation, a translation
 uniform in the unit ball, isotropic Gaussian noise ``sigma`` on the inliers, outliers replacing
@@ -64,7 +64,7 @@ def make_instance(
     noise: float,
     rng: np.random.Generator | int | None = None,
 ) -> BenchInstance:
-    """Draw one instance of the protocol of NOTES.md section 3.
+    """Draw one instance of the TEASER++/QUASAR benchmark protocol.
 
     Parameters
     ----------

@@ -5,7 +5,7 @@ The pair lives in ``../shared/data/3dmatch`` (``src.npy`` (M, 3), ``ref.npy`` (K
 made the way TEASER++'s 3DMatch example makes them: voxel downsampling, normals, open3d's FPFH
 features, mutual nearest neighbours in feature space. Real features give dense
 pairwise-consistency graphs (many outliers consistent with each other), which is what this
-module is for: a benchmark of the solvers on them (``examples/bench_dense.py``, the bench
+module is for: a benchmark of the solvers on them (``examples/benchmarks/bench_dense.py``, the bench
 suites).
 
 At the defaults (``voxel_size=0.045``) the pair gives 940 correspondences, about 90 of them

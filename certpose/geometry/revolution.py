@@ -5,7 +5,7 @@ axis of revolution of its surface (a mug's body, a can, a bowl) leaves the surfa
 so eq. (1) should not change, but an irregular (Poisson-disk) sampling of that surface moves its
 samples to other places in the scene's grid and the sum drifts by several nats along the turn
 (on YCB-Video 0000's mug, inside the hidden-handle arc, the body's share varies by 14-18 nats
-with the default likelihood, most of eq. (1)'s range there; ``examples/bench_arc.py``). A
+with the default likelihood, most of eq. (1)'s range there; ``examples/benchmarks/bench_arc.py``). A
 sampling that is itself invariant under turns of ``2 pi / K`` about the axis (one wedge of the
 samples, turned ``K`` times) is a periodic quadrature in the angle: for a field that is smooth
 at the spacing of its ``K`` nodes per ring its sum hardly depends on the turn, at the same
@@ -23,8 +23,9 @@ median spacing) an axis holds 0.87-0.88 of the cans' points, 0.93 of the mug's, 
 large marker's and all of the bowl's; the boxes, the mustard bottle, the banana, the drill and
 the wood block 0.08-0.40 (none: the least share is 0.6).
 
-Measured (2026-11-26, ``examples/bench_arc.py --step 5 [--revolution auto]``, frames 1-5, the
-computed arc, ratio of eq. (1)'s range inside to its drop outside; issue 10's target <= 0.25):
+Measured (``examples/benchmarks/bench_arc.py --step 5 [--revolution auto]``, frames 1-5, the
+computed arc, ratio of eq. (1)'s range inside to its drop outside; a flat arc with a steep drop
+would read <= 0.25):
 
 ================================================  ==============================  ===============
 likelihood                                        without (mean)                  with (mean)
@@ -56,7 +57,7 @@ only the objects with an axis change, and not for the better: the mug's rotation
 145..166 deg, tie with the true arc), ADD-S on the 17 pairs of those objects moves by -0.04 to
 +0.11 cm (+0.03 or more on 10: one wedge's profile stands for the whole body, which is round
 only to 0.1-2 mm; largest ADD-S of all pairs 0.66 cm), non-symmetric rotation
-<= 10 deg 21 -> 18 of 46, flips 18 -> 21. The importance sampler (``examples/bench_samplers.py
+<= 10 deg 21 -> 18 of 46, flips 18 -> 21. The importance sampler (``examples/benchmarks/bench_samplers.py
 --seeds 0``): mass over every free run of the arc (``cov U``) 0.90-0.98 (without 0.78-0.90),
 in them 0.90-0.95 (0.87-0.93), in the true arc 0.60-0.66 (0.67-0.74), the axis within 5 deg and
 1 cm 0.78-0.91 (0.79-0.93).

@@ -395,7 +395,7 @@ def scale_to_unit_cube(points: NDArray[np.float64]) -> NDArray[np.float64]:
 def load_bunny(path: PathType) -> NDArray[np.float64]:
     """Load the Stanford bunny (or any point file) scaled into the unit cube.
 
-    This is the benchmark protocol's shape (NOTES.md section 3): vertex positions centred on
+    This is the shape of the TEASER++/QUASAR benchmark protocol: vertex positions centred on
     their bounding box and scaled so that the largest side is 1 (inside ``[-0.5, 0.5]^3``).
 
     Parameters

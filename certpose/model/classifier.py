@@ -78,7 +78,7 @@ class ClassifierParams:
         0.2-0.98, 20-360 voxels of 800-2000). With ``c_min`` there, the object's unmatched
         surface costs more than unobserved space (``log 0.1``) and the search ends with the
         object hidden (measured on three pairs of frame 000001: ADD-S 2.3, 5.7 and 0.7 cm, against
-        0.3, 1.8 and 0.2 cm with ``log 0.5``). ``examples/bench_box.py`` on the 18 pairs of frame
+        0.3, 1.8 and 0.2 cm with ``log 0.5``). ``examples/benchmarks/bench_box.py`` on the 18 pairs of frame
         000001, geometry-only models: ADD-S <= 1 cm in 13/18 with ``log 0.5``, 10/18 with
         ``log 0.3``, 11/18 with ``log 0.7``, and 11/18 with the whole box at ``log 0.9`` (the
         buddies ignored); the 18 cross-scene pairs with appearance models: 15/18 against 13/18

@@ -1,12 +1,13 @@
 r"""Eq. (2) of the paper as a weighted TLS problem: its construction, solution and certificate.
 
 **Eq. (2) and its weights.** For object points ``p_i`` and grid points ``y_j`` (the centres of
-occupied voxels: neither empty nor unobserved, NOTES.md 1.4),
+occupied voxels: neither empty nor unobserved; empty space is ``-inf`` and unobserved 0 in
+eq. (1), so only occupied voxels can attract a point),
 
 .. math:: c_{ij} = \log p_O(y_j) + \beta f_{scn}(y_j)^T z_i .
 
 ``c_ij`` is a log-probability (usually negative), but a TLS cost ``sum w_ij min(r_ij^2, eps^2)``
-only pulls ``p_i`` towards ``y_j`` when ``w_ij >= 0``. We use the mapping of NOTES.md 1.2:
+only pulls ``p_i`` towards ``y_j`` when ``w_ij >= 0``. We use the mapping
 
 .. math:: w_{ij} = c_{ij} - c_{floor}, \qquad c_{floor} = c_{min} - \beta ,
 
@@ -15,7 +16,7 @@ with the least similar unit descriptors, ``f^T z = -1``), so every weight is ``>
 clipping. Minimising eq. (2) then maximises ``sum_ij w_ij (eps^2 - r_ij^2)_+``, an Epanechnikov
 kernel smoothing of eq. (1) restricted to occupied voxels (up to the constant ``N c_floor``).
 
-**Sparsification (NOTES.md 1.3).** Which pairs ``(i, j)`` the problem keeps is ours to choose
+**Sparsification.** The ``N x M`` pairs of object and grid points are far too many. Which pairs ``(i, j)`` the problem keeps is ours to choose
 (the weights are ``c_ij - c_floor`` either way):
 
 * *by descriptor* (no seeds): each of ``num_object_points`` object points (farthest-point
@@ -51,7 +52,7 @@ pose it certifies is eq. (2)'s minimiser in the basin of the best refined minimi
 refinement ends, or, when the MLE's winner descends from another hypothesis (a turn, or one
 that hopped past it), eq. (2)'s minimiser about the winner, solved again.
 
-Why seeds: on the 18 cross-scene YCB-Video pairs of ``examples/bench_box.py`` (appearance
+Why seeds: on the 18 cross-scene YCB-Video pairs of ``examples/benchmarks/bench_box.py`` (appearance
 models, mask classifier) the descriptors barely rank the right voxel among the classifier's
 positives, colour or shape alike: at the true pose its median rank is 0.16-0.49 of the
 positives (0.5 is chance; a banana or a bottle is one colour, and local shape on a cylinder is
@@ -124,7 +125,7 @@ class Eq2Params:
     Notes
     -----
     The seeded problem (what :func:`~certpose.estimation.mle.estimate_mle` builds), measured
-    with ``examples/bench_box.py --models appearance`` (18 cross-scene pairs, appearance
+    with ``examples/benchmarks/bench_box.py --models appearance`` (18 cross-scene pairs, appearance
     models, load average 12-19; main's descriptor top-4 of 40 points before -> seeds, 8 seeds,
     100 object points, 3 voxels within 2 cm per seed, 2 local rounds):
 
@@ -137,7 +138,7 @@ class Eq2Params:
     ========================  ==========================  ===========================
 
     Every seed's minimiser refined on eq. (1) as the coarse hypotheses are (each replacing its
-    seed; ``examples/bench_box.py --models appearance --seed 0``, load 7-9): the refined eq. (2)
+    seed; ``examples/benchmarks/bench_box.py --models appearance --seed 0``, load 7-9): the refined eq. (2)
     hypothesis is the winner or within 0.5 cm / 2 deg of it in 7/18 -> 17/18 pairs (mask) and
     5/18 -> 15/18 (box only, best buddies), and the final poses are unchanged (ADD-S 18/18, right
     15/18, eq. (1) >= refined truth - 1 nat 18/18, in both modes). The highest support's
@@ -158,7 +159,7 @@ class Eq2Params:
     local rounds with the clique search 18/18 on both seeds but 2.5 s a frame.
 
     The descriptor problem (no seeds), measured on the 60 YCB-Video pairs of the shared scenes (geometry-only FPFH models, mask
-    classifier; ``examples/bench_eq2.py``). FPFH barely ranks the right voxel above the others:
+    classifier; ``examples/benchmarks/bench_eq2.py``). FPFH barely ranks the right voxel above the others:
     at the true pose its median rank among a point's candidates is about a third of the
     classifier's positives (150-250 of 300-1500). With the defaults (40 x top-4, N = 160) the
     right voxel is a candidate for a median of 1 object point (none in 19 pairs) and the raw
@@ -179,12 +180,12 @@ class Eq2Params:
     pose (:meth:`SeededEq2.local_rounds`), against 8 seeds with the pruning and the rounds begun
     at the raw minimiser (load 7-9 on 2 cores, interleaved with other work):
 
-    * ``examples/bench_eq2.py`` (60 geometry-only pairs): refined eq. (2) the winner or within
+    * ``examples/benchmarks/bench_eq2.py`` (60 geometry-only pairs): refined eq. (2) the winner or within
       0.5 cm / 2 deg 39/60 -> 49/60, raw ADD-S <= 1 cm 58/60 -> 59/60, MLE ADD-S 60/60 both;
       the eq. (2) stage's median 116 -> 53 ms. Eight seeds with the pruning and 8 by GNC gave
       the same outcomes pair for pair in 166 ms. The 11 pairs still lost are won by a
       near-symmetric turn of the search's winner (the MLE's mode step, after eq. (2)).
-    * ``examples/bench_box.py --models appearance --seed 0`` (18 cross-scene pairs): box only,
+    * ``examples/benchmarks/bench_box.py --models appearance --seed 0`` (18 cross-scene pairs): box only,
       raw ADD-S <= 1 cm 14/18 -> 16/18 and refined eq. (2) the winner or near 15/18 -> 16/18;
       mask 18/18 and 18/18 (both before too); the final poses unchanged (ADD-S 18/18, right
       15/18, eq. (1) >= refined truth - 1 nat 18/18 in both modes). The two raw misses left
@@ -509,11 +510,7 @@ def solve_eq2_about_seeds(
 
     With ``seed_mode="each"`` one problem per seed is solved; with ``"union"`` one problem over
     all the seeds' candidates, whose minimiser is the only one. No local rounds yet (see
-    :meth:`SeededEq2.local_rounds`).
-
-    Parameters
-    ----------
-    As :func:`estimate_eq2`.
+    :meth:`SeededEq2.local_rounds`). The parameters are those of :func:`estimate_eq2`.
 
     Returns
     -------

@@ -5,7 +5,8 @@ Grid conventions: voxel ``(i, j, k)`` covers ``origin + [i, i+1) x [j, j+1) x [k
 coordinates (:meth:`SceneField.world_to_grid`) put voxel centres at integers. Flat indices are
 C-order (``np.ravel_multi_index`` over ``shape``).
 
-States (paper section 1, NOTES.md section 1.4):
+States (paper section 1; an empty voxel has ``z^T z_emp = -inf``, an unobserved one
+``z^T z_null = 0``):
 
 * ``OCCUPIED``: a measured surface point fell into the voxel; its descriptor is the re-normalised
   mean of those points' descriptors.

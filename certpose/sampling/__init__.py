@@ -22,7 +22,8 @@ from certpose.sampling.sampler import (
     importance_sample,
     sample_pose_distribution,
 )
+from certpose.sampling.target import PoseTarget, demo_object_model, pose_target
 
-__all__ = ["AxisMarginal", "CalibratedDistribution", "CalibrationFit", "CalibrationParams", "DEParams", "ISParams", "ISResult", "MCMCParams", "PoseDistribution", "PoseMode",
-           "SamplerResult", "TangentMixture", "axis_marginal", "calibrated_distribution", "de_sample", "fit_calibration", "importance_sample",
-           "mcmc_sample", "sample_pose_distribution"]
+__all__ = ["AxisMarginal", "CalibratedDistribution", "CalibrationFit", "CalibrationParams", "DEParams", "ISParams", "ISResult", "MCMCParams", "PoseDistribution", "PoseMode", "PoseTarget",
+           "SamplerResult", "TangentMixture", "axis_marginal", "calibrated_distribution", "de_sample", "demo_object_model", "fit_calibration", "importance_sample",
+           "mcmc_sample", "pose_target", "sample_pose_distribution"]

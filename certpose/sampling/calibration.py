@@ -1,6 +1,6 @@
 """A calibrated pose distribution: eq. (1)'s basins, reweighted, widened by the model's error.
 
-Why not one temperature. On the shared YCB-Video frames (``examples/bench_calibration.py``) the
+Why not one temperature. On the shared YCB-Video frames (``examples/benchmarks/bench_calibration.py``) the
 ground truth sits 20-800 nats of eq. (1) below the MLE even where the MLE is in the right basin
 (the truth refined on eq. (1) climbs back to within 0-20 nats of the MLE, 2-14 deg and 2-5 mm away
 from where it started: the model's systematic error), and in the wrong basin (a box's flip) the
@@ -35,8 +35,8 @@ were fitted: :func:`fit_calibration` (the model error's scales from the median o
 truth from its nearest basin, then the basin temperature and ``dof`` on a grid by the training
 pairs' coverage) on the 78 frame-object pairs (60 geometry-only, 18 cross-scene appearance
 models) of the four shared YCB-Video scenes, eq. (1) with its default graded free space and the
-Voronoi-area object models (``examples/bench_calibration.py --appearance --calibrated --fit
-0000,0002,0049,0050``, 2026-11-26). The honest figure is held out: ``--loso`` fits on three
+Voronoi-area object models (``examples/benchmarks/bench_calibration.py --appearance --calibrated --fit
+0000,0002,0049,0050``). The honest figure is held out: ``--loso`` fits on three
 scenes and scores the fourth, every pair held out once. The truth lies inside the 90% / 50%
 regions in (target 0.80-1.00 / 0.35-0.65):
 
@@ -44,7 +44,7 @@ regions in (target 0.80-1.00 / 0.35-0.65):
 * per scene 0000 1.00 / 0.87, 0002 0.89 / 0.81, 0049 0.60 / 0.53, 0050 0.81 / 0.19
   (the folds fit 1.67-2.00 deg, 1.12-1.37 mm, t with 3-5 dof, basin temperature 30-50).
 
-With the equal-area object models of before (the default until 2026-11-26) the same held-out
+With equal-area object models (``area_weights="equal"``) the same held-out
 figures were 0.85 / 0.50 (geometry-only 0.82 / 0.45, appearance 0.94 / 0.67) and the defaults
 1.63 deg, 1.26 mm, basin temperature 100.
 
@@ -98,8 +98,8 @@ class CalibrationParams:
     """Knobs of :func:`calibrated_distribution` (fitted: see the module docstring).
 
     Defaults: :func:`fit_calibration` on all 78 pairs of the four shared YCB-Video scenes, eq. (1)
-    with its graded free space and Voronoi-area object models (``examples/bench_calibration.py
-    --appearance --calibrated --fit 0000,0002,0049,0050``, 2026-11-26): model error 1.65 deg and
+    with its graded free space and Voronoi-area object models (``examples/benchmarks/bench_calibration.py
+    --appearance --calibrated --fit 0000,0002,0049,0050``): model error 1.65 deg and
     1.26 mm per axis (from the median offset of the truth from its basin over the 74 pairs whose
     basin was found; Student t with 3 dof), basin temperature 30 nats (the lowest of the grid
     whose training fit is tied with the best; training coverage 0.88 / 0.50 inside the 90% / 50%

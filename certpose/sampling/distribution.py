@@ -337,7 +337,7 @@ class PoseDistribution:
 
         ``per_mode=False`` treats all the particles as one mode and ``pivot=False`` keeps the
         object origin as the chart's translation point (both off: one covariance for the whole
-        set, the estimator before the modes; kept for ``examples/bench_samplers.py --kde-check``).
+        set, the estimator before the modes; kept for ``examples/benchmarks/bench_samplers.py --kde-check``).
         """
         labels = self._cluster_labels() if per_mode else np.zeros(len(self), dtype=np.int64)
         modes = []
@@ -418,7 +418,7 @@ class PoseDistribution:
         sweeping the origin's translation round a curve that a single covariance smears across.
         The shift ``t -> t + R c`` has unit Jacobian, so the density is unchanged in meaning.
         Against the exact normalised target at held-out draws of the importance sampler
-        (``examples/bench_samplers.py --seeds 0 1 2 --kde-check``, YCB-Video 0000's mug, frames
+        (``examples/benchmarks/bench_samplers.py --seeds 0 1 2 --kde-check``, YCB-Video 0000's mug, frames
         1-5): mean |error| 1.53-1.89 nats with one covariance for all the particles, 0.73-0.91
         per mode, 0.70-0.83 per mode with the pivot (the KDE's smoothing still biases it low,
         by 0.4-0.6 nats on average); on the demo (one mode) 0.64-0.84 for all three.

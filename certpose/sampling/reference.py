@@ -1,7 +1,7 @@
 r"""The exact marginal of a pose target about an object axis: a reference for samplers.
 
-Issue 11's known-answer test asks for a sampled marginal within total variation 0.1 of the exact
-one, "e.g. the demo mug, where eq. (1) can be evaluated on a fine grid of angles about the axis".
+A known-answer test of a sampler compares its marginal about an object's axis (e.g. the demo
+mug's symmetry axis) with the exact one.
 A slice of eq. (1) along the axis is not that marginal: the marginal of the target
 ``exp(eq. (1) / T)`` integrates the other five degrees of freedom (the axis's tilt and the
 translation) at every angle. :func:`axis_marginal` computes it by importance sampling in
@@ -157,8 +157,8 @@ class AxisMarginal:
                        direction: ArrayLike | None = None) -> float:
         """The target's mass (in the region) whose axis lies within ``max_tilt_deg`` of
         ``direction`` (scene frame; default the reference's axis) and whose pivot lies within
-        ``max_offset`` (m) of the reference's axis line: issue 11's "axis direction within 5 deg
-        and axis position within 1 cm", for the target itself."""
+        ``max_offset`` (m) of the reference's axis line: the share of the target whose axis direction is
+        within 5 deg and whose axis position is within 1 cm of the reference's."""
         a_ref = self.T_ref[:3, :3] @ self.axis
         up = a_ref if direction is None else _unit_axis(direction)
         tilt = np.degrees(np.arccos(np.clip(self.axes @ up, -1.0, 1.0)))
