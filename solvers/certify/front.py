@@ -15,7 +15,10 @@ Which problem is bounded (``scope``)
   and the pose's cost is exactly its cost on ``C`` plus ``cbar2`` times the weight outside
   ``C``. The least, over the maximal cliques that could beat the candidate, of (a certified
   bound on the subproblem restricted to ``C``) + (the outlier cost outside ``C``) is a lower
-  bound on the full problem. A clique subproblem (nearly all inliers) is solved exactly by
+  bound on the full problem. A clique whose least-squares pose keeps every term inside the
+  noise bound is bounded in closed form (:mod:`solvers.certify.all_inliers`: removing terms
+  provably never pays, so the least-squares optimum is exact). Other clique subproblems (nearly
+  all inliers) are solved exactly by
   branch and bound over its inlier sets (closed-form least squares per set); beyond the node
   budget (large cliques at low outlier rates) it is bounded by the joint relaxation's
   Douglas-Rachford dual search (:func:`solvers.certify.joint_dual.joint_dual_certificate`).
@@ -549,6 +552,7 @@ def _clique_bound(
     cannot certify whatever omega it finds (:func:`_clique_number_best_gap`); the bound is then
     the trivial ``0`` (TLS costs are non-negative).
     """
+    from solvers.certify.all_inliers import all_inlier_bound
     from solvers.certify.cliques import (
         NODES_PER_SECOND,
         candidate_cliques,
@@ -615,20 +619,30 @@ def _clique_bound(
                 best_R, best_t = refine_pose(pn, res.rotation, res.translation)
                 best_u = pn.cost(best_R, best_t)
             continue
+        sub = pn.subset(C)
+        u_sub = sub.cost(R, t)
+        closed = all_inlier_bound(sub)  # closed form, O(K): before any budget check
+        floor = 0.0 if closed is None else closed.lower  # f_C >= floor whatever else fails
+        if closed is not None:
+            if closed.cost < u_sub and pn.cost(closed.rotation, closed.translation) < best_u:
+                Rc, tc = refine_pose(pn, closed.rotation, closed.translation)
+                best_R, best_t, best_u = Rc, tc, pn.cost(Rc, tc)
+            if closed.exact:  # removing terms never pays: the least-squares optimum is exact
+                methods.add("all-inlier closed form")
+                lower = min(lower, closed.lower + out_cost)
+                continue
         if remaining <= 0:
             methods.add("time limit reached")
             stopped = True
-            lower = min(lower, out_cost)  # f_C >= 0: sound, if weak
+            lower = min(lower, floor + out_cost)  # sound, if weak
             continue
         if C.size > BNB_MAX_TERMS:
             # Hopeless for the exact search (it grows exponentially with the clique's inlier
             # cost) and for the joint dual search: give up at once rather than at the deadline.
             methods.add(f"clique of {C.size} terms too large")
             stopped = True
-            lower = min(lower, out_cost)
+            lower = min(lower, floor + out_cost)
             continue
-        sub = pn.subset(C)
-        u_sub = sub.cost(R, t)
         started = time.perf_counter()
         res = clique_optimum(sub, u_sub, np.argsort(-r2[C], kind="stable"),
                              max_nodes=BNB_MAX_NODES, time_limit=remaining / 2 / slowdown)
@@ -650,19 +664,19 @@ def _clique_bound(
             if C.size > JOINT_DUAL_MAX:
                 methods.add(f"bnb stopped at {res.nodes} nodes on {C.size} terms")
                 stopped = True
-                lower = min(lower, out_cost)
+                lower = min(lower, floor + out_cost)
                 continue
             methods.add("joint_dual")
             if remaining <= 0:
                 stopped = True
-                lower = min(lower, out_cost)
+                lower = min(lower, floor + out_cost)
                 continue
             Rc, tc = refine_pose(sub, R, t)
             b = _joint_drs_bound(sub, Rc, tc, tol / 4, max_iter or 3000, remaining)
             lb_sub = b.lower if b.accepted else 0.0
             if b.status is CertificateStatus.ITERATION_LIMIT:
                 stopped = True
-        lower = min(lower, lb_sub + out_cost)
+        lower = min(lower, max(lb_sub, floor) + out_cost)
     if undiluted_gap(u, lower, _outlier_cost(pn, R, t)) > tol:  # the cliques leave a gap
         shared, _ = _shared_source(pn)
         if shared.lower > lower:
