@@ -1143,8 +1143,9 @@ def certify_result(
         attempted" and bounds by 0). Measured on YCB-Video's eq. (2) problems (233-474 terms,
         clique-number bound's best possible gap 0.99), it saves the 0.01-0.4 s that search took.
     rotation_fallback : bool
-        With ``scope="auto"``: when the full problem is not certified (real-feature scans: too
-        many maximal cliques to bound), certify the rotation subproblem over the max clique's
+        With ``scope="auto"``: when the full problem's bound gives up (real-feature scans: too
+        many maximal cliques to bound; status ``ITERATION_LIMIT``), certify the rotation
+        subproblem over the max clique's
         translation-invariant measurements (what TEASER++ certifies), in what is left of
         ``time_limit``. When its certified optimum, with the translation refined on
         ``problem``, costs no more on ``problem`` than the candidate, that pose is returned
@@ -1176,7 +1177,12 @@ def certify_result(
     if fallback:
         kw["skip_futile"] = True
     out = _certify_once(problem, result, kw, scoped, t0)
-    if not fallback or out.certificate.certified:
+    # Only when the full problem's bound gave up (not when it is tight and the pose is not
+    # optimal: that statement is the stronger one).
+    gave_up = out.certificate.status in (CertificateStatus.ITERATION_LIMIT,
+                                         CertificateStatus.INACCURATE,
+                                         CertificateStatus.SOLVER_ERROR)
+    if not fallback or not gave_up:
         return out
     return _rotation_fallback(problem, out, kw, t0, prefer_certified=bool(prefer_certified))
 
