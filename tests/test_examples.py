@@ -366,3 +366,15 @@ def test_bench_pose_calls_times_both_ways_and_checks_the_poses_agree() -> None:
     assert "one process" in proc.stdout
     line = next(x for x in proc.stdout.splitlines() if x.startswith("largest difference"))
     assert float(line.split(":")[1].split(";")[0]) <= 1e-9, line
+
+
+@pytest.mark.slow
+def test_bench_certify_scans_certifies_the_rotation_subproblem() -> None:
+    data = require_data("3dmatch", "gt.npy").parent
+    proc = _run("bench_certify_scans.py", "--data", str(data), "--noise-bounds", "0.1")
+    assert proc.returncode == 0, proc.stderr
+    rows = [line.split() for line in proc.stdout.splitlines() if line.startswith(" 0.10")]
+    by_prefer = {r[1]: r for r in rows}
+    assert by_prefer["certificate"][3:5] == ["True", "rotation_tim_subproblem"]
+    assert float(by_prefer["cost"][6]) <= float(by_prefer["cost"][7])  # never costlier
+    assert "load" in proc.stdout
