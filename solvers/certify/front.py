@@ -87,6 +87,7 @@ __all__ = [
     "rotation_gnc",
     "refine_pose",
     "refine_rotation",
+    "refine_translation",
     "rebuild_bounded_problem",
     "ROTATION_ATOL",
 ]
