@@ -7,7 +7,8 @@ optimum in closed form (batched here, independently of the code under test). A v
 
 1. a lower bound above the exact minimum,
 2. a certified pose whose cost is not within the stated gap of the exact minimum,
-3. an ``upper_bound`` that is not the returned pose's cost on the bounded problem.
+3. an ``upper_bound`` that is not the returned pose's cost on the bounded problem,
+4. (full problem) ``certify_result`` not returning the exact optimum, or not certifying it.
 
 Families: uneven weights (100x), per-correspondence noise bounds, duplicated, collinear,
 coplanar and symmetric points, all outliers, scaled (1e-3, 1e3), tiny weights (1e-4),
@@ -179,6 +180,14 @@ def _run_family(family: str, seeds: range, scopes: tuple[str, ...],
                                   f"{res.cost} -> {out.cost}")
             for v in audit(p, out.certificate, out.rotation, out.translation):
                 violations.append(f"{family} seed {seed} K={k} {scope} certify_result: {v}")
+            if scope == "full":  # the exact optimum is returned, and certified
+                exact = exact_optimum(p)
+                if out.cost > exact + 1e-9 * (abs(exact) + out.certificate.weight_scale):
+                    violations.append(f"{family} seed {seed}: certify_result returned cost "
+                                      f"{out.cost} > the exact minimum {exact}")
+                elif not out.certificate.certified:
+                    violations.append(f"{family} seed {seed}: the exact optimum returned, not "
+                                      f"certified ({out.certificate.message})")
     return n_certs, violations
 
 
