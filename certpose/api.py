@@ -49,6 +49,7 @@ def register(
     scope: Literal["auto", "full", "pruned", "rotation"] = "auto",
     tol: float = 1e-3,
     time_limit: float | None = None,
+    prefer: Literal["certificate", "cost"] = "certificate",
 ) -> RegistrationResult:
     """Robustly register corresponding point sets with the weighted TLS cost.
 
@@ -78,6 +79,15 @@ def register(
         Gap tolerance of the certificate (see :class:`solvers.certificate.Certificate`).
     time_limit : float or None
         Seconds the certifier may spend (default 120 s per bound search).
+    prefer : {"certificate", "cost"}
+        With ``certify=True`` and ``scope="auto"``, when the full problem cannot be certified
+        (real-feature scans: too many maximal cliques) the rotation subproblem over the max
+        clique's translation-invariant measurements (TEASER++'s) is certified instead.
+        ``"certificate"``: return that subproblem's certified optimum (translation refined on
+        the full cost) even when its full cost is higher than the solver's pose (``info``
+        records the solver's pose and cost); ``"cost"``: never return a pose of higher cost
+        (the certificate may then certify nothing). ``certificate.problem`` names the problem
+        bounded; the other problem's certificate is in ``info``.
 
     Returns
     -------
@@ -109,6 +119,8 @@ def register(
     # Checked even without a certificate: a misspelt scope must not pass unnoticed.
     if scope not in ("auto", "full", "pruned", "rotation"):
         raise ValueError(f"`scope` must be 'auto', 'full', 'pruned' or 'rotation', got {scope!r}.")
+    if prefer not in ("certificate", "cost"):
+        raise ValueError(f"`prefer` must be 'certificate' or 'cost', got {prefer!r}.")
     check_limit(time_limit, "time_limit")
     if check_limit(tol, "tol", allow_none=False) == 0:
         raise ValueError("`tol` must be positive, got 0.")
@@ -123,5 +135,7 @@ def register(
     if certify:
         from solvers.certify import certify_result
 
-        result = certify_result(unit, result, scope=scope, tol=tol, time_limit=time_limit)
+        result = certify_result(unit, result, scope=scope, tol=tol, time_limit=time_limit,
+                                rotation_fallback=scope == "auto",
+                                prefer_certified=prefer == "certificate")
     return from_unit_scale(result, scale)

@@ -19,7 +19,7 @@ __all__ = ["SolverStatus", "RegistrationResult"]
 class SolverStatus(str, Enum):
     """Closed vocabulary of solver outcomes.
 
-    Only ``CONVERGED`` counts as a success.
+    ``CONVERGED`` and ``CERTIFIER_POSE`` count as a success.
     """
 
     CONVERGED = "converged"
@@ -34,10 +34,14 @@ class SolverStatus(str, Enum):
     """A numerical failure (non-finite values, failed decomposition)."""
     SOLVER_ERROR = "solver_error"
     """A backend (e.g. an SDP solver) failed or reported an inaccurate solve."""
+    CERTIFIER_POSE = "certifier_pose"
+    """Certifying the solver's pose found a better one (an exact optimum of a subproblem, no
+    worse on the problem posed), which is returned in its place; the solver's status and cost
+    are in ``info``."""
 
     @property
     def success(self) -> bool:
-        return self is SolverStatus.CONVERGED
+        return self in (SolverStatus.CONVERGED, SolverStatus.CERTIFIER_POSE)
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,7 +65,7 @@ class RegistrationResult:
     solve_time : float
         Wall-clock time in seconds.
     success : bool
-        True only when ``status`` is ``CONVERGED``.
+        True when ``status`` is ``CONVERGED`` or ``CERTIFIER_POSE``.
     status : SolverStatus
         Outcome from the closed vocabulary.
     message : str

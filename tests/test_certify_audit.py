@@ -7,11 +7,13 @@ optimum in closed form (batched here, independently of the code under test). A v
 
 1. a lower bound above the exact minimum,
 2. a certified pose whose cost is not within the stated gap of the exact minimum,
-3. an ``upper_bound`` that is not the returned pose's cost on the bounded problem.
+3. an ``upper_bound`` that is not the returned pose's cost on the bounded problem,
+4. (full problem) ``certify_result`` not returning the exact optimum, or not certifying it.
 
 Families: uneven weights (100x), per-correspondence noise bounds, duplicated, collinear,
 coplanar and symmetric points, all outliers, scaled (1e-3, 1e3), tiny weights (1e-4),
-``cbar2 != 1``, and wrong candidates (3 and 180 deg from the best pose).
+``cbar2 != 1``, grouped (eq. (2)-like: 2-4 candidate targets per source point, weights
+``max(c - c_floor, 0)`` some of them 0), and wrong candidates (3 and 180 deg from the best pose).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from solvers.certify.relaxation import RotationTLSProblem
 from solvers.problem import WeightedTLSProblem
 
 FAMILIES = ["uniform", "uneven", "beta", "duplicated", "collinear", "coplanar", "symmetric",
-            "all_outliers", "scaled_small", "scaled_large", "tiny_weights", "cbar2"]
+            "all_outliers", "scaled_small", "scaled_large", "tiny_weights", "cbar2", "grouped"]
 
 
 def _masks(k: int) -> np.ndarray:
@@ -70,8 +72,32 @@ def exact_optimum(p: WeightedTLSProblem | RotationTLSProblem) -> float:
     return float((ls + out).min())
 
 
+def _grouped(rng: np.random.Generator, k: int, sigma: float) -> WeightedTLSProblem:
+    """Eq. (2)-like: each source point has 2-4 candidate targets (one near its true image,
+    the others nearby decoys), weighted ``max(c - c_floor, 0)`` (some weights 0)."""
+    sizes = []
+    while sum(sizes) < k:
+        sizes.append(int(rng.integers(2, 5)))
+    sizes[-1] -= sum(sizes) - k
+    if sizes[-1] == 0:
+        sizes.pop()
+    pts = rng.uniform(-1, 1, (len(sizes), 3))
+    src = np.repeat(pts, sizes, axis=0)
+    R = Rotation.random(random_state=rng).as_matrix()
+    t = rng.normal(size=3)
+    dst = src @ R.T + t + sigma * rng.normal(size=(k, 3))
+    first = np.r_[0, np.cumsum(sizes)[:-1]]
+    decoy = np.ones(k, dtype=bool)
+    decoy[first] = False
+    dst[decoy] += rng.normal(scale=10 * sigma, size=(int(decoy.sum()), 3))
+    w = np.maximum(rng.uniform(0, 1, k) - 0.2, 0.0)
+    return WeightedTLSProblem(src, dst, noise_bound=np.full(k, 5.54 * sigma), weights=w)
+
+
 def make_family(rng: np.random.Generator, family: str, k: int) -> WeightedTLSProblem:
     sigma = 0.01
+    if family == "grouped":
+        return _grouped(rng, k, sigma)
     if family == "collinear":
         src = np.outer(rng.uniform(-1, 1, k), rng.normal(size=3)) + rng.normal(size=3)
     elif family == "coplanar":
@@ -154,6 +180,14 @@ def _run_family(family: str, seeds: range, scopes: tuple[str, ...],
                                   f"{res.cost} -> {out.cost}")
             for v in audit(p, out.certificate, out.rotation, out.translation):
                 violations.append(f"{family} seed {seed} K={k} {scope} certify_result: {v}")
+            if scope == "full":  # the exact optimum is returned, and certified
+                exact = exact_optimum(p)
+                if out.cost > exact + 1e-9 * (abs(exact) + out.certificate.weight_scale):
+                    violations.append(f"{family} seed {seed}: certify_result returned cost "
+                                      f"{out.cost} > the exact minimum {exact}")
+                elif not out.certificate.certified:
+                    violations.append(f"{family} seed {seed}: the exact optimum returned, not "
+                                      f"certified ({out.certificate.message})")
     return n_certs, violations
 
 
@@ -187,3 +221,19 @@ def test_exact_optimum_matches_a_brute_force_loop() -> None:
         r2 = p.residuals_sq(R, t)
         best = min(best, float(p.weights[m] @ r2[m] + p.cbar2 * p.weights[~m].sum()))
     assert exact_optimum(p) == pytest.approx(best, rel=1e-9, abs=1e-12)
+
+
+def test_shared_source_bound_below_the_exact_minimum_on_grouped_problems() -> None:
+    """The shared-source bound (groups placed freely, pairs at their distance) never exceeds
+    the enumerated minimum (120 grouped instances, weights with zeros), and is not trivial."""
+    from solvers.certify.groups import shared_source_bound
+
+    positive = 0
+    for seed in range(120):
+        rng = np.random.default_rng(50_000 + seed)
+        p = make_family(rng, "grouped", int(rng.integers(4, 13)))
+        exact = exact_optimum(p)
+        lower = shared_source_bound(p).lower
+        assert np.isfinite(lower) and lower <= exact + 1e-12 * (1 + exact), (seed, lower, exact)
+        positive += lower > 0
+    assert positive >= 60

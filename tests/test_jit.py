@@ -55,6 +55,10 @@ def test_callers_use_only_the_declared_signature():
         src.setflags(write=False)  # read-only input must not make a read-only specialisation
         register(src, inst.target.astype(np.float32), noise_bound=inst.noise_bound,
                  certify=certify)
+        # Weights with zeros: the pruning selects the active columns (a copy in C order).
+        w = np.ones(inst.source.shape[0])
+        w[::7] = 0.0
+        register(src, inst.target, noise_bound=inst.noise_bound, weights=w, certify=certify)
     used = 0
     for spec in jit.declared(MODULES):
         sigs = spec.dispatcher().signatures

@@ -101,7 +101,10 @@ def test_certify_on_the_dense_pair_bounds_by_the_clique_number(corr):
     a certificate and not a missing bound."""
     from certpose.api import register
 
-    res = register(corr.source, corr.target, noise_bound=NOISE_BOUND, certify=True, time_limit=5)
+    # scope="full": the full problem's own bound (the default "auto" then certifies the
+    # rotation subproblem, tests/test_certify_real_scans.py).
+    res = register(corr.source, corr.target, noise_bound=NOISE_BOUND, certify=True, time_limit=5,
+                   scope="full")
     cert = res.certificate
     assert not cert.certified and cert.status.value == "iteration_limit"
     assert cert.method == "clique_number" and "clique number" in cert.message

@@ -33,7 +33,9 @@ Solvers (:data:`SOLVERS`):
     ``certpose.register(..., prune="never")``: GNC-TLS alone.
 ``gnc+certify``
     ``certpose.register(..., certify=True)``: the front-end's pose with a certificate of the
-    full problem (``scope="auto"``).
+    full problem (``scope="auto"``), or, when the full problem's bound gives up (real scans,
+    eq. (2)), of the rotation subproblem over the max clique (its certified optimum returned,
+    ``prefer="certificate"``); the rows record which problem each certificate bounds.
 ``gnc+cert-pruned``, ``gnc+cert-rotation``
     The same with ``scope="pruned"`` (the problem left after max-clique pruning) and
     ``scope="rotation"`` (the rotation subproblem over translation-invariant measurements,

@@ -41,6 +41,10 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--scope", choices=("auto", "full", "pruned", "rotation"), default=None,
                    help="problem the certificate bounds: auto = the full problem with --certify, "
                         "the rotation (TIM) subproblem with --solver sdp")
+    p.add_argument("--prefer", choices=("certificate", "cost"), default=None,
+                   help="with --certify when the full problem cannot be certified (real scans): "
+                        "certificate (default) returns the rotation subproblem's certified "
+                        "optimum even at a higher cost; cost never returns a costlier pose")
     p.add_argument("--tol", type=float, default=None,
                    help="gap tolerance of the certificate (default: 0.001)")
     p.add_argument("--time-limit", type=float, default=None, metavar="S",
@@ -110,7 +114,7 @@ def _check_options(args: argparse.Namespace) -> None:
     their defaults."""
     from certpose.cli import CLIError
 
-    given = [f"--{name.replace('_', '-')}" for name in ("scope", "tol", "time_limit")
+    given = [f"--{name.replace('_', '-')}" for name in ("scope", "tol", "time_limit", "prefer")
              if getattr(args, name) is not None]
     if given and not (args.certify or args.require_certificate or args.solver == "sdp"):
         raise CLIError(f"{'/'.join(given)} {'concern' if len(given) > 1 else 'concerns'} the "
@@ -125,8 +129,8 @@ def _check_options(args: argparse.Namespace) -> None:
                        "problem: add --demo")
     if args.demo and args.weights is not None:
         raise CLIError("--weights does not apply to --demo (its weights are 1)")
-    defaults = {"scope": "auto", "tol": 1e-3, "prune": "auto", "demo_n": 100,
-                "demo_outliers": 0.8, "demo_noise": 0.01}
+    defaults = {"scope": "auto", "tol": 1e-3, "prune": "auto", "prefer": "certificate",
+                "demo_n": 100, "demo_outliers": 0.8, "demo_noise": 0.01}
     for name, value in defaults.items():
         if getattr(args, name) is None:
             setattr(args, name, value)
@@ -253,7 +257,8 @@ def _exit_code(args: argparse.Namespace, result: Any) -> int:
 
 
 def _cert_options(args: argparse.Namespace) -> dict[str, Any]:
-    return {"scope": args.scope, "tol": args.tol, "time_limit": args.time_limit}
+    return {"scope": args.scope, "tol": args.tol, "time_limit": args.time_limit,
+            "prefer": args.prefer}
 
 
 def _matrix(T: np.ndarray) -> str:
@@ -283,6 +288,14 @@ def _summary(result: Any) -> str:
             f"[{cert.lower_bound:.6g}, {cert.upper_bound:.6g}]; it covers the returned pose"
         )
         lines.append(f"                    {cert.message}")
+        other = result.info.get("full_problem_certificate") or result.info.get(
+            "rotation_certificate")
+        if other is not None:
+            gap = other.get("relative_gap")
+            lines.append(f"also bounded      : {other['problem']}, "
+                         f"{'CERTIFIED' if other['certified'] else 'not certified'}, gap "
+                         f"{'n/a' if gap is None else f'{gap:.3e}'} (of the pose it was "
+                         "computed for; see the message)")
     return "\n".join(lines)
 
 

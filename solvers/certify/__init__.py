@@ -2,7 +2,8 @@
 
 Owns the Black-Rangarajan relaxations (rotation over translation-invariant measurements, and the
 joint rotation-translation lifting), their interior-point (cvxpy + Clarabel) and first-order
-dual searches, the clique decomposition of the full problem with exact branch and bound
+dual searches, the clique decomposition of the full problem with closed forms (cliques of one
+or two terms, cliques whose least-squares pose keeps every term) and exact branch and bound
 per clique, the shared-source bound of correspondences grouped by source point (eq. (2)'s
 candidates), and the front end that turns a bound into a :class:`solvers.Certificate`. May
 import the public modules of :mod:`solvers` and :mod:`solvers.registration`; nothing imports it
@@ -16,6 +17,7 @@ from solvers.certify.front import (
     rebuild_bounded_problem,
     refine_pose,
     refine_rotation,
+    refine_translation,
     rotation_gnc,
     solve_sdp,
 )
@@ -33,6 +35,7 @@ __all__ = [
     "certify_rotation",
     "refine_pose",
     "refine_rotation",
+    "refine_translation",
     "rotation_gnc",
     "solve_sdp",
     "rebuild_bounded_problem",

@@ -40,6 +40,7 @@ __all__ = [
     "consistency_edges",
     "candidate_cliques",
     "clique_number_bound",
+    "small_clique_optimum",
     "CliqueOptimum",
     "clique_optimum",
 ]
@@ -204,6 +205,54 @@ class CliqueOptimum:
     translation: NDArray[np.float64]
     complete: bool
     nodes: int
+
+
+def small_clique_optimum(
+    problem: WeightedTLSProblem, clique: NDArray[np.int64], rotation: NDArray[np.float64]
+) -> CliqueOptimum:
+    """Closed-form optimum of the subproblem of one or two terms ``clique`` (indices of
+    ``problem``), with a pose attaining it.
+
+    One term: 0 (the pose maps its source onto its target; ``rotation`` is kept). Two terms
+    ``i, j`` with ``v = w / beta^2``: the least-squares optimum over rigid motions is
+    ``v_i v_j / (v_i + v_j) (||a_j - a_i|| - ||b_j - b_i||)^2`` (the rotation aligns the two
+    difference vectors, the translation matches the ``v``-weighted centroids, the length
+    mismatch is split by weight), so the TLS minimum is the least of that and
+    ``cbar2 min(w_i, w_j)`` (the lighter one an outlier; both outliers cost more). Only
+    differences of the points enter, so offsets of the points do not round the bound.
+    """
+    from scipy.spatial.transform import Rotation
+
+    clique = np.asarray(clique, dtype=np.int64)
+    if not 1 <= clique.size <= 2:
+        raise ValueError(f"Expected a clique of 1 or 2 terms, got {clique.size}.")
+    a, b = problem.source[clique], problem.target[clique]
+    w = problem.weights[clique]
+    R = np.asarray(rotation, dtype=np.float64)
+    if clique.size == 1:
+        return CliqueOptimum(lower_bound=0.0, best_cost=0.0, rotation=R, translation=b[0] - R @ a[0],
+                             complete=True, nodes=1)
+    v = w / problem.noise_bound[clique] ** 2
+    da_vec, db_vec = a[1] - a[0], b[1] - b[0]
+    da, db = float(np.linalg.norm(da_vec)), float(np.linalg.norm(db_vec))
+    mu = float(v[0] * v[1] / (v[0] + v[1])) if v[0] > 0 and v[1] > 0 else 0.0
+    both = mu * (da - db) ** 2
+    one_out = problem.cbar2 * float(w.min())
+    if both <= one_out:
+        if da > 0 and db > 0:
+            R = Rotation.align_vectors(db_vec[None], da_vec[None])[0].as_matrix()
+        vs = max(float(v.sum()), 1e-300)
+        t = (v @ b) / vs - R @ ((v @ a) / vs)
+        best = both
+    else:
+        k = int(np.argmax(w))
+        t, best = b[k] - R @ a[k], one_out
+    # Each length is exact to a few ulps of the coordinates it was computed from.
+    mag = float(np.abs(a).max() + np.abs(b).max())
+    delta = 16 * _EPS * (da + db + 4 * mag)
+    allowance = mu * (2 * abs(da - db) * delta + delta**2) + 8 * _EPS * (both + one_out)
+    return CliqueOptimum(lower_bound=float(max(min(both, one_out) - allowance, 0.0)),
+                         best_cost=float(best), rotation=R, translation=t, complete=True, nodes=1)
 
 
 NODES_PER_SECOND = 2_000_000

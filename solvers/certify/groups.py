@@ -210,14 +210,21 @@ def shared_source_bound(problem: WeightedTLSProblem, *, pairs: bool = True) -> S
     SharedSourceBound
         ``lower`` is 0 when no two correspondences share a source point.
     """
-    a_src = problem.source
+    # Terms of weight 0 cost nothing anywhere (and would make empty-weight subsets 0 / 0).
+    live = problem.weights > 0
+    # Coordinates about a local origin: the pairs' distances are then differences of small
+    # numbers, not of large offsets (the allowance below still covers what is left).
+    a_src = problem.source[live] - np.median(problem.source[live], axis=0) if live.any() else None
+    if a_src is None:
+        return SharedSourceBound(lower=0.0, groups=0, chunked=0)
     _, inv, counts = np.unique(a_src, axis=0, return_inverse=True, return_counts=True)
     inv = inv.reshape(-1)
     multi = np.flatnonzero(counts > 1)
     if multi.size == 0:
         return SharedSourceBound(lower=0.0, groups=0, chunked=0)
-    b, w = problem.target, problem.weights
-    a = w / problem.noise_bound**2
+    b = problem.target[live] - np.median(problem.target[live], axis=0)
+    w = problem.weights[live]
+    a = w / problem.noise_bound[live] ** 2
     order = np.argsort(inv, kind="stable")
     starts = np.concatenate([[0], np.cumsum(counts)])
     pieces: list[NDArray[np.int64]] = []
@@ -254,11 +261,20 @@ def shared_source_bound(problem: WeightedTLSProblem, *, pairs: bool = True) -> S
                 sources.append(a_src[idx[0]])
                 singles.append(float(best[r]))
     pairs = 0
+    eps = float(np.finfo(np.float64).eps)
+    pair_allowance = 0.0
     if use_pairs and 2 <= len(tables) <= PAIR_GROUPS_MAX:
         added, pairs = _greedy_pairs(tables, np.asarray(sources), np.asarray(singles))
         total += added
+        # A pair's value mu (D - d)^2 rounds through its distances D (between weighted means
+        # of targets) and d (between sources), each exact to a few ulps of the coordinates'
+        # magnitude M; mu is at most a group's total weight.
+        M = 2 * (float(np.abs(b).max()) + float(np.abs(a_src).max())) * np.sqrt(3)
+        delta = 16 * eps * M
+        mu_max = max(float(t[1].max()) for t in tables)
+        pair_allowance = pairs * mu_max * (2 * M * delta + delta**2)
     # Rounding allowance: each minimum is exact up to a few ulps of its terms' magnitude.
     kmax = max(by_size)
-    lower = max(total - 64 * kmax * np.finfo(np.float64).eps * (1.0 + scale), 0.0)
+    lower = max(total - 64 * kmax * eps * (1.0 + scale) - pair_allowance, 0.0)
     return SharedSourceBound(lower=float(lower), groups=int(multi.size), chunked=chunked,
                              pairs=pairs)

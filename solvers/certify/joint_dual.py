@@ -307,6 +307,7 @@ def joint_dual_certificate(
     anderson: int = 5,
     start: str = "arrowhead",
     coord_scale: ArrayLike | str | None = "auto",
+    outlier_cost: float = 0.0,
 ) -> DualCertificateResult:
     """Search a dual certificate of the pose ``(R, t)`` for the full weighted TLS problem.
 
@@ -336,6 +337,10 @@ def joint_dual_certificate(
     coord_scale : "auto", None or (13,) array_like
         Positive scales ``s`` of the pose coordinates for the search (``y' = y / s``);
         ``"auto"`` shrinks the translation (see :func:`_auto_scale`), None leaves them.
+    outlier_cost : float
+        Constant ``c`` of the target gap ``(f - lb) / (1 + |f - c| + |lb - c|)``
+        (:func:`solvers.certificate.undiluted_gap`, what the certificate's verdict uses); 0
+        gives the literature's gap above.
 
     Returns
     -------
@@ -350,8 +355,10 @@ def joint_dual_certificate(
     _, lift, x = joint_candidate(problem, R, t)
     f = float(x @ lift.dense_cost() @ x)
 
+    c = float(outlier_cost)
+
     def rel(lb: float) -> float:
-        return (f - lb) / (1 + abs(f) + abs(lb))
+        return (f - lb) / (1 + abs(f - c) + abs(lb - c))
 
     # Diagonal congruence of the pose coordinates (preconditioning): the search runs on the
     # lifting of y' = y / scale_y; the dual point maps back exactly (S = T S' T).

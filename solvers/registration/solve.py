@@ -257,9 +257,10 @@ def _solve_pruned(
     at, bt = problem._points_t
     _, _, beta, w = problem._kernel_arrays
     every = active.size == problem.n  # the usual case: no copies of the data
+    # Column selection of a (3, N) array comes out Fortran-ordered: the kernels take C order.
     cliques, n_edges, exact = _prune_rows(
-        at if every else at[:, active],
-        bt if every else bt[:, active],
+        at if every else np.ascontiguousarray(at[:, active]),
+        bt if every else np.ascontiguousarray(bt[:, active]),
         beta if every else beta[active],
         problem.cbar2, limit=pruning.max_tied_cliques,
         exact_max_vertices=pruning.exact_clique_max_vertices, max_work=pruning.clique_max_work,
