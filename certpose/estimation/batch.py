@@ -277,7 +277,7 @@ def basin_hop(
         that comes within this many chart units of a better one of its start stops, and of
         the ``keep`` best after the cheap refinement, those within it of a better one are not
         refined again. Measured on the hop's exact refinements of 15 YCB-Video pairs
-        (``examples/bench_basins.py``): 56% ended within 0.02 units and 2 degrees of a better
+        (``examples/benchmarks/bench_basins.py``): 56% ended within 0.02 units and 2 degrees of a better
         one of their start; with 0.02 (the central-difference step: their gradients come from
         overlapping stencils) the hop evaluated 16% fewer point terms on 20 of those pairs, every
         pair within 0.2 nats of its value without. ``None``: every pose climbs to the end.

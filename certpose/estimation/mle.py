@@ -24,13 +24,13 @@ whose minimiser climbed highest is certified (coarse-to-fine):
    on the exact eq. (1) of the whole object, and the best few and the best eq. (2) minimiser
    refined on it (all together: :func:`~certpose.estimation.batch.refine_poses`); the problem
    of the eq. (2) minimiser that climbed highest gets its local rounds (begun at its refined
-   pose) and its certificate starts in a thread. Measured (``examples/bench_box.py
+   pose) and its certificate starts in a thread. Measured (``examples/benchmarks/bench_box.py
    --models appearance``, 18 cross-scene pairs): the refined eq. (2) hypothesis is the winner or
    within 0.5 cm / 2 deg of it in 17/18 pairs with the mask and 15/18 box only (7/18 and 5/18
    when one minimiser, the highest support's, was refined: with the mask it lost 11, turned
    by 150-180 degrees from the winner in 8, which eq. (2), without a free-space term, does not
    tell apart, and stalled 4-8 degrees from the winner in its basin in 3); with all 16 refined
-   hypotheses seeded, 18/18 and 16/18, and 49/60 geometry-only pairs (``examples/bench_eq2.py``;
+   hypotheses seeded, 18/18 and 16/18, and 49/60 geometry-only pairs (``examples/benchmarks/bench_eq2.py``;
    39/60 with 8 seeds: the other winners came from coarse ranks 9-16);
 3. local refinement stops at the first local maximum of a rough objective, often tens of nats
    below the basin's top: the best ``hop_starts`` distinct hypotheses hop on
@@ -41,7 +41,7 @@ whose minimiser climbed highest is certified (coarse-to-fine):
    the winner is not the eq. (2) minimiser being certified (a turn, or another hypothesis that
    hopped past it), eq. (2) is solved again about the winner and that one is certified.
 
-Measured on 60 YCB-Video pairs (``examples/bench_basins.py``, geometry-only models, mask
+Measured on 60 YCB-Video pairs (``examples/benchmarks/bench_basins.py``, geometry-only models, mask
 classifier): the returned eq. (1) is within 1 nat of the locally refined ground truth, or above
 it, in 60/60 pairs (59/60 with a 3x3x3 grid of offsets around each slid translation as well;
 60/60 with the slid translations alone, without the unslid ones, which lost box-only pairs; 56/60
@@ -504,7 +504,7 @@ class MLEParams:
     hop_drop_behind : float
         A start that trails the best one by more than this many nats after a round stops
         hopping (``drop_behind`` of :func:`~certpose.estimation.batch.basin_hop`). Measured on
-        the 60 pairs of ``examples/bench_basins.py``: the second start won in 5 pairs, each
+        the 60 pairs of ``examples/benchmarks/bench_basins.py``: the second start won in 5 pairs, each
         time ahead after the first round already; of those behind, none came closer than
         1.8 nats (the banana, 0050, from 13.9 behind); the cut spares 16% of the hops'
         eq. (1) terms.
@@ -512,7 +512,7 @@ class MLEParams:
         Point-to-plane steps that slide each coarse translation so that the model points facing
         the camera fit the classifier's positives near the centre (see :func:`coarse_search`),
         tried beside the unslid translations (0: those only). Measured
-        (``examples/bench_basins.py``): the bowl in scene 0049, partly occluded, is found in
+        (``examples/benchmarks/bench_basins.py``): the bowl in scene 0049, partly occluded, is found in
         3 of 3 frames instead of 0.
     coarse_align_offsets : tuple of float
         Translation offsets per axis, in object radii, around each slid translation (the
@@ -520,8 +520,8 @@ class MLEParams:
         few millimetres (the bowl: 0.2-0.4 cm), which the refinement recovers, so by default
         the slid translation alone is tried (1 pose per rotation, not 27: 28k coarse poses
         instead of 55k). Measured side by side with the 3x3x3 grid
-        (``examples/bench_basins.py``, 60 pairs): basins 60/60 against 59/60 (the bowl
-        0049/000001 now found); ``examples/bench_box.py --models appearance`` unchanged
+        (``examples/benchmarks/bench_basins.py``, 60 pairs): basins 60/60 against 59/60 (the bowl
+        0049/000001 now found); ``examples/benchmarks/bench_box.py --models appearance`` unchanged
         (mask and box only: ADD-S 18/18, right 15/18, basins 18/18).
     coarse_align_points : int
         Positives (an even sample of those within an object diameter of the centre) that the
@@ -533,7 +533,7 @@ class MLEParams:
         Object points (farthest-point sample, area-weighted like the whole model) of the eq. (1)
         that the refinement, the basin hops and the turns climb on; the winner and its modes are
         then refined and polished on the whole object (``None``, the default: the whole object
-        throughout). Measured (``examples/bench_basins.py``, 60 YCB-Video pairs, side by side
+        throughout). Measured (``examples/benchmarks/bench_basins.py``, 60 YCB-Video pairs, side by side
         with the whole object): 1024 cuts the median MLE time by about a quarter (6.4 s against
         8.8 s at load 2-9) but finds fewer basins (55/60 against 57/60: the banana and the
         mustard bottle of scene 0050 climb to other maxima on the subsample), 768 gave 54/60.
@@ -902,7 +902,7 @@ def _certify_seeded(search: _Search, seeded: SeededEq2, finals: list[Hypothesis]
     1.01 and 1.06 cm, 0.56 and 0.36 cm begun at the refined pose).
 
     Eq. (2)'s support, without a free-space term, often prefers a can's or a banana's
-    180-degree turn that eq. (1) rejects (8 of the 18 pairs of ``examples/bench_box.py``): the
+    180-degree turn that eq. (1) rejects (8 of the 18 pairs of ``examples/benchmarks/bench_box.py``): the
     certified minimiser is then not in the basin of the returned pose."""
     t = time.perf_counter()
     refined = [h for h in finals if h.source.startswith("eq2:")]

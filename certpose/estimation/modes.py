@@ -136,7 +136,7 @@ def explore_modes(
         more than this many nats below the best turn stop (``prune_margin`` of
         :func:`~certpose.estimation.batch.refine_poses`, checked every 10 iterations).
         Replayed on the exact refinements' values of the 60 pairs of
-        ``examples/bench_basins.py`` and of the potted-meat can in 0002/000020 with an
+        ``examples/benchmarks/bench_basins.py`` and of the potted-meat can in 0002/000020 with an
         appearance model (whose winning turn climbs from 220 nats behind): it spares half the
         evaluations, and no turn it stops would have ended within 15 nats of the winner. A
         plain cut at a fixed distance behind the best turn (60 nats after 10 iterations) lost

@@ -100,11 +100,11 @@ class PoseParams:
         Geometry-only models built from model points (:func:`run_ycbv`, :func:`ycbv_setup`):
         sample a surface of revolution with its symmetry
         (:func:`~certpose.geometry.objects.object_from_points` ``revolution="auto"``: eq. (1)
-        flat along a mug's hidden-handle arc; not the default, README). Measured as the
-        default (2026-11-26): ``examples/bench_is_seeds.py --no-demo`` ESS >= 1,000 in 25/25
-        (least 1,223), ``examples/bench_basins.py`` returned >= refined truth - 1 nat in 59/60
+        flat along a mug's hidden-handle arc; not the default). Measured as the
+        default: ``examples/benchmarks/bench_is_seeds.py --no-demo`` ESS >= 1,000 in 25/25
+        (least 1,223), ``examples/benchmarks/bench_basins.py`` returned >= refined truth - 1 nat in 59/60
         (the bowl on 0049/000010 by 3 nats), ADD-S <= 1 cm 60/60; but the calibrated
-        distribution held out (``examples/bench_calibration.py --appearance --calibrated
+        distribution held out (``examples/benchmarks/bench_calibration.py --appearance --calibrated
         --loso``) puts the truth inside its 90% / 50% regions in 0.71 / 0.59 of the 78 pairs
         (0.83 / 0.60 with the plain models; target 0.80-1.00): the tomato soup can in 0050,
         flat about its axis, comes back 90-143 deg off and the truth at level 1.0 (scene 0050

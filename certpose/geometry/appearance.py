@@ -169,7 +169,7 @@ class AppearanceBackbone:
     geometric biases of the model points outweighed the print: the potted-meat can built from
     scene 0049 came back turned by 180 degrees in all three frames of 0002, eq. (1) preferring
     the turn by 12-46 nats, of which colour won back only about 11. Measured with
-    ``examples/bench_box.py --models appearance`` (18 cross-scene pairs, each model built from
+    ``examples/benchmarks/bench_box.py --models appearance`` (18 cross-scene pairs, each model built from
     the other scene's three frames, never evaluated on its own scene; load average 4-14):
 
     ================  ==========================================  ===========================

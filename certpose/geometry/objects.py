@@ -512,13 +512,13 @@ def object_from_points(
     Measured on YCB-Video with geometry-only models and the mask classifier (2 cores shared,
     load 5-13), ``"voxel"`` -> ``"surface"``:
 
-    * the mug's hidden-handle arc in scene 0000 (``examples/bench_arc.py``, frames 1-5, ratio
-      of eq. (1)'s range inside the arc to its drop outside; issue 10's target <= 0.25): mean
+    * the mug's hidden-handle arc in scene 0000 (``examples/benchmarks/bench_arc.py``, frames 1-5, ratio
+      of eq. (1)'s range inside the arc to its drop outside; target <= 0.25): mean
       0.93 -> 0.39 (0.73 / 0.88 / 0.94 / 0.90 / 1.17 -> 0.38 / 0.41 / 0.28 / 0.31 / 0.57);
       with the graded free space (``free_space_tolerance=7.5e-3, free_space_ramp=5e-3,
       c_empty=-20``) 0.45 -> 0.40. The body's share of the range falls from 58-77 to 21-23
       nats; what is left is mostly the handle emerging near the arc's stated ends;
-    * ``examples/bench_basins.py`` (60 pairs; returned eq. (1) >= refined truth - 1 nat):
+    * ``examples/benchmarks/bench_basins.py`` (60 pairs; returned eq. (1) >= refined truth - 1 nat):
       49 -> 52 (the mug 1/5 -> 3/5); ADD-S <= 1 cm 47 -> 47; non-symmetric rotation <= 10 deg
       10/46 -> 10/46; median MLE +9% (twice the points in the exact eq. (1)).
     * ``density`` 4 and 8 gave the same arc figures as 2 (mean 0.41 at 4), 1 was worse.

@@ -30,7 +30,7 @@ leaves 29-55 of its 2621 points deeper than 1 cm in frames 1-5 of scene 0000, a 
 
 Against an exact arc. On the demo scene (noise-free depth) the arc is known exactly:
 :meth:`certpose.data.synthetic.SyntheticScene.hidden_handle_arc` renders every angle and keeps
-those at which the handle shows in no pixel. The voxel test's arc is wider (2026-11-26, seeds
+those at which the handle shows in no pixel. The voxel test's arc is wider (seeds
 0-4, 6,000 model points, 5 mm voxels): at the default tolerance its ends lie 4-8.5 deg beyond
 the exact low end and 14.5-20 deg beyond the high end; at 2.5 mm 1-5 and 10-12.5 deg; at 0
 its arc is undefined on three seeds (the reference pose's own silhouette points). Where the

@@ -10,7 +10,7 @@ Object models sampled evenly over their surface carry the area each point stands
 ``areas[i] / voxel_size**2``, so the sum approximates the same surface integral however densely
 the surface is sampled.
 
-How the special scene states enter (NOTES.md 1.4), voxel by voxel:
+How the special scene states enter, voxel by voxel:
 
 * **occupied** voxel ``v``: ``log p_O(v)`` from the classifier and ``beta * f_v^T z_i``;
 * **empty** (observed free space, ``z^T z_emp = -inf``): the finite free-space penalty
@@ -31,7 +31,7 @@ How the special scene states enter (NOTES.md 1.4), voxel by voxel:
   well below the positives' value: with ``log 0.5`` the few free-space violations caused by
   depth noise at the true pose outweigh the reward of the visible points, and eq. (1) prefers
   to hide the whole object in unobserved space (measured on YCB-Video, see
-  ``examples/bench_ycbv.py``).
+  ``examples/benchmarks/bench_ycbv.py``).
 
 At a continuous point the per-voxel terms of the 8 surrounding voxel centres are blended
 trilinearly. Because the blend is linear, this equals trilinear interpolation of ``f_scn``
@@ -117,7 +117,7 @@ class LikelihoodParams:
         point's depth into free space, the measure of :func:`certpose.model.arc.free_space_arc`),
         and the point pays ``clip((depth - free_space_tolerance) / free_space_ramp, 0, 1)`` of
         ``c_empty - log_p_unobserved``: the charge starts where the point itself passes the
-        tolerance. On the mug's hidden-handle arc (``examples/bench_arc.py``, YCB-Video 0000
+        tolerance. On the mug's hidden-handle arc (``examples/benchmarks/bench_arc.py``, YCB-Video 0000
         frames 1-5, 2-deg steps, refined) the handle's share inside the arc is then flat
         (range 0.0-0.1 nats; 1.2-1.6 with ``field_blur=0.0075``) where the voxel-centre
         ramp charged its tip 5-15 nats near the arc's ends; unrefined, on 0000/000001, no free
@@ -167,12 +167,12 @@ class LikelihoodParams:
         surface is a shell one voxel thick; with about two model points per voxel face, eq. (1)
         summed over them depends on where they fall between voxel centres, and a local
         refinement finds the shifts where they fall favourably: on the mug's hidden-handle arc
-        (``examples/bench_arc.py``, YCB-Video 0000 frames 1-5, 5 deg steps) the round body's
+        (``examples/benchmarks/bench_arc.py``, YCB-Video 0000 frames 1-5, 5 deg steps) the round body's
         refined share varied by 21-34 nats; with 7.5 mm (1.5 voxels) by 6.7-9.0, and eq. (1)'s
         ratio of range inside to drop outside fell from 0.87-8.55 (mean 4.27) to 0.41-1.15
         (mean 0.69). The body-only model, frames 1 / 2: 30.9 / 31.9 nats unblurred, 7.6 / 6.8
         with 7.5 mm, 12.4 / 17.1 with four times denser points (``density=8``), 3.4 / 3.5
-        with both. Not the default: ``examples/bench_basins.py`` (60 YCB-Video pairs,
+        with both. Not the default: ``examples/benchmarks/bench_basins.py`` (60 YCB-Video pairs,
         geometry-only models, mask classifier; default -> 5 mm -> 7.5 mm) kept 60/60 returned
         >= refined truth - 1 nat, but ADD-S <= 1 cm 60 -> 59 -> 59 (the wood block 0.65 ->
         1.0 cm, its refined truth 1.1 cm), non-symmetric rotation <= 10 deg 15 -> 14 -> 14 of
@@ -181,20 +181,19 @@ class LikelihoodParams:
         72.6 / 140.9 / 73.2 -> 59.9 / 46.9 / 20.2 / 22.4 deg with 7.5 mm. Eq. (1) takes about
         5-9% longer (more cells need the 8-corner blend). With the Voronoi-area models, the
         arc's option set (7.5 mm with ``free_space_at="point"``, tolerance 3.5 mm, ramp 2.5 mm)
-        as the default was measured against today's defaults (2026-11-26, branch
-        ``defset17-default``) and not adopted: the poses hold (``ycbv_eval.py``, 60 pairs:
+        as the default was measured against the defaults of the time and not adopted: the poses hold (``ycbv_eval.py``, 60 pairs:
         ADD-S <= 1 cm 60 -> 59, the wood block 0.53-0.66 -> 0.91-1.02 cm; non-symmetric
         rotation <= 10 deg 21 -> 21, flips 18 -> 16 (the potted meat can twice less, 0049),
         median rotation error 11.8 -> 15.5 deg (the mug on 0000/000002-4 4-10 -> 20-48 deg,
         inside its flatter arc); ``bench_basins.py`` 60/60; ``bench_box.py`` unchanged) and
         the arc's mean ratio falls from inf (sampling seed 0: 1.35-6.27 on four frames, inf on
         the fifth) to 0.67 / 0.55 / 0.46 over sampling seeds 0 / 1 / 2, but the importance
-        sampler loses: ``examples/bench_is_seeds.py`` ESS >= 1000 in 28 of 30 runs (least 439,
+        sampler loses: ``examples/benchmarks/bench_is_seeds.py`` ESS >= 1000 in 28 of 30 runs (least 439,
         0000/000002, where the defaults give 2475) and the mug's axis within 5 deg / 1 cm of
         the truth's for 0.63-0.71 of the mass instead of about 0.90 (two slow tests of the
         demo's tilt fail); it is the blur that moves the axis (the blur alone 0.70, the point
         ramp alone 0.88-0.89). A whole ``certpose pose`` call per frame took 27-32% longer
-        (interleaved with the defaults, ``examples/bench_pose_calls.py``: 27.4 / 27.7 against
+        (interleaved with the defaults, ``examples/benchmarks/bench_pose_calls.py``: 27.4 / 27.7 against
         21.6 / 21.0 s a round; one call per pair median 2.24 / 2.29 against 2.12 / 1.90 s).
         With 5 mm instead of 7.5 the ESS holds (30/30, least 1237) and the ratio is 0.70 /
         0.66 / 0.53, but the axis still holds only 0.68-0.74 of the mass, and ``ycbv_eval.py``
@@ -221,7 +220,7 @@ class LikelihoodParams:
         within the Gaussian's reach of the surface then carry descriptor rows of their own
         (YCB-Video 0000/000001, whole frame: 14,659 occupied voxels; 3.3 times as many rows at
         3.5 mm, 5.9 times at 7.5 mm; ``d`` float32 and one float64 each). On the mug's
-        hidden-handle arc (``examples/bench_arc.py``, frames 1-5, 2-deg steps, refined), with
+        hidden-handle arc (``examples/benchmarks/bench_arc.py``, frames 1-5, 2-deg steps, refined), with
         the best option set there (``free_space_at="point"``, ``field_blur=0.0075``,
         ``free_space_tolerance=0.0035``, ``free_space_ramp=0.0025``) the descriptor
         similarity carries 19-47% of the body's variance inside the arc (its range 3.2-6.5
@@ -253,7 +252,7 @@ class LikelihoodParams:
     nats); hiding the whole drill in unobserved space scored 2,000 nats better, and the MLE was
     4.3 cm off. The wood block, tuna can, cracker box and the second drill frame failed the
     same way. The cost: protrusions that stand only 5-10 mm in free space are charged less,
-    e.g. the hidden-handle mug's turns past its arc (``examples/bench_samplers.py``: mass in
+    e.g. the hidden-handle mug's turns past its arc (``examples/benchmarks/bench_samplers.py``: mass in
     the arc 0.81-1.00 -> 0.13-0.88 on scene 0000, coverage of the arc 0.76-0.87 ->
     0.09-0.96). ``LikelihoodParams(free_space_tolerance=0, free_space_ramp=0,
     free_space_from="surface")`` is the former model.
@@ -594,7 +593,7 @@ def blurred_terms(
 
     Only the classifier's term is spread: blurring the free-space values as well flattened the
     mug's body as much but charged its handle ``c_empty`` up to a blur's width before it enters
-    free space (``examples/bench_arc.py``: the handle's share varied by 8-30 nats inside the
+    free space (``examples/benchmarks/bench_arc.py``: the handle's share varied by 8-30 nats inside the
     arc); blurring the free-space values alone, or the classifier's positives alone, left the
     body's roughness at 17-26 nats: it comes from the occupied shell and its negatives.
 

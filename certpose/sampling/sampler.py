@@ -18,7 +18,7 @@ step on a finite-difference stencil and given the Laplace spread there (:func:`_
 Mixture weights follow the raw (not flattened) weighted draws, damped and floored, so that a new
 component is not starved before it has been fitted. A pilot draw that holds more than 5% of its
 round's weight far from every component (a narrow peak no sweep reached) gets a component of its
-own, fitted the same way (:func:`_births`). ``examples/bench_is_seeds.py --seeds 0-9`` (demo and
+own, fitted the same way (:func:`_births`). ``examples/benchmarks/bench_is_seeds.py --seeds 0-9`` (demo and
 YCB-V 0000/000001-5, 60 runs): final ESS < 1,000 in 33 runs before, none after (least 1,859).
 
 Basins off the circle. A sweep turns about the axis of a run it has seen; a basin elsewhere (the
@@ -193,7 +193,7 @@ class ISParams:
         later mixture density).
     sweep_basins : int
         Basins swept per sweep round, at most (>= 1; 1 = every sweep in the heaviest basin, the
-        sampler before 2026-11-26's evening). A flat component whose centre lies more than
+        former sampler). A flat component whose centre lies more than
         ``2 sweep_spacing`` of rotation or ``2 max_translation_noise`` from every turn of the
         sweeps so far starts a basin of its own: the heaviest of each such basin is swept once,
         about the axis of the Laplace fit at its centre (73 evaluations; its own refits rest on
@@ -201,7 +201,7 @@ class ISParams:
         own. The demo's mug upside down is such a basin: a ring as the upright mug's arc,
         holding 1-6% of the mass, whose one or two half-turn components draw a few pilot draws
         per round and never widen along it; its draws between them carried the weight.
-        ``examples/bench_is_seeds.py`` (2026-11-26, the same cached MLE seeds, 1 -> 3): the demo
+        ``examples/benchmarks/bench_is_seeds.py`` (the same cached MLE seeds, 1 -> 3): the demo
         at seeds 0-19, least final ESS 1,465 -> 3,241, 10% quantile 4,283 -> 4,319, median 6,154
         -> 5,874, largest Pareto k 0.77 -> 0.68 (mean 0.36 -> 0.38); the upside-down share of the
         weighted draws 0.2-4.7% -> 0.7-6.0% where the target's own is 0.8-5.7%
@@ -212,20 +212,20 @@ class ISParams:
         component off the first circle). Sampling time, 1 and 3 interleaved on one tree (load
         1.3-1.7): the demo 1.35 -> 1.53 s median (paired +0.14 s; 8-38 more components, about
         1,500 more evaluations), max 1.98 -> 1.81 s; YCB-Video unchanged.
-        ``examples/bench_samplers.py --no-ycbv --seeds 0 1 2 3 4``: total variation from the
+        ``examples/benchmarks/bench_samplers.py --no-ycbv --seeds 0 1 2 3 4``: total variation from the
         target's exact marginal 0.034 0.030 0.037 0.033 0.048 -> 0.034 0.035 0.042 0.028 0.030
         (its own error 0.018); from the uniform on the rendered arc 0.060-0.106 -> 0.075-0.111,
         since the 1-4% now drawn upside down (0-1% before) lies off that arc.
     birth_weight : float
         A pilot draw holding more than this share of its round's weight, more than 3 standard
         deviations from its component, gets a component of its own (:func:`_births`; 1 = never).
-        0.02 since the Voronoi-area object models (2026-11-26), under which eq. (1) rates the
+        0.02 since the Voronoi-area object models, under which eq. (1) rates the
         mug's other hiding places closer to its arc: on YCB-Video 0000 frames 1-5, seeds 0-2,
         the least final ESS with 0.05 was 151 (frame 3, seed 0: the weight on a few stray draws
         in the run behind the foam brick), with 0.02 1,671.
     sweep_defensive : bool
         The swept components join the defensive ones too (as fitted, never refitted).
-        ``examples/bench_is_seeds.py --seeds 0-9``, demo + YCB-V 0000/000001-5 (60 runs): with
+        ``examples/benchmarks/bench_is_seeds.py --seeds 0-9``, demo + YCB-V 0000/000001-5 (60 runs): with
         them final ESS median 3,815, 10% quantile 2,740, least 931 (1 run below 1,000: the demo
         at seed 9, a narrow peak no component reached); without them 3,568, 2,214, 1,192; the
         same arc figures and time (the mixture density is a small share of it).
@@ -236,7 +236,7 @@ class ISParams:
         climbed in one batch): a basin that no pilot round reaches, such as the demo's mug upside
         down (tilt 177 deg, its refined peak 3.6-5.3 tempered nats below the MLE on seeds 0-19,
         a ring of its own since its handle hides there too). Their cost (0.04-0.2 s) is counted
-        in :attr:`ISResult.seconds`. ``examples/bench_is_seeds.py`` (2026-11-26, the same MLE
+        in :attr:`ISResult.seconds`. ``examples/benchmarks/bench_is_seeds.py`` (the same MLE
         seeds off and on, ``--cache``): the demo at seeds 0-19, final ESS least 563 -> 1,465,
         10% quantile 3,379 -> 4,283, median 6,113 -> 6,154, runs under 1,000 1 -> 0 (seed 4 563 ->
         6,193; single seeds move both ways with the sampler's random path: seed 7 6,641 -> 3,739,
@@ -246,16 +246,16 @@ class ISParams:
         Without them the demo's sampler misses the upside-down basin on seeds 0, 10, 12 and 13
         (0-4 draws there; with them 89-278 draws and 0.2-4.7% of the mass: seed 12's 4.7% is what
         its ESS pays, 6,387 -> 1,465) and hits it with a few heavy tail draws on others (seed 4:
-        67 draws, 5.2% of the weight). ``examples/bench_samplers.py --no-ycbv --seeds 0 1 2 3 4``:
+        67 draws, 5.2% of the weight). ``examples/benchmarks/bench_samplers.py --no-ycbv --seeds 0 1 2 3 4``:
         total variation of the marginal about the axis from the uniform on the rendered arc
         0.064-0.133 -> 0.060-0.106 (better on all five), from the target's exact marginal
         (``axis_marginal``, its own error 0.018) 0.034-0.044 -> 0.030-0.048 (better on four, seed
-        4 0.034 -> 0.048), arc coverage the same, mass in it 0.88-0.96 -> 0.90-0.96. The default
-        (since 2026-11-26): without it the sampler leaves out up to 4.7% of the target's mass on
+        4 0.034 -> 0.048), arc coverage the same, mass in it 0.88-0.96 -> 0.90-0.96. The default:
+        without it the sampler leaves out up to 4.7% of the target's mass on
         some seeds, silently; with it the Pareto k of the final weights rises on some seeds (demo
         seeds 0-19: mean 0.31 -> 0.36, largest 0.55 -> 0.77, seed 18), and single runs lose ESS
         as above: the basin is a ring its one or two components under-cover (its share half the
-        target's, median). ``sweep_basins`` (the default since 2026-11-26's evening) covers it:
+        target's, median). ``sweep_basins`` (the default) covers it:
         largest Pareto k 0.68, least ESS 3,241. ``False`` gives the former sampler bit for bit.
     half_turn_window : float
         Refined half turns more than this many tempered nats below the best seed are dropped:
@@ -271,7 +271,7 @@ class ISParams:
 
     Notes
     -----
-    Defaults measured on the demo mug (``examples/bench_sampler.py``): many cheap pilot rounds
+    Defaults measured on the demo mug (``examples/benchmarks/bench_sampler.py``): many cheap pilot rounds
     (11 x 500 draws) adapt more stably than a few large ones (5 x 2,500), and the Laplace start
     replaces an isotropic 3 mm noise that is about six times the target's translational spread.
     """
