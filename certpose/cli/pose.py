@@ -414,7 +414,7 @@ def _report(args: argparse.Namespace, params: Any, title: str,
     # The certificate bounds eq. (2) at its minimiser; say so, and whether that is this pose.
     say(args, f"certificate: {result.certificate_scope}")
     if len(result.modes) > 1:
-        say(args, f"competing modes of eq. (1) (within {params.mle.mode_window:g} nats of the best; "
+        say(args, f"competing modes of eq. (1) (within {params.mle.mode_window:g} tempered nats of the best; "
               "eq. (1) barely tells them apart):")
         for k, m in enumerate(result.modes):
             err = m.get("errors")

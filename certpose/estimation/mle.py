@@ -481,8 +481,13 @@ class MLEParams:
         the 180-degree flips of boxes and cans, where the coarse search misses basins); a turn
         that scores better on eq. (1) becomes the winner.
     mode_window : float
-        Local maxima of eq. (1) within this many nats of the best are reported as competing
-        modes (:attr:`MLEResult.modes`).
+        Local maxima of eq. (1) within this many tempered nats of the best are reported as
+        competing modes (:attr:`MLEResult.modes`): nats of eq. (1) divided by the sampler's
+        default temperature at the best pose
+        (:func:`~certpose.sampling.sampler.default_temperature`, about 11 on YCB-Video's
+        objects), the units in which the pose distribution weighs them. Eq. (1)'s scatter
+        between the symmetric poses of a symmetric shape is of that order (a box's flips 7-47
+        nats below the best on the shared YCB-Video frames, geometry-only models).
     mode_refine : int
         Near-symmetric turns refined on the exact eq. (1) (the best after pre-refinement on the
         coarse one; ``num_refine`` of :func:`~certpose.estimation.modes.explore_modes`). 6 missed
@@ -572,7 +577,7 @@ class MLEParams:
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.mode_window) and self.mode_window >= 0):
-            raise ValueError(f"`mode_window` must be >= 0 nats, got {self.mode_window}.")
+            raise ValueError(f"`mode_window` must be >= 0 tempered nats, got {self.mode_window}.")
         if int(self.num_rotations) < 0:
             raise ValueError(f"`num_rotations` must be >= 0, got {self.num_rotations}.")
         if int(self.coarse_points) < 3:
@@ -641,7 +646,7 @@ class MLEResult:
         The hypotheses as refined by the search (before the hops and the winner's polish), each
         scored on the exact eq. (1).
     modes : tuple of PoseMode
-        Local maxima of eq. (1) within ``mode_window`` nats of the best, best first (the
+        Local maxima of eq. (1) within ``mode_window`` tempered nats of the best, best first (the
         returned pose first); more than one means eq. (1) barely tells them apart (e.g. a box's
         flips without appearance).
     eq2_problem : Eq2Problem or None
@@ -1070,13 +1075,20 @@ def _finish(search: _Search, best: Hypothesis,
     # peaks with peaks (the mustard bottle's flip in YCB-Video 0050/000001 stalled 6.3 nats
     # below the polished winner; its peak is 4.0 below, and the truth's, refined from the truth,
     # 4.9). Those inside are reported anyway: no polish (about 0.3 s each) to decide it.
-    w = params.mode_window
+    w = _window(search, best.pose)
     near = [_polish(search, h) if best.score - 2 * w <= h.score < best.score - w else h
             for h in others_h]
     kept = [PoseMode(best.pose, best.score, best.source)] + [
         PoseMode(h.pose, h.score, h.source, _angle_deg(h.pose[:3, :3], best.pose[:3, :3]))
-        for h in sorted(near, key=lambda h: -h.score) if h.score >= best.score - params.mode_window]
+        for h in sorted(near, key=lambda h: -h.score) if h.score >= best.score - w]
     return best, tuple(kept)
+
+
+def _window(search: _Search, T: NDArray[np.float64]) -> float:
+    """``mode_window`` in nats of eq. (1): times the sampler's default temperature at ``T``."""
+    from certpose.sampling.sampler import default_temperature
+
+    return search.params.mode_window * max(1.0, default_temperature(search.exact, T))
 
 
 def _modes(search: _Search, best: Hypothesis, object_model: ObjectModel) -> tuple[Hypothesis, tuple[PoseMode, ...]]:
@@ -1100,7 +1112,7 @@ def _modes(search: _Search, best: Hypothesis, object_model: ObjectModel) -> tupl
         best = Hypothesis(top.T_scene_object, float(top.log_likelihood), top.origin)
     # Modes a few nats outside the window may be inside it once polished (step 7) or on the
     # whole object (when the search ran on a subsample).
-    window = params.mode_window * (2 if search.full is search.exact else 3)
+    window = _window(search, best.pose) * (2 if search.full is search.exact else 3)
     kept = tuple(m for m in modes if m.log_likelihood >= top.log_likelihood - window)
     search.timings["modes"] = time.perf_counter() - t
     return best, kept
@@ -1279,7 +1291,7 @@ def estimate_mle(
                     h = _hop(search, [h], gen)
                     if h.score > best.score:
                         best = h
-                if h.score >= best.score - 3 * params.mode_window:
+                if h.score >= best.score - 3 * _window(search, best.pose):
                     modes = (*modes, PoseMode(h.pose, h.score, h.source))
                 timings["eq2_certified_pose"] = time.perf_counter() - t
             eq2_result = certified
@@ -1296,7 +1308,7 @@ def estimate_mle(
     msg = (f"best of {len(finals)} refined hypotheses on eq. (1): {best.source}; "
            f"eq. (2) pose scores {eq2_ll:.1f} ({eq2_refined_ll:.1f} refined) vs {best.score:.1f}")
     if len(modes) > 1:
-        msg += (f"; {len(modes)} modes within {params.mode_window:g} nats (rotations "
+        msg += (f"; {len(modes)} modes within {params.mode_window:g} tempered nats (rotations "
                 + ", ".join(f"{m.rotation_from_best_deg:.0f}" for m in modes[1:])
                 + " deg from the best)")
     log.info("MLE: %s", msg)

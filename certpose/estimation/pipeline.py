@@ -221,7 +221,7 @@ class PoseResult:
         True only when the certificate certifies ``T_camera_object`` itself (the returned pose
         maximises eq. (1), which no certificate bounds, so this is normally False).
     modes : tuple of dict
-        Local maxima of eq. (1) within ``PoseParams.mle.mode_window`` nats of the best, best
+        Local maxima of eq. (1) within ``PoseParams.mle.mode_window`` tempered nats of the best, best
         first: ``T_camera_object``, ``log_likelihood``, ``origin``, ``rotation_from_best_deg``
         (and ``errors`` against the ground truth, when given). More than one: eq. (1) barely
         tells them apart.
