@@ -180,3 +180,16 @@ def test_skip_futile_still_searches_a_clique_number_that_could_certify() -> None
     assert plain.method == skip.method == "clique_number"
     assert skip.lower_bound == plain.lower_bound and skip.relative_gap == plain.relative_gap
     assert "not attempted" not in skip.message
+
+
+def test_horn_root_at_a_triple_root_is_tight() -> None:
+    """H = -19 I (a reflection's triple root): Newton alone stopped 4.7e-5 relative above."""
+    off = np.full((3, 3), 1e-6)
+    np.fill_diagonal(off, 0.0)
+    for H in (-19.0 * np.eye(3) + off, -np.eye(3), -2.5 * np.eye(3)):
+        U, s, Vt = np.linalg.svd(H)
+        d = np.sign(np.linalg.det(U @ Vt)) or 1.0
+        true = s[0] + s[1] + d * s[2]
+        lam = _horn_lambda_max(H, np.sqrt(3.0) * np.linalg.norm(H) * (1 + 1e-9) + 1e-300)
+        norm = np.linalg.norm(H)
+        assert true - 1e-12 * norm <= lam <= true + 1e-7 * norm

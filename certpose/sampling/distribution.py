@@ -241,6 +241,50 @@ class PoseDistribution:
         idx = np.searchsorted(cdf, u, side="right")
         return PoseDistribution(self.rotations[idx], self.translations[idx], np.full(n, 1.0 / n))
 
+    def with_model_error(self, rotation_sigma: float, translation_sigma: float, *,
+                         centre: ArrayLike = (0.0, 0.0, 0.0), copies: int = 1,
+                         rng: np.random.Generator | int | None = None) -> PoseDistribution:
+        """This distribution convolved with a model-error kernel: each particle turned by a
+        random rotation about ``centre`` (object frame, metres) and shifted.
+
+        A pose distribution drawn from eq. (1) is as sharp as eq. (1) is, but the object model
+        and the scene field are not exact: a pose a few degrees off can explain the data as well
+        under a slightly different model. The kernel carries that error into the distribution:
+        ``T' = T exp(w) (about centre) + d``, ``w ~ N(0, rotation_sigma^2 I)`` (radians, object
+        frame), ``d ~ N(0, translation_sigma^2 I)`` (metres, the particles' frame).
+
+        Parameters
+        ----------
+        rotation_sigma : float
+            Radians per axis (>= 0).
+        translation_sigma : float
+            Metres per axis (>= 0).
+        centre : (3,) array_like
+            Object-frame point the rotations turn about (e.g. the model's centroid).
+        copies : int
+            Perturbed copies of each particle (>= 1); weights are shared among them.
+        rng : numpy Generator, int or None
+
+        Returns
+        -------
+        PoseDistribution
+            ``copies * len(self)`` particles, without ``log_weights``.
+        """
+        for name, v in (("rotation_sigma", rotation_sigma), ("translation_sigma", translation_sigma)):
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"Expected `{name}` to be finite and >= 0, got {v}.")
+        if int(copies) != copies or copies < 1:
+            raise ValueError(f"Expected `copies` to be a positive integer, got {copies!r}.")
+        c = np.asarray(centre, dtype=np.float64).reshape(3)
+        gen = np.random.default_rng(rng)
+        R = np.repeat(self.rotations, int(copies), axis=0)
+        t = np.repeat(self.translations, int(copies), axis=0)
+        w = np.repeat(self.weights, int(copies)) / int(copies)
+        E = Rotation.from_rotvec(gen.normal(scale=float(rotation_sigma), size=(len(w), 3))).as_matrix()
+        R2 = R @ E
+        t2 = t + R @ c - R2 @ c + gen.normal(scale=float(translation_sigma), size=(len(w), 3))
+        return PoseDistribution(R2, t2, w)
+
     def tangent(self, R0: ArrayLike, t0: ArrayLike) -> NDArray[np.float64]:
         """(n, 6) chart coordinates ``(log(R0^T R), t - t0)`` around ``(R0, t0)``."""
         R0 = np.asarray(R0, dtype=np.float64)

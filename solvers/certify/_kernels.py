@@ -135,7 +135,9 @@ def _horn_lambda_max(H, upper):  # pragma: no cover - compiled
                  + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
         c0 += (-1.0) ** j * N[0, j] * minor
     x = un
+    iters = 0
     for _ in range(60):
+        iters += 1
         x2 = x * x
         p = x2 * x2 + c2 * x2 + c1 * x + c0
         dp = 4.0 * x2 * x + 2.0 * c2 * x + c1
@@ -151,9 +153,24 @@ def _horn_lambda_max(H, upper):  # pragma: no cover - compiled
     for _ in range(12):
         xt = min(x + margin, un)
         if xt >= un or _pd_shift(N, xt):
-            return xt * hm
+            break
         margin *= 10.0
-    return un * hm
+    else:
+        return un * hm
+    if iters > 20:
+        # Newton converges linearly to a multiple root and the quartic's rounding leaves it up
+        # to ~1e-5 relative above (H = -19 I: a triple root); descend while the shift stays
+        # positive definite, which keeps every value an upper bound.
+        step = 1e-4 * max(abs(xt), 1e-300)
+        for _ in range(80):
+            if step <= 1e-14 * max(abs(xt), 1e-300):
+                break
+            if _pd_shift(N, xt - step):
+                xt -= step
+                step *= 2.0
+            else:
+                step *= 0.5
+    return xt * hm
 
 
 @njit(cache=True)
