@@ -326,3 +326,29 @@ def test_log_density_bad_input():
         d.log_density(R0, [0.0, np.nan, 0.0])
     with pytest.raises(ValueError, match="`t`"):
         d.credible_level(R0, [0.0, 0.0])
+
+
+def test_model_error_kernel_spreads_each_particle_about_the_centre() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from certpose.sampling import PoseDistribution
+
+    R0 = Rotation.from_euler("xyz", [10, -20, 30], degrees=True).as_matrix()
+    t0 = np.array([0.1, -0.05, 0.8])
+    d = PoseDistribution(np.repeat(R0[None], 2, 0), np.repeat(t0[None], 2, 0), np.array([0.25, 0.75]))
+    c = np.array([0.02, 0.03, -0.01])
+    e = d.with_model_error(np.radians(4.0), 0.0, centre=c, copies=2000, rng=0)
+    assert len(e) == 4000 and e.weights.sum() == pytest.approx(1.0)
+    assert e.weights[:2000].sum() == pytest.approx(0.25)
+    # Turned about the centre: its image does not move without translation noise.
+    np.testing.assert_allclose(e.rotations @ c + e.translations, np.tile(R0 @ c + t0, (4000, 1)), atol=1e-12)
+    # The body-frame rotation vectors have the kernel's spread per axis.
+    w = Rotation.from_matrix(np.einsum("ji,njk->nik", R0, e.rotations)).as_rotvec()
+    np.testing.assert_allclose(w.std(axis=0), np.radians(4.0), rtol=0.1)
+    f = d.with_model_error(0.0, 0.003, centre=c, copies=2000, rng=1)
+    np.testing.assert_allclose((f.translations - t0).std(axis=0), 0.003, rtol=0.1)
+    np.testing.assert_array_equal(f.rotations, np.repeat(R0[None], 4000, 0))
+    with pytest.raises(ValueError, match="rotation_sigma"):
+        d.with_model_error(-1.0, 0.0)
+    with pytest.raises(ValueError, match="copies"):
+        d.with_model_error(0.1, 0.0, copies=0)
