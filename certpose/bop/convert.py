@@ -75,17 +75,14 @@ def _symmetry_residual(points: NDArray[np.float64], tree: Any, S: NDArray[np.flo
 
 
 def _axis_candidates(points: NDArray[np.float64]) -> list[NDArray[np.float64]]:
-    """The principal axes of the points, each snapped to the nearest coordinate axis when
-    within 5 degrees of it."""
+    """The coordinate axes (models are usually aligned with their box), then the principal
+    axes of the points that are more than 5 degrees from them."""
     c = points - points.mean(axis=0)
     _, vecs = np.linalg.eigh(c.T @ c)
-    out = []
+    out = [a for a in np.eye(3)]
     for a in vecs.T:
-        k = int(np.argmax(np.abs(a)))
-        if abs(a[k]) > math.cos(math.radians(5.0)):
-            a = np.zeros(3)
-            a[k] = 1.0
-        out.append(a / np.linalg.norm(a))
+        if all(abs(a @ b) < math.cos(math.radians(5.0)) for b in out):
+            out.append(a / np.linalg.norm(a))
     return out
 
 
@@ -93,12 +90,12 @@ def find_symmetries(points: NDArray[np.float64], *, tolerance: float | None = No
                     ) -> tuple[list[NDArray[np.float64]], list[dict[str, Any]]]:
     """Symmetries of a model's points in its own frame, in ``models_info.json``'s terms.
 
-    Candidates: a continuous rotation about each principal axis through the centre of the
-    bounding box (accepted when turns of 30, 60, ..., 330 deg all map the points onto
+    Candidates: a continuous rotation about each coordinate or principal axis through the
+    centre of the bounding box (accepted when turns of 30, 60, ..., 330 deg all map the points onto
     themselves), else the half turns about the principal axes and the quarter turns about an
     axis with a square cross-section. A transformation is accepted when 90% of the moved points
-    lie within ``tolerance`` of a model point (default: twice the 90th percentile of the
-    points' own nearest-neighbour spacing).
+    lie within ``tolerance`` of a model point (default: three times the 90th percentile of the
+    points' own nearest-neighbour spacing: the shared models are noisy scans).
 
     Parameters
     ----------
@@ -117,7 +114,7 @@ def find_symmetries(points: NDArray[np.float64], *, tolerance: float | None = No
 
     tree = cKDTree(points)
     if tolerance is None:
-        tolerance = 2.0 * float(np.quantile(tree.query(points, k=2)[0][:, 1], 0.9))
+        tolerance = 3.0 * float(np.quantile(tree.query(points, k=2)[0][:, 1], 0.9))
     centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
 
     def about(axis: NDArray[np.float64], angle: float) -> NDArray[np.float64]:

@@ -123,7 +123,7 @@ def add_pose_options(p: argparse.ArgumentParser, sources: Any) -> None:
     p.epilog = (p.epilog or "") + POSE_EPILOG
 
 
-def _check_pose(args: argparse.Namespace) -> None:
+def check_pose_options(args: argparse.Namespace) -> None:
     from certpose.cli import CLIError
 
     if args.bop is None:
@@ -206,7 +206,7 @@ def run_pose(args: argparse.Namespace) -> int:
     )
     from certpose.io.cache import default_cache_dir
 
-    _check_pose(args)
+    check_pose_options(args)
     check_json_output(args)
     params = _pose_params(args)
     bar = None

@@ -161,12 +161,12 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from certpose.cli import CLIError, busy, check_json_output, emit_json, say
-    from certpose.cli.bop import _check_pose, run_pose
+    from certpose.cli.bop import check_pose_options, run_pose
     from certpose.estimation.mle import MLEParams
     from certpose.estimation.pipeline import PoseParams, run_demo
     from certpose.io.output import check_output_path
 
-    _check_pose(args)
+    check_pose_options(args)
     if args.bop is not None:
         return run_pose(args)
     check_json_output(args)
