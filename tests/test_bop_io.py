@@ -67,7 +67,7 @@ def test_models_in_metres_with_their_info(converted):
         P = load_model_points(root / "models" / name / "points.xyz")
         obj = ds.object(obj_id)
         assert obj.points.shape == P.shape and obj.faces is not None and obj.faces.shape[1] == 3
-        np.testing.assert_allclose(obj.points, P, rtol=1e-15, atol=0)
+        np.testing.assert_array_equal(obj.points, P)  # the same floats: the same object model
         assert obj.diameter == pytest.approx(pdist(P).max(), rel=1e-12)
         info = ds.models_info[obj_id]
         assert info["min_x"] == pytest.approx(1000 * P[:, 0].min())

@@ -186,3 +186,59 @@ def test_cli_refuses_bad_bop_options(bop_ycbv, tmp_path):
     out.write_text("x")
     assert main(["pose", "--bop", str(ds), "--out", str(out), "-q"]) == 2  # exists
     assert out.read_text() == "x"
+
+
+def _one_image_targets(ds: Path, tmp_path: Path) -> Path:
+    t = [{"scene_id": 49, "im_id": 10, "obj_id": 13, "inst_count": 1},
+         {"scene_id": 49, "im_id": 10, "obj_id": 9, "inst_count": 1}]
+    path = tmp_path / "targets.json"
+    path.write_text(json.dumps(t))
+    return path
+
+
+@pytest.mark.slow
+def test_running_scheduler_and_particles(bop_ycbv, tmp_path):
+    """--scheduler ADDRESS of a running cluster gives the in-process rows; --samples with
+    --particles-dir writes each target's particles and the side file's ESS."""
+    distributed = pytest.importorskip("distributed")
+    from certpose.cli import main
+
+    _, ds = bop_ycbv
+    targets = _one_image_targets(ds, tmp_path)
+    here = tmp_path / "here.csv"
+    assert main(["pose", "--bop", str(ds), "--targets", str(targets), "--out", str(here),
+                 "--workers", "0", "-q"]) == 0
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        there = tmp_path / "there.csv"
+        subprocess.run(_cmd(ds, there, "--targets", str(targets), "--scheduler",
+                            cluster.scheduler_address), check=True, env=_env(tmp_path),
+                       timeout=600)
+    assert _rows_without_time(here, ("time",)) == _rows_without_time(there, ("time",))
+    pdir = tmp_path / "particles"
+    pdir.mkdir()
+    out = tmp_path / "sampled.csv"
+    assert main(["pose", "--bop", str(ds), "--targets", str(targets), "--out", str(out),
+                 "--workers", "0", "--samples", "300", "--particles-dir", str(pdir), "-q"]) == 0
+    with side_path(out).open(newline="") as fh:
+        side = list(csv.DictReader(fh))
+    assert [r["particles"] for r in side] == ["000049_000010_000009_000002.npz",
+                                              "000049_000010_000013_000003.npz"]
+    for r in side:
+        assert float(r["ess"]) > 0
+        with np.load(pdir / r["particles"]) as d:
+            assert len(d["weights"]) == 300
+
+
+def test_object_build_bop_fills_the_cache(bop_ycbv, tmp_path, monkeypatch):
+    from certpose.cli import main
+
+    _, ds = bop_ycbv
+    monkeypatch.setenv("CERTPOSE_CACHE_DIR", str(tmp_path / "cache"))
+    out = tmp_path / "b.json"
+    assert main(["object", "build", "--bop", str(ds), "--objects", "14", "--json", str(out),
+                 "-q"]) == 0
+    assert [o["obj_id"] for o in json.loads(out.read_text())["objects"]] == [14]
+    assert len(list((tmp_path / "cache" / "objects").glob("*.npz"))) == 1
+    assert main(["object", "build", "--bop", str(ds), "--objects", "99", "-q"]) == 2
+    assert main(["object", "build", "--bop", str(ds), "-o", "x.npz", "-q"]) == 2
