@@ -4,4 +4,6 @@ BOP results file, and the BOP 2019 metrics (VSD, MSSD, MSPD, average recall) wit
 
 The file formats themselves are read and written by :mod:`certpose.io.bop` (metres inside,
 millimetres on disk).
+May import the other sub-packages of certpose (it runs the pose pipeline over a dataset) and
+solvers' public names; nothing below it imports it.
 """
