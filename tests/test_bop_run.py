@@ -81,6 +81,16 @@ def test_resume_keeps_complete_images_only(tmp_path):
     with side_path(res).open() as fh:
         assert [(r["im_id"], r["obj_id"]) for r in csv.DictReader(fh)] == [("1", "5"), ("1", "6")]
     assert side_path(res).read_text().endswith("\n")
+    # Killed before a header was written: the resumed files get theirs.
+    res.write_text("")
+    side_path(res).write_text("")
+    b, s, done = open_results(res, expected, resume=True)
+    b.close()
+    s.close()
+    assert done == set() and read_bop_results(res) == []
+    assert side_path(res).read_text() == ",".join(SIDE_COLUMNS) + "\n"
+    _write(side_path(res), SIDE_COLUMNS, [side(1, 5), side(1, 6, ok=False)])
+    _write(res, BOP_COLUMNS, [bop(1, 5)])
     # A side file with more rows for an image than its targets is another run's.
     with pytest.raises(ValueError, match="holds 2 rows"):
         open_results(res, {(0, 1): 1}, resume=True)

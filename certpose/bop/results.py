@@ -146,10 +146,12 @@ def open_results(results: str | os.PathLike[str], expected: dict[tuple[int, int]
         return (RowWriter(res, BOP_COLUMNS, append=False),
                 RowWriter(side, SIDE_COLUMNS, append=False), set())
     bop_rows, side_rows = [], []
+    headed = 0  # files with their header line
     for p, cols, store in ((res, BOP_COLUMNS, bop_rows), (side, SIDE_COLUMNS, side_rows)):
         if not p.exists():
             continue
         header, rows = _complete_rows(p)
+        headed += bool(header)
         if header and tuple(header) != cols:
             raise ValueError(f"cannot resume: {p} has the columns {','.join(header)}, not "
                              f"{','.join(cols)}.")
@@ -173,7 +175,7 @@ def open_results(results: str | os.PathLike[str], expected: dict[tuple[int, int]
     done = {k for k, n in n_side.items()
             if n == expected.get(k, -1) and n_bop.get(k, 0) == n_ok.get(k, 0)}
     dropped = len(side_rows) - sum(n_side[k] for k in done)
-    if dropped or len(bop_rows) != sum(n_bop.get(k, 0) for k in done) or not side.exists():
+    if dropped or len(bop_rows) != sum(n_bop.get(k, 0) for k in done) or headed < 2:
         log.info("resume: dropping the rows of %d unfinished image(s)",
                  len(set(n_side) | set(n_bop) - done))
         _rewrite(res, BOP_COLUMNS, (r for r in bop_rows if key(r) in done))

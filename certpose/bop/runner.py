@@ -211,7 +211,8 @@ def _run_dask(todo: Sequence[tuple[int, int, list[tuple[int, int]]]], root: str,
         client.run(_ignore_sigint)
     try:
         slots = max(sum(client.nthreads().values()), 1)
-        items: Iterator[Any] = iter(todo)
+        # Images with the most targets first: the last tasks are short, the workers end together.
+        items: Iterator[Any] = iter(sorted(todo, key=lambda t: -sum(c for _, c in t[2])))
 
         def submit(task: Any) -> Any:
             s, i, ts = task
