@@ -55,8 +55,10 @@ def bop_row_cells(T_camera_object: np.ndarray) -> tuple[str, str]:
 
 def _complete_rows(path: Path) -> tuple[list[str], list[dict[str, str]]]:
     """Header and the rows of complete lines (a killed writer's half line is ignored)."""
+    from certpose.bench.rows import _complete_lines
+
     with path.open(newline="", encoding="utf-8") as fh:
-        lines = [line for line in fh if line.endswith("\n")]
+        lines = list(_complete_lines(fh))
     if not lines:
         return [], []
     reader = csv.DictReader(lines)
