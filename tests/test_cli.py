@@ -393,7 +393,8 @@ def test_a_command_builds_only_its_own_parser():
     """)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.strip() == ("(['pose'], False) True ['bench', 'object', 'pose', 'register']")
+    assert proc.stdout.strip() == ("(['pose'], False) True "
+                                 "['bench', 'bop', 'object', 'pose', 'register', 'score']")
     helped = subprocess.run([sys.executable, "-m", "certpose", "pose", "--help"],
                             capture_output=True, text=True, timeout=300)
     assert helped.returncode == 0 and "--ycbv" in helped.stdout

@@ -28,7 +28,8 @@ from typing import Any
 
 from certpose._version import __version__
 
-_COMMANDS = ("certpose.cli.register", "certpose.cli.bench", "certpose.cli.pose", "certpose.cli.object")
+_COMMANDS = ("certpose.cli.register", "certpose.cli.bench", "certpose.cli.pose", "certpose.cli.object",
+             "certpose.cli.bop", "certpose.cli.score")
 
 EXIT_OK = 0
 EXIT_FAILED = 1

@@ -42,6 +42,15 @@ def add_parser(subparsers: Any) -> None:
                      help="your own posed views: a JSON manifest of colour, depth and mask images "
                           "with each view's T_camera_object and the camera's intrinsics "
                           "(certpose.io.views; needs --model)")
+    src.add_argument("--bop", metavar="DIR", default=None,
+                     help="a BOP dataset: every object's geometry-only model of DIR/models built "
+                          "into the model cache read by `certpose pose --bop` (--objects, "
+                          "--split, --revolution; no -o)")
+    b.add_argument("--objects", type=int, nargs="+", metavar="ID", default=None,
+                   help="with --bop: these object ids only")
+    b.add_argument("--split", default="test", help=argparse.SUPPRESS)
+    b.add_argument("--revolution", action="store_true",
+                   help="with --bop: the models `certpose pose --bop --revolution` uses")
     b.add_argument("--views", metavar="SCENE/FRAME", nargs="+", default=None,
                    help="with --ycbv: frames whose ground-truth pose and label colour the model")
     b.add_argument("--object", metavar="NAME", default=None,
@@ -59,7 +68,8 @@ def add_parser(subparsers: Any) -> None:
     b.add_argument("--sampling", choices=("voxel", "surface"), default="voxel",
                    help="model points averaged per voxel (default), or spread evenly over a surface "
                         "reconstructed from them, weighted by area in eq. (1)")
-    b.add_argument("-o", "--output", metavar="OUT.npz", required=True, help="where to save the model")
+    b.add_argument("-o", "--output", metavar="OUT.npz", default=None,
+                   help="where to save the model (required but with --bop)")
     from certpose.cli import add_common
 
     add_common(b, json_help="also write a summary of the model as JSON to OUT ('-': standard "
@@ -75,6 +85,14 @@ def run_build(args: argparse.Namespace) -> int:
     from certpose.estimation.pipeline import build_ycbv_object_model
     from certpose.geometry.appearance import AppearanceBackbone
 
+    if args.bop is not None:
+        from certpose.cli.bop import run_object_build
+
+        return run_object_build(args)
+    if args.output is None:
+        raise CLIError("-o/--output OUT.npz is required")
+    if args.objects is not None or args.revolution:
+        raise CLIError("--objects and --revolution need --bop DIR")
     check_json_output(args)
     if args.ycbv is not None:
         root = Path(args.ycbv)

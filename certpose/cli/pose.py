@@ -58,6 +58,9 @@ def add_parser(subparsers: Any) -> None:
                           "and a one-channel depth image of the same size (with --intrinsics, "
                           "--model or --object-model, and --mask or --classifier best-buddies "
                           "--box)")
+    from certpose.cli.bop import add_pose_options
+
+    add_pose_options(p, src)  # --bop DIR and its options
     own = p.add_argument_group("your own RGB-D frame (--rgbd)")
     own.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
                      default=None, help="the depth camera's pinhole intrinsics, pixels")
@@ -158,10 +161,14 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from certpose.cli import CLIError, busy, check_json_output, emit_json, say
+    from certpose.cli.bop import check_pose_options, run_pose
     from certpose.estimation.mle import MLEParams
     from certpose.estimation.pipeline import PoseParams, run_demo
     from certpose.io.output import check_output_path
 
+    check_pose_options(args)
+    if args.bop is not None:
+        return run_pose(args)
     check_json_output(args)
     if args.demo:
         # The demo is its own scene and model: YCB-Video's options would be silently ignored.

@@ -1,5 +1,6 @@
-"""Reading data from disk: point and weight files, YCB-Video frames with ground truth, and
-manifests of posed RGB-D views (any camera).
+"""Reading data from disk: point and weight files, YCB-Video frames with ground truth,
+manifests of posed RGB-D views (any camera), and datasets in the BOP layout
+(:mod:`certpose.io.bop`).
 
 Owns file formats and their strict checks (a malformed file is an error naming the file, never a
 silently wrong array). May import :mod:`certpose.geometry` (frames) and :mod:`solvers`' public
