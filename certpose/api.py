@@ -49,6 +49,7 @@ def register(
     scope: Literal["auto", "full", "pruned", "rotation"] = "auto",
     tol: float = 1e-3,
     time_limit: float | None = None,
+    check_significance: bool = True,
 ) -> RegistrationResult:
     """Robustly register corresponding point sets with the weighted TLS cost.
 
@@ -78,12 +79,18 @@ def register(
         Gap tolerance of the certificate (see :class:`solvers.certificate.Certificate`).
     time_limit : float or None
         Seconds the certifier may spend (default 120 s per bound search).
+    check_significance : bool
+        Report a converged pose whose consensus is no larger than random correspondences with
+        the same noise bound would give as ``status="not_significant"`` (not a success; see
+        :mod:`solvers.registration.significance`). Its certificate, if any, is unchanged: it
+        still proves what it says about the TLS cost.
 
     Returns
     -------
     RegistrationResult
         With ``T_target_source`` mapping source points into the target frame. Check
-        ``success``/``status``: a failed or degenerate solve is reported, not raised.
+        ``success``/``status``: a failed, degenerate or not significant solve is reported, not
+        raised.
 
     Raises
     ------
@@ -110,18 +117,43 @@ def register(
     if scope not in ("auto", "full", "pruned", "rotation"):
         raise ValueError(f"`scope` must be 'auto', 'full', 'pruned' or 'rotation', got {scope!r}.")
     check_limit(time_limit, "time_limit")
-    if check_limit(tol, "tol", allow_none=False) == 0:
-        raise ValueError("`tol` must be positive, got 0.")
+    if isinstance(tol, (bool, np.bool_)) or not isinstance(tol, (int, float, np.number)):
+        raise TypeError(f"`tol` must be a number, got {tol!r}.")
+    if not (np.isfinite(tol) and tol > 0):  # one rule, one message: 0 and -1 alike
+        raise ValueError(f"`tol` must be a positive finite number, got {tol}.")
     method = {"auto": "auto", "always": "pruned", "never": "gnc"}[prune]
     if solver == "sdp":
         from solvers.certify import solve_sdp  # cvxpy: imported on demand
 
-        return from_unit_scale(
-            solve_sdp(unit, scope=scope, tol=tol, time_limit=time_limit), scale
-        )
-    result = solve_registration(unit, method=method)  # type: ignore[arg-type]
-    if certify:
-        from solvers.certify import certify_result
+        result = solve_sdp(unit, scope=scope, tol=tol, time_limit=time_limit)
+    else:
+        result = solve_registration(unit, method=method)  # type: ignore[arg-type]
+        if certify:
+            from solvers.certify import certify_result
 
-        result = certify_result(unit, result, scope=scope, tol=tol, time_limit=time_limit)
+            result = certify_result(unit, result, scope=scope, tol=tol, time_limit=time_limit)
+    if check_significance:
+        result = _judge_significance(unit, result)
     return from_unit_scale(result, scale)
+
+
+def _judge_significance(unit: Any, result: RegistrationResult) -> RegistrationResult:
+    """``result``, reported ``not_significant`` when its consensus is what chance gives."""
+    from dataclasses import replace
+
+    from solvers.registration.significance import consensus_significance
+    from solvers.result import SolverStatus
+
+    if result.status is not SolverStatus.CONVERGED:
+        return result
+    sig = consensus_significance(unit, result.inliers)
+    info = dict(result.info, consensus_log10_nfa=sig.log10_nfa,
+                consensus_pair_probability=sig.pair_probability)
+    if sig.significant:
+        return replace(result, info=info)
+    proves = ""
+    if result.certificate is not None and result.certificate.certified:
+        proves = ("; the certificate proves the pose optimal for the TLS cost, not that the "
+                  "correspondences are right")
+    return replace(result, info=info, status=SolverStatus.NOT_SIGNIFICANT,
+                   message=f"not significant: {sig.describe()}{proves}. {result.message}")

@@ -34,6 +34,10 @@ class SolverStatus(str, Enum):
     """A numerical failure (non-finite values, failed decomposition)."""
     SOLVER_ERROR = "solver_error"
     """A backend (e.g. an SDP solver) failed or reported an inaccurate solve."""
+    NOT_SIGNIFICANT = "not_significant"
+    """The pose's consensus is no larger than random correspondences with the same noise
+    bound would give (:mod:`solvers.registration.significance`); the pose may still be the
+    certified TLS optimum, which is then no evidence of a correct registration."""
 
     @property
     def success(self) -> bool:

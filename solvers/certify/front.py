@@ -1085,18 +1085,24 @@ def certify_result(
         kw["time_limit"] = max(float(time_limit) - (time.perf_counter() - t0), 0.0)
     cert_new, _ = _certify(problem, Rb, tb, **kw)
     from solvers.lie import make_transform
+    from solvers.registration.solve import judge_pose
 
     info.update(replaced_candidate=True, candidate_cost=old,
-                candidate_certificate=cert.to_dict())
+                candidate_certificate=cert.to_dict(), candidate_status=result.status.value)
+    inliers = problem.inliers(Rb, tb)
+    # The status describes the returned pose, not the candidate it replaced.
+    status, message = judge_pose(
+        problem, inliers,
+        f"certification found a better pose than the candidate on the {scoped.label.value} "
+        f"(cost {cert.better_upper_bound:.6g} < {cert.upper_bound:.6g}; full-problem cost "
+        f"{new:.6g} <= {old:.6g}); returning it, certified anew")
     return dataclasses.replace(
         result,
         T_target_source=make_transform(Rb, tb),
-        inliers=problem.inliers(Rb, tb),
+        inliers=inliers,
         cost=new,
         certificate=dataclasses.replace(cert_new, solve_time=time.perf_counter() - t0),
         info=info,
-        message=(f"certification found a better pose than the candidate on the "
-                 f"{scoped.label.value} (cost {cert.better_upper_bound:.6g} < {cert.upper_bound:.6g}"
-                 f"; full-problem cost {new:.6g} <= {old:.6g}); returning it, certified anew. "
-                 f"Candidate: {result.message}"),
+        status=status,
+        message=f"{message}. Candidate ({result.status.value}): {result.message}",
     )

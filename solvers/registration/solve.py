@@ -29,6 +29,8 @@ __all__ = [
     "to_unit_scale",
     "from_unit_scale",
     "check_graph_memory",
+    "check_problem",
+    "judge_pose",
 ]
 
 log = logging.getLogger(__name__)
@@ -149,6 +151,20 @@ def degeneracy(
     return None
 
 
+def judge_pose(
+    problem: WeightedTLSProblem, inliers: NDArray[np.bool_], message: str
+) -> tuple[SolverStatus, str]:
+    """Status and message of a pose whose solver converged, from its ``inliers`` (N,):
+    ``CONVERGED`` with ``message``, or why the inliers do not fix a pose."""
+    src, _, _, w = problem._kernel_arrays
+    why = degeneracy(src, w * inliers, problem._min_noise_bound)
+    if why is None:
+        return SolverStatus.CONVERGED, message
+    if np.count_nonzero(inliers & (w > 0)) < 3:
+        return SolverStatus.INSUFFICIENT_INLIERS, f"degenerate geometry: {why}"
+    return SolverStatus.DEGENERATE, f"degenerate geometry: {why}"
+
+
 def _finish(
     problem: WeightedTLSProblem,
     R: NDArray[np.float64],
@@ -178,12 +194,7 @@ def _finish(
         cost = problem.cost_from_residuals(r2)
     inliers = r2 <= problem.cbar2
     if status is SolverStatus.CONVERGED:
-        src, _, _, w = problem._kernel_arrays
-        why = degeneracy(src, w * inliers, problem._min_noise_bound)
-        if why is not None:
-            status, message = SolverStatus.DEGENERATE, f"degenerate geometry: {why}"
-            if inliers.sum() < 3:
-                status = SolverStatus.INSUFFICIENT_INLIERS
+        status, message = judge_pose(problem, inliers, message)
     return RegistrationResult._fresh(
         T_target_source=T,
         inliers=inliers,
