@@ -246,3 +246,102 @@ def test_load_rgbd_takes_a_mapping_of_intrinsics(depth_png):
 
     frame = load_rgbd(None, depth_png, {"fx": 50.0, "fy": 51.0, "cx": 32.0, "cy": 24.0})
     assert (frame.intrinsics.fx, frame.intrinsics.fy, frame.intrinsics.width) == (50.0, 51.0, 64)
+
+
+# --- the command line: exit 2 and one line naming the option, never a traceback ---------------
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli_inputs")
+    src, dst = _pair(30)
+    np.save(d / "src.npy", src)
+    np.save(d / "dst.npy", dst)
+    np.save(d / "src_bool.npy", src > 0)
+    np.save(d / "src_2col.npy", src[:, :2])
+    np.save(d / "src_short.npy", src[:20])
+    np.save(d / "src_nan.npy", np.where(src > 2, np.nan, src))
+    np.save(d / "w_neg.npy", -np.ones(30))
+    np.save(d / "w_len.npy", np.ones(3))
+    (d / "text.png").write_text("hello\n")
+    (d / "garbage.npy").write_bytes(b"\x00\x01garbage")
+    (d / "empty.csv").write_text("")
+    (d / "words.csv").write_text("a,b,c\nd,e,f\n")
+    (d / "dir.npy").mkdir()
+    return d
+
+
+CLI_CASES = {
+    "tol_negative": (["register", "{d}/src.npy", "{d}/dst.npy", "--noise-bound", "0.01",
+                      "--certify", "--tol", "-1"], "`tol` must be a positive finite number"),
+    "tol_zero": (["register", "{d}/src.npy", "{d}/dst.npy", "--noise-bound", "0.01",
+                  "--certify", "--tol", "0"], "`tol` must be a positive finite number"),
+    "tol_nan": (["register", "{d}/src.npy", "{d}/dst.npy", "--noise-bound", "0.01",
+                 "--certify", "--tol", "nan"], "`tol`"),
+    "noise_zero": (["register", "{d}/src.npy", "{d}/dst.npy", "--noise-bound", "0"],
+                   "noise_bound"),
+    "noise_negative": (["register", "{d}/src.npy", "{d}/dst.npy", "--noise-bound", "-1"],
+                       "noise"),
+    "noise_inf": (["register", "{d}/src.npy", "{d}/dst.npy", "--noise-bound", "inf"], "noise"),
+    "noise_text": (["register", "{d}/src.npy", "{d}/dst.npy", "--noise-bound", "abc"],
+                   "--noise-bound"),
+    "noise_missing": (["register", "{d}/src.npy", "{d}/dst.npy"], "--noise-bound"),
+    "bool_points": (["register", "{d}/src_bool.npy", "{d}/dst.npy", "--noise-bound", "0.01"],
+                    "bool"),
+    "two_columns": (["register", "{d}/src_2col.npy", "{d}/dst.npy", "--noise-bound", "0.01"],
+                    "(N, 3)"),
+    "rows_differ": (["register", "{d}/src_short.npy", "{d}/dst.npy", "--noise-bound", "0.01"],
+                    "row k of each must correspond"),
+    "nan_points": (["register", "{d}/src_nan.npy", "{d}/dst.npy", "--noise-bound", "0.01"],
+                   "NaN"),
+    "missing_file": (["register", "{d}/none.npy", "{d}/dst.npy", "--noise-bound", "0.01"],
+                     "none.npy"),
+    "garbage_npy": (["register", "{d}/garbage.npy", "{d}/dst.npy", "--noise-bound", "0.01"],
+                    "garbage.npy"),
+    "empty_csv": (["register", "{d}/empty.csv", "{d}/dst.npy", "--noise-bound", "0.01"],
+                  "empty.csv"),
+    "words_csv": (["register", "{d}/words.csv", "{d}/dst.npy", "--noise-bound", "0.01"],
+                  "words.csv"),
+    "dir_as_file": (["register", "{d}/dir.npy", "{d}/dst.npy", "--noise-bound", "0.01"],
+                    "dir.npy"),
+    "weights_negative": (["register", "{d}/src.npy", "{d}/dst.npy", "--noise-bound", "0.01",
+                          "--weights", "{d}/w_neg.npy"], "weights"),
+    "weights_length": (["register", "{d}/src.npy", "{d}/dst.npy", "--noise-bound", "0.01",
+                        "--weights", "{d}/w_len.npy"], "weights"),
+    "time_limit_negative": (["register", "{d}/src.npy", "{d}/dst.npy", "--noise-bound", "0.01",
+                             "--certify", "--time-limit", "-5"], "time_limit"),
+    "json_into_dir": (["register", "{d}/src.npy", "{d}/dst.npy", "--noise-bound", "0.01",
+                       "--json", "{d}/dir.npy"], "directory"),
+    "json_no_folder": (["register", "{d}/src.npy", "{d}/dst.npy", "--noise-bound", "0.01",
+                        "--json", "{d}/nofolder/out.json"], "does not exist"),
+    "demo_outliers": (["register", "--demo", "--demo-outliers", "1.5"], "--demo-outliers"),
+    "demo_n": (["register", "--demo", "--demo-n", "2"], "--demo-n"),
+    "demo_noise": (["register", "--demo", "--demo-noise", "nan"], "--demo-noise"),
+    "seed_negative": (["register", "--demo", "--seed", "-3"], "non-negative"),
+    "unknown_solver": (["register", "--demo", "--solver", "teaser"], "invalid choice"),
+    "rgbd_text_png": (["pose", "--rgbd", "-", "{d}/text.png", "--intrinsics", "40", "40", "20",
+                       "15", "--model", "{d}/src.npy", "--mask", "{d}/text.png"],
+                      "not an image file"),
+    "pose_voxel_negative": (["pose", "--demo", "--voxel-size", "-1"], "--voxel-size"),
+    "pose_samples_negative": (["pose", "--demo", "--samples", "-1"], "--samples"),
+    "pose_particles_no_samples": (["pose", "--demo", "--particles", "{d}/p.npz"],
+                                  "--particles needs --samples"),
+    "bench_trials_zero": (["bench", "--trials", "0", "--no-dask"], "--trials"),
+    "bench_unknown_solver": (["bench", "--solvers", "nope", "--no-dask"], "nope"),
+    "object_no_source": (["object", "build", "-o", "{d}/m.npz"], "--ycbv"),
+}
+
+
+@pytest.mark.parametrize("case", CLI_CASES)
+def test_cli_bad_input_is_one_line_exit_2(files, capsys, case):
+    from certpose.cli import main
+
+    argv, message = CLI_CASES[case]
+    argv = [a.format(d=files) for a in argv]
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse's own refusals
+        code = exc.code
+    err = capsys.readouterr().err
+    assert code == 2, (case, err)
+    assert "Traceback" not in err
+    assert message in err, (case, err)

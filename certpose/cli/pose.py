@@ -4,8 +4,10 @@ camera, or the demo)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -330,7 +332,7 @@ def _run_rgbd(args: argparse.Namespace, params: Any) -> int:
         title += ", best buddies in the box given (no mask)"
     if built is not None:
         title += f" (appearance model from {', '.join(built.views) or 'unnamed views'})"
-    with busy(args, "certpose pose"):
+    with busy(args, "certpose pose"), _cli_hints():
         result = run_rgbd(None if color == "-" else color, depth, args.intrinsics,
                           model_path=args.model, object_model=built,
                           depth_scale=1000.0 if args.depth_scale is None else args.depth_scale,
@@ -340,6 +342,27 @@ def _run_rgbd(args: argparse.Namespace, params: Any) -> int:
     if args.json is not None:
         emit_json(args, payload)
     return code
+
+
+@contextlib.contextmanager
+def _cli_hints() -> Iterator[None]:
+    """The library's advice in the command's own options: the scene grid's "crop with `bounds`
+    or `roi_mask`" names keyword arguments the command line does not have."""
+    from certpose.cli import CLIError
+
+    try:
+        yield
+    except ValueError as exc:
+        text = str(exc)
+        if "max_voxels" in text:
+            fix = "use a larger --voxel-size (metres) or a tighter --mask / --box"
+        elif "too coarse" in text:
+            fix = "use a smaller --voxel-size (metres)"
+        else:
+            raise
+        raise CLIError(
+            f"{text.split(';')[0]}; check --depth-scale (raw units per metre: 1000 for "
+            f"millimetres, 10000 for YCB-Video) and --intrinsics, or {fix}") from exc
 
 
 def _check_plot_format(path: str) -> None:

@@ -463,6 +463,12 @@ def load_rgbd(
         Raw depth units per metre (1000 for millimetre PNGs; YCB-Video uses 10000).
     T_world_camera : array_like, shape (4, 4), optional
     mask : array_like of bool, shape (H, W), optional
+
+    Raises
+    ------
+    ValueError
+        Malformed intrinsics, or intrinsics implausible for the image size
+        (:func:`certpose.geometry.plausibility.check_intrinsics`).
     """
     if not depth_scale > 0:
         raise ValueError(f"`depth_scale` must be positive, got {depth_scale}.")
@@ -472,6 +478,9 @@ def load_rgbd(
     if not isinstance(intrinsics, CameraIntrinsics):
         k = _intrinsics_vector(intrinsics)
         intrinsics = CameraIntrinsics(*(float(v) for v in k), raw.shape[1], raw.shape[0])
+    from certpose.geometry.plausibility import check_intrinsics
+
+    check_intrinsics(intrinsics)
     color = None
     if color_path is not None:
         color = read_image(color_path, "color")
@@ -561,7 +570,13 @@ def read_image(path: str | Path, what: str = "image") -> NDArray[Any]:
     try:
         return np.asarray(iio.imread(path))
     except Exception as exc:
-        raise OSError(f"Cannot read the {what} image {path}: {exc}") from exc
+        # imageio's "no backend" advice (install a plugin) is wrong for a file that is not an
+        # image at all: say what the file is not.
+        text = str(exc)
+        if "Could not find a backend" in text or "cannot identify image file" in text:
+            text = (f"not an image file imageio can read (it starts with "
+                    f"{path.read_bytes()[:8]!r}; a PNG starts with b'\\x89PNG')")
+        raise OSError(f"Cannot read the {what} image {path}: {text}") from exc
 
 
 @dataclass(frozen=True, eq=False)
