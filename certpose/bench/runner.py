@@ -685,19 +685,22 @@ def run_benchmark(
         tmp = tempfile.mkdtemp(prefix="certpose-bench-")
         out_dir = tmp
     manifest = {"noise": config.noise, "suites": sources}
-    writer, done = open_rows(out_dir, TRIAL_COLUMNS, manifest, resume=resume, force=force)
-    try:
-        total = n_protocol = 0
-        for t in plan_tasks(make_specs(), config.solvers, done):  # counted, not kept
-            total += len(t.solvers)
-            n_protocol += t.spec.kind == "protocol"
-        tasks = plan_tasks(make_specs(), config.solvers, done)
-        skipped = _run_tasks(tasks, shapes, config, writer, total=total, n_protocol=n_protocol,
-                             tqdm=tqdm,
-                             progress=progress, workers=workers, scheduler=scheduler,
-                             batch_size=batch_size)
-    finally:
-        writer.close()
+    from certpose.io.output import folder_lock
+
+    # One writer per folder: a second run (--resume or not) is refused while this one writes.
+    with folder_lock(out_dir, what="bench --out folder"):
+        writer, done = open_rows(out_dir, TRIAL_COLUMNS, manifest, resume=resume, force=force)
+        try:
+            total = n_protocol = 0
+            for t in plan_tasks(make_specs(), config.solvers, done):  # counted, not kept
+                total += len(t.solvers)
+                n_protocol += t.spec.kind == "protocol"
+            tasks = plan_tasks(make_specs(), config.solvers, done)
+            skipped = _run_tasks(tasks, shapes, config, writer, total=total,
+                                 n_protocol=n_protocol, tqdm=tqdm, progress=progress,
+                                 workers=workers, scheduler=scheduler, batch_size=batch_size)
+        finally:
+            writer.close()
     for name, why in skipped.items():
         log.warning("skipping solver %s: %s", name, why)
     summary, scopes = summarize_file(writer.path, order=config.solvers)

@@ -45,11 +45,16 @@ class CLIFailure(Exception):
 
 
 def add_common(p: argparse.ArgumentParser, *, seed_help: str | None = None,
-               json_help: str = "also write the result as JSON to OUT ('-': standard output)"
-               ) -> None:
-    """The options every command takes: --json, --seed, --quiet, --verbose."""
+               json_help: str = "also write the result as JSON to OUT ('-': standard output)",
+               force: bool = True) -> None:
+    """The options every command takes: --json, --seed, --quiet, --verbose and --force (one
+    overwrite policy for every output file; ``force=False`` for a command that defines its
+    own --force)."""
     g = p.add_argument_group("common options")
     g.add_argument("--json", metavar="OUT", default=None, help=json_help)
+    if force:
+        g.add_argument("--force", action="store_true",
+                       help="overwrite output files that exist (refused otherwise)")
     if seed_help is not None:
         g.add_argument("--seed", type=_seed, default=0, help=seed_help)
     g.add_argument("-q", "--quiet", action="store_true",
@@ -84,7 +89,7 @@ def check_json_output(args: argparse.Namespace) -> None:
     if getattr(args, "json", None) not in (None, "-"):
         from certpose.io.output import check_output_path
 
-        check_output_path(args.json, what="--json output")
+        check_output_path(args.json, what="--json output", force=getattr(args, "force", False))
 
 
 def emit_json(args: argparse.Namespace, payload: Any) -> None:

@@ -214,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
     if args.save_problem is not None:
         if not args.save_problem.endswith(".npz"):
             raise CLIError(f"--save-problem {args.save_problem} must end in .npz")
-        check_output_path(args.save_problem, what="--save-problem output")
+        check_output_path(args.save_problem, what="--save-problem output", force=args.force)
     if args.samples < 0:
         raise CLIError(f"--samples must be >= 0, got {args.samples}")
     if args.particles is not None:
@@ -222,11 +222,11 @@ def run(args: argparse.Namespace) -> int:
             raise CLIError("--particles needs --samples N")
         if not args.particles.endswith(".npz"):  # NumPy would append .npz to another name
             raise CLIError(f"--particles {args.particles} must end in .npz")
-        check_output_path(args.particles, what="--particles output")
+        check_output_path(args.particles, what="--particles output", force=args.force)
     if args.plot is not None:
         if args.samples == 0:
             raise CLIError("--plot needs --samples N")
-        check_output_path(args.plot, what="--plot output")
+        check_output_path(args.plot, what="--plot output", force=args.force)
         _check_plot_format(args.plot)
     if args.method != "is" and args.samples == 0:
         raise CLIError("--method needs --samples N")
@@ -537,7 +537,7 @@ def _print_distribution(result: object, args: argparse.Namespace) -> None:
               f"{_mode_rotation(m.rotation, result, axis)}, translation "
               f"[{', '.join(f'{v:.4f}' for v in m.translation)}] m")
     if args.particles is not None:
-        dist.save(args.particles)
+        dist.save(args.particles)  # atomic
         say(args, f"wrote {args.particles}")
     if args.plot is not None:
         from certpose.sampling.plots import plot_marginals
