@@ -861,11 +861,24 @@ def _run_dask(
     except KeyboardInterrupt:
         # Workers busy in a solve are killed on close; that is expected, not worth a warning.
         logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        # Ctrl-C is answered within a second: the busy workers are not waited for (a worker
+        # process exits by itself when its parent does).
+        _close_quickly(client, cluster)
         raise
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+    client.close()
+    if cluster is not None:
+        cluster.close()
+
+
+def _close_quickly(client: Any, cluster: Any, timeout: float = 0.3) -> None:
+    """Close ``client`` and ``cluster`` within about ``timeout`` seconds each, or give up."""
+    for closer in (client, cluster):
+        if closer is None:
+            continue
+        try:
+            closer.close(timeout=timeout)
+        except BaseException as exc:  # noqa: BLE001 - a timeout or a second Ctrl-C: give up
+            log.debug("not closed within %.1f s: %s", timeout, exc)
 
 
 WORKER_ENV: dict[str, str] = {

@@ -19,6 +19,7 @@ import importlib
 import importlib.abc
 import importlib.util
 import logging
+import os
 import sys
 import threading
 import traceback
@@ -362,8 +363,20 @@ def run() -> None:
     gc.disable()
     try:
         code = main(_startup_gc_paused=True)
+    except KeyboardInterrupt:  # during the start-up imports or the parsing
+        print("certpose: interrupted", file=sys.stderr)
+        code = EXIT_INTERRUPTED
     finally:
         gc.enable()
+    if code == EXIT_INTERRUPTED:
+        # No interpreter shutdown after Ctrl-C: the interrupted work's objects are still
+        # referenced, and libraries' exit-time destructors would report them (Open3D prints
+        # its memory statistics on stdout) or fail the exit code. Files are complete or gone
+        # already (written through temporary files).
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(code)
     # The process ends here: the last collection would walk every object numba and scipy
     # created (about 0.5 s per run); frozen objects are skipped, the OS frees the memory.
     gc.freeze()

@@ -159,6 +159,11 @@ def run(args: argparse.Namespace) -> int:
         from certpose.io.output import check_output_dir
 
         check_output_dir(folder, what=what)  # before the lock creates it
+    # The local cluster's semaphores outlive an interrupted run; the resource tracker (a
+    # helper process that takes its warning filters from these options) would report them.
+    import sys
+
+    sys.warnoptions.append("ignore:resource_tracker:UserWarning")
     with folder_lock(folder, what=what) if folder is not None else contextlib.nullcontext():
         return _run(args)
 
