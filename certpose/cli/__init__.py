@@ -184,10 +184,21 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+_EXTRAS = {"open3d": "pose", "imageio": "pose", "PIL": "pose", "cv2": "pose", "gtsam": "bench",
+           "tqdm": "bench", "matplotlib": "bench", "distributed": "bench", "dask": "bench",
+           "arviz": "samplers", "nevergrad": "samplers", "emcee": "samplers", "pymc": "samplers"}
+"""The optional extra that brings each optional module (pyproject.toml)."""
+
+
 def _message(exc: BaseException) -> str:
     text = " ".join(str(exc).split()) or type(exc).__name__
     if isinstance(exc, KeyError) and exc.args:
         text = str(exc.args[0])
+    name = getattr(exc, "name", None)
+    if isinstance(exc, ModuleNotFoundError) and name and name.split(".")[0] in _EXTRAS:
+        top = name.split(".")[0]
+        text = (f"this needs {top}, which is not installed: pip install "
+                f"'certpose[{_EXTRAS[top]}]'")
     return text
 
 
