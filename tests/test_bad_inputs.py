@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from certpose.api import register
@@ -345,3 +347,40 @@ def test_cli_bad_input_is_one_line_exit_2(files, capsys, case):
     assert code == 2, (case, err)
     assert "Traceback" not in err
     assert message in err, (case, err)
+
+
+# --- properties: what is refused and what passes --------------------------------------------
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.5, 2.0).filter(lambda s: abs(s - 1) > 1e-3))
+def test_scaled_rotations_are_refused_everywhere(seed, s):
+    R = Rotation.random(random_state=np.random.default_rng(seed)).as_matrix()
+    for fn in (lie.so3_log, lie.rotation_angle_deg, lambda M: lie.rotation_error_deg(M, R),
+               lambda M: lie.make_transform(M, np.zeros(3)),
+               lambda M: lie.invert_transform(_transform(M))):
+        with pytest.raises(ValueError, match="not a rotation matrix"):
+            fn(s * R)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.0, 1e-9))
+def test_rotations_near_identity_and_rounded_ones_pass(seed, angle):
+    """Near the identity (the small-angle branch) and with rounding noise of 1e-9."""
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    R = Rotation.from_rotvec(angle * axis / np.linalg.norm(axis)).as_matrix()
+    noisy = R + 1e-9 * rng.normal(size=(3, 3))
+    assert lie.rotation_angle_deg(noisy) < 1e-2
+    np.testing.assert_allclose(lie.so3_log(R), Rotation.from_matrix(R).as_rotvec(), atol=1e-12)
+    np.testing.assert_allclose(lie.invert_transform(lie.make_transform(noisy, np.ones(3)))[:3, 3],
+                               -noisy.T @ np.ones(3), atol=1e-12)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_project_to_so3_then_strict_helpers_accept(seed):
+    """Whatever full-rank matrix is projected, the helpers take the projection."""
+    M = np.random.default_rng(seed).normal(size=(3, 3))
+    R = lie.project_to_so3(M)
+    assert lie.rotation_error_deg(R, R) < 1e-4
+    lie.so3_log(R)

@@ -114,3 +114,17 @@ def test_a_focal_length_five_times_too_small_is_not_a_success(tmp_path):
         assert (r.status == "implausible_scale") is (not ok)
         if not ok:
             assert "--intrinsics" in r.message and "times the model's size" in r.message
+
+
+@needs_ycbv
+def test_a_flat_model_is_bad_input_not_a_qhull_dump(tmp_path, capsys):
+    """Once a 1,200-character Qhull message and exit 1."""
+    flat = tmp_path / "flat.xyz"
+    rng = np.random.default_rng(0)
+    np.savetxt(flat, np.c_[rng.uniform(-0.05, 0.05, (500, 2)), np.zeros(500)])
+    mask = tmp_path / "m.png"
+    Image.fromarray(np.ones((480, 640), np.uint8)).save(mask)
+    code = main(["pose", "--rgbd", *_files(), "--intrinsics", *map(str, YCBV_K),
+                 "--depth-scale", "10000", "--model", str(flat), "--mask", str(mask)])
+    err = capsys.readouterr().err
+    assert code == 2 and "are flat" in err and "Qhull" not in err and len(err) < 300
