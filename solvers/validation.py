@@ -21,11 +21,13 @@ __all__ = [
 ]
 
 
-def as_float_array(value: Any, name: str, *, allow_bool: bool = True) -> NDArray[np.float64]:
+def as_float_array(value: Any, name: str, *, allow_bool: bool = True,
+                   copy: bool = True) -> NDArray[np.float64]:
     """Convert ``value`` to a float64 array, raising ``TypeError`` for non-numeric input.
 
     With ``allow_bool=False`` boolean arrays are refused too (a mask passed where coordinates
-    belong would otherwise become 0/1 coordinates).
+    belong would otherwise become 0/1 coordinates). With ``copy=False`` a float64 array is
+    returned as it is (for callers that only read it).
     """
     if isinstance(value, (dict, set, str, bytes)) or value is None:
         raise TypeError(f"`{name}` must be a numeric array, got {type(value).__name__}.")
@@ -41,7 +43,7 @@ def as_float_array(value: Any, name: str, *, allow_bool: bool = True) -> NDArray
         raise TypeError(f"`{name}` must be real-valued, got dtype {arr.dtype}.")
     if kind not in "biuf":
         raise TypeError(f"`{name}` must be a numeric array, got dtype {arr.dtype}.")
-    return np.array(arr, dtype=np.float64)
+    return np.array(arr, dtype=np.float64) if copy else np.asarray(arr, dtype=np.float64)
 
 
 def check_points(value: Any, name: str, *, min_points: int = 1) -> NDArray[np.float64]:

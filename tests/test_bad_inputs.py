@@ -384,3 +384,10 @@ def test_project_to_so3_then_strict_helpers_accept(seed):
     R = lie.project_to_so3(M)
     assert lie.rotation_error_deg(R, R) < 1e-4
     lie.so3_log(R)
+
+
+def test_so3_log_unchecked_is_the_same_numbers_and_still_checks_the_shape():
+    R = Rotation.random(50, random_state=np.random.default_rng(1)).as_matrix()
+    np.testing.assert_array_equal(lie.so3_log(R, check=False), lie.so3_log(R))
+    with pytest.raises(ValueError, match=r"shape \(\.\.\., 3, 3\)"):
+        lie.so3_log(np.eye(4), check=False)
