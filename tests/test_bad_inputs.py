@@ -322,7 +322,7 @@ CLI_CASES = {
     "unknown_solver": (["register", "--demo", "--solver", "teaser"], "invalid choice"),
     "rgbd_text_png": (["pose", "--rgbd", "-", "{d}/text.png", "--intrinsics", "40", "40", "20",
                        "15", "--model", "{d}/src.npy", "--mask", "{d}/text.png"],
-                      "not an image file"),
+                      "not a PNG file"),
     "pose_voxel_negative": (["pose", "--demo", "--voxel-size", "-1"], "--voxel-size"),
     "pose_samples_negative": (["pose", "--demo", "--samples", "-1"], "--samples"),
     "pose_particles_no_samples": (["pose", "--demo", "--particles", "{d}/p.npz"],

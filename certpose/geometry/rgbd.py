@@ -557,6 +557,11 @@ def read_image(path: str | Path, what: str = "image") -> NDArray[Any]:
     if not path.is_file():
         raise FileNotFoundError(f"The {what} image {path} does not exist.")
     if path.suffix.lower() == ".png":
+        with path.open("rb") as fh:
+            head = fh.read(8)
+        if head != b"\x89PNG\r\n\x1a\n":  # not worth every imageio plugin's attempt
+            raise OSError(f"Cannot read the {what} image {path}: not a PNG file (it starts "
+                          f"with {head!r}; a PNG starts with b'\\x89PNG').")
         from PIL import Image  # imageio's own PNG reader (a dependency of imageio)
 
         try:
