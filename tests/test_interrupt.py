@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -18,7 +19,8 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "ycbv"
 
 
-def _interrupt(argv: list[str], cwd: Path, *, after: float) -> tuple[int, float, str, str]:
+def _interrupt(argv: list[str], cwd: Path, *, after: float,
+               ready: Callable[[], bool] | None = None) -> tuple[int, float, str, str]:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
     out, err = cwd / "stdout.txt", cwd / "stderr.txt"
@@ -26,6 +28,9 @@ def _interrupt(argv: list[str], cwd: Path, *, after: float) -> tuple[int, float,
         p = subprocess.Popen([sys.executable, "-m", "certpose", *argv, "-q"], cwd=cwd, env=env,
                              stdout=fo, stderr=fe)
         time.sleep(after)
+        while ready is not None and not ready():  # e.g. the first rows on disk
+            assert p.poll() is None, "the command finished before it was ready"
+            time.sleep(0.05)
         assert p.poll() is None, "the command finished before the signal"
         t0 = time.monotonic()
         p.send_signal(signal.SIGINT)
@@ -51,7 +56,7 @@ def test_ctrl_c_stops_the_certifiers_branch_and_bound(tmp_path):
 def test_ctrl_c_in_pose_prints_nothing_from_open3d(tmp_path):
     """Once exit 1 with 23 lines of Open3D memory statistics on stdout."""
     code, seconds, out, err = _interrupt(["pose", "--demo", "--json", "p.json"], tmp_path,
-                                         after=2.5)
+                                         after=1.5)
     assert code == 130, err
     assert "Open3D" not in out and out == ""
     assert seconds < 10
@@ -62,7 +67,7 @@ def test_ctrl_c_in_pose_prints_nothing_from_open3d(tmp_path):
 def test_ctrl_c_in_object_build_leaves_no_partial_archive(tmp_path):
     code, seconds, out, err = _interrupt(
         ["object", "build", "--ycbv", str(DATA), "--object", "025_mug", "--views",
-         "0000/000001", "-o", "m.npz"], tmp_path, after=1.5)
+         "0000/000001", "-o", "m.npz"], tmp_path, after=0.8)
     assert code == 130, err
     assert out == "" and seconds < 10
     assert sorted(q.name for q in tmp_path.iterdir()) == ["stderr.txt", "stdout.txt"]
@@ -70,9 +75,14 @@ def test_ctrl_c_in_object_build_leaves_no_partial_archive(tmp_path):
 
 def test_ctrl_c_in_bench_keeps_complete_rows_and_resumes(tmp_path):
     out_dir = tmp_path / "D"
+    rows = out_dir / "trials.csv"
+
+    def some_rows() -> bool:
+        return rows.exists() and rows.read_text().count("\n") > 10
+
     code, seconds, out, err = _interrupt(
-        ["bench", "--trials", "2000", "--workers", "0", "--solvers", "gnc", "--outlier-ratios",
-         "0.5", "--out", str(out_dir)], tmp_path, after=3.0)
+        ["bench", "--trials", "100000", "--workers", "0", "--solvers", "gnc", "--outlier-ratios",
+         "0.5", "--out", str(out_dir)], tmp_path, after=0.5, ready=some_rows)
     assert code == 130 and "--resume" in err and out == ""
     assert seconds < 10
     lines = (out_dir / "trials.csv").read_text().splitlines()
