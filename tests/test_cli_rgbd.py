@@ -46,9 +46,10 @@ def test_rgbd_files_give_the_ycbv_paths_pose(tmp_path: Path) -> None:
                               (["--classifier", "best-buddies", "--box", *box],
                                ["--classifier", "best-buddies"])):
         own, ref = tmp_path / "own.json", tmp_path / "ref.json"
-        assert main(["pose", "-q", *common, *extra, "--json", str(own)]) == 0
+        # --force: the second case writes the first's files again.
+        assert main(["pose", "-q", *common, *extra, "--json", str(own), "--force"]) == 0
         assert main(["pose", "-q", "--ycbv", str(DATA), "--frame", FRAME, *ycbv_extra,
-                     "--json", str(ref)]) == 0
+                     "--json", str(ref), "--force"]) == 0
         a, b = json.loads(own.read_text()), json.loads(ref.read_text())
         assert a["T_camera_object"] == b["T_camera_object"]
         assert a["log_likelihood"] == b["log_likelihood"] and a["success"]
