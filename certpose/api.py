@@ -50,6 +50,7 @@ def register(
     tol: float = 1e-3,
     time_limit: float | None = None,
     prefer: Literal["certificate", "cost"] = "certificate",
+    check_significance: bool = True,
 ) -> RegistrationResult:
     """Robustly register corresponding point sets with the weighted TLS cost.
 
@@ -88,12 +89,18 @@ def register(
         records the solver's pose and cost); ``"cost"``: never return a pose of higher cost
         (the certificate may then certify nothing). ``certificate.problem`` names the problem
         bounded; the other problem's certificate is in ``info``.
+    check_significance : bool
+        Report a converged pose whose consensus is no larger than random correspondences with
+        the same noise bound would give as ``status="not_significant"`` (not a success; see
+        :mod:`solvers.registration.significance`). Its certificate, if any, is unchanged: it
+        still proves what it says about the TLS cost.
 
     Returns
     -------
     RegistrationResult
         With ``T_target_source`` mapping source points into the target frame. Check
-        ``success``/``status``: a failed or degenerate solve is reported, not raised.
+        ``success``/``status``: a failed, degenerate or not significant solve is reported, not
+        raised.
 
     Raises
     ------
@@ -122,20 +129,45 @@ def register(
     if prefer not in ("certificate", "cost"):
         raise ValueError(f"`prefer` must be 'certificate' or 'cost', got {prefer!r}.")
     check_limit(time_limit, "time_limit")
-    if check_limit(tol, "tol", allow_none=False) == 0:
-        raise ValueError("`tol` must be positive, got 0.")
+    if isinstance(tol, (bool, np.bool_)) or not isinstance(tol, (int, float, np.number)):
+        raise TypeError(f"`tol` must be a number, got {tol!r}.")
+    if not (np.isfinite(tol) and tol > 0):  # one rule, one message: 0 and -1 alike
+        raise ValueError(f"`tol` must be a positive finite number, got {tol}.")
     method = {"auto": "auto", "always": "pruned", "never": "gnc"}[prune]
     if solver == "sdp":
         from solvers.certify import solve_sdp  # cvxpy: imported on demand
 
-        return from_unit_scale(
-            solve_sdp(unit, scope=scope, tol=tol, time_limit=time_limit), scale
-        )
-    result = solve_registration(unit, method=method)  # type: ignore[arg-type]
-    if certify:
-        from solvers.certify import certify_result
+        result = solve_sdp(unit, scope=scope, tol=tol, time_limit=time_limit)
+    else:
+        result = solve_registration(unit, method=method)  # type: ignore[arg-type]
+        if certify:
+            from solvers.certify import certify_result
 
-        result = certify_result(unit, result, scope=scope, tol=tol, time_limit=time_limit,
-                                rotation_fallback=scope == "auto",
-                                prefer_certified=prefer == "certificate")
+            result = certify_result(unit, result, scope=scope, tol=tol, time_limit=time_limit,
+                                    rotation_fallback=scope == "auto",
+                                    prefer_certified=prefer == "certificate")
+    if check_significance:
+        result = _judge_significance(unit, result)
     return from_unit_scale(result, scale)
+
+
+def _judge_significance(unit: Any, result: RegistrationResult) -> RegistrationResult:
+    """``result``, reported ``not_significant`` when its consensus is what chance gives."""
+    from dataclasses import replace
+
+    from solvers.registration.significance import consensus_significance
+    from solvers.result import SolverStatus
+
+    if result.status is not SolverStatus.CONVERGED:
+        return result
+    sig = consensus_significance(unit, result.inliers)
+    info = dict(result.info, consensus_log10_nfa=sig.log10_nfa,
+                consensus_pair_probability=sig.pair_probability)
+    if sig.significant:
+        return replace(result, info=info)
+    proves = ""
+    if result.certificate is not None and result.certificate.certified:
+        proves = ("; the certificate proves the pose optimal for the TLS cost, not that the "
+                  "correspondences are right")
+    return replace(result, info=info, status=SolverStatus.NOT_SIGNIFICANT,
+                   message=f"not significant: {sig.describe()}{proves}. {result.message}")

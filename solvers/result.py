@@ -38,6 +38,10 @@ class SolverStatus(str, Enum):
     """Certifying the solver's pose found a better one (an exact optimum of a subproblem, no
     worse on the problem posed), which is returned in its place; the solver's status and cost
     are in ``info``."""
+    NOT_SIGNIFICANT = "not_significant"
+    """The pose's consensus is no larger than random correspondences with the same noise
+    bound would give (:mod:`solvers.registration.significance`); the pose may still be the
+    certified TLS optimum, which is then no evidence of a correct registration."""
 
     @property
     def success(self) -> bool:

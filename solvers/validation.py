@@ -21,18 +21,29 @@ __all__ = [
 ]
 
 
-def as_float_array(value: Any, name: str) -> NDArray[np.float64]:
-    """Convert ``value`` to a float64 array, raising ``TypeError`` for non-numeric input."""
+def as_float_array(value: Any, name: str, *, allow_bool: bool = True,
+                   copy: bool = True) -> NDArray[np.float64]:
+    """Convert ``value`` to a float64 array, raising ``TypeError`` for non-numeric input.
+
+    With ``allow_bool=False`` boolean arrays are refused too (a mask passed where coordinates
+    belong would otherwise become 0/1 coordinates). With ``copy=False`` a float64 array is
+    returned as it is (for callers that only read it).
+    """
+    if isinstance(value, (dict, set, str, bytes)) or value is None:
+        raise TypeError(f"`{name}` must be a numeric array, got {type(value).__name__}.")
     try:
         arr = np.asarray(value)
     except Exception as exc:  # ragged lists and the like
         raise TypeError(f"`{name}` must be a numeric array, got {type(value).__name__}.") from exc
     kind = arr.dtype.kind  # (dtype kinds, not np.issubdtype: this runs on every small solve)
+    if kind == "b" and not allow_bool:
+        raise TypeError(f"`{name}` must be a numeric array, got dtype bool (a mask?); convert "
+                        "it explicitly if 0/1 values are meant.")
     if kind == "c":
         raise TypeError(f"`{name}` must be real-valued, got dtype {arr.dtype}.")
     if kind not in "biuf":
         raise TypeError(f"`{name}` must be a numeric array, got dtype {arr.dtype}.")
-    return np.array(arr, dtype=np.float64)
+    return np.array(arr, dtype=np.float64) if copy else np.asarray(arr, dtype=np.float64)
 
 
 def check_points(value: Any, name: str, *, min_points: int = 1) -> NDArray[np.float64]:
@@ -42,7 +53,7 @@ def check_points(value: Any, name: str, *, min_points: int = 1) -> NDArray[np.fl
 
 def _points_and_extent(value: Any, name: str, min_points: int) -> tuple[NDArray[np.float64], float]:
     """:func:`check_points` and the largest absolute coordinate (0 when there are no points)."""
-    arr = as_float_array(value, name)
+    arr = as_float_array(value, name, allow_bool=False)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"Expected `{name}` to have shape (N, 3), got {arr.shape}.")
     if arr.shape[0] < min_points:
@@ -59,7 +70,7 @@ def _points_and_extent(value: Any, name: str, min_points: int) -> tuple[NDArray[
 
 
 def check_per_item(
-    value: Any, name: str, n: int, *, positive: bool, allow_scalar: bool
+    value: Any, name: str, n: int, *, positive: bool, allow_scalar: bool, allow_bool: bool = True
 ) -> NDArray[np.float64]:
     """Validate a scalar or ``(n,)`` array of finite, non-negative (or positive) values."""
     if type(value) is float and allow_scalar:  # the usual scalar: math is cheaper than numpy
@@ -69,7 +80,7 @@ def check_per_item(
             kind = "strictly positive" if positive else "non-negative"
             raise ValueError(f"`{name}` must be {kind}, got minimum {value:g}.")
         return np.full(n, value)
-    arr = as_float_array(value, name)
+    arr = as_float_array(value, name, allow_bool=allow_bool)
     if arr.ndim == 0:
         if not allow_scalar:
             raise ValueError(f"Expected `{name}` to have shape ({n},), got a scalar.")
@@ -88,7 +99,7 @@ def check_per_item(
 
 def check_rotation(value: Any, name: str = "rotation", *, atol: float = 1e-6) -> NDArray[np.float64]:
     """Validate a 3x3 rotation matrix (orthonormal, determinant +1)."""
-    arr = as_float_array(value, name)
+    arr = as_float_array(value, name, allow_bool=False)
     if arr.shape != (3, 3):
         raise ValueError(f"Expected `{name}` to have shape (3, 3), got {arr.shape}.")
     if not np.all(np.isfinite(arr)):
@@ -100,7 +111,7 @@ def check_rotation(value: Any, name: str = "rotation", *, atol: float = 1e-6) ->
 
 def check_transform(value: Any, name: str = "T", *, atol: float = 1e-6) -> NDArray[np.float64]:
     """Validate a 4x4 homogeneous rigid transform."""
-    arr = as_float_array(value, name)
+    arr = as_float_array(value, name, allow_bool=False)
     if arr.shape != (4, 4):
         raise ValueError(f"Expected `{name}` to have shape (4, 4), got {arr.shape}.")
     if not np.all(np.isfinite(arr)):
@@ -179,7 +190,8 @@ def _check_correspondences(
         raise ValueError(f"Expected at least {min_n} correspondences, got {n}.")
     if noise_bound is None:
         raise ValueError("`noise_bound` is required (a positive scalar or an (N,) array).")
-    beta = check_per_item(noise_bound, "noise_bound", n, positive=True, allow_scalar=True)
+    beta = check_per_item(noise_bound, "noise_bound", n, positive=True, allow_scalar=True,
+                          allow_bool=False)
     w = (
         np.ones(n)
         if weights is None

@@ -83,7 +83,7 @@ def test_a_manifest_is_read_relative_to_its_folder(tmp_path: Path) -> None:
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     view["T_camera_object"] = [[*R[0], 0.01], [*R[1], 0.0], [*(R[2] + [0, 0, 2e-4]), 0.6],
                                [0, 0, 0, 1]]  # orthonormal to 1e-4 only, as text gives
-    views = load_posed_views(_write(tmp_path, {"intrinsics": [500, 500, 20, 15], "views": [view]}))
+    views = load_posed_views(_write(tmp_path, {"intrinsics": [40, 40, 20, 15], "views": [view]}))
     (v,) = views
     assert v.name == "c" and v.mask.all() and v.frame.depth.shape == (30, 40)
     assert np.allclose(v.frame.depth, 0.6)  # default depth scale 1000 (millimetres)
@@ -101,7 +101,7 @@ def test_a_manifest_is_read_relative_to_its_folder(tmp_path: Path) -> None:
     (lambda doc: doc["views"][0].update(depth="none.png"), "does not exist"),
 ])
 def test_bad_manifests_name_the_problem(tmp_path: Path, change, message: str) -> None:  # noqa: ANN001
-    doc = {"intrinsics": [500, 500, 20, 15], "views": [_tiny_view(tmp_path)]}
+    doc = {"intrinsics": [40, 40, 20, 15], "views": [_tiny_view(tmp_path)]}
     change(doc)
     with pytest.raises((ValueError, FileNotFoundError), match=message):
         load_posed_views(_write(tmp_path, doc))
@@ -113,10 +113,10 @@ def test_bad_masks_and_files(tmp_path: Path) -> None:
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(ValueError, match="not JSON"):
         load_posed_views(tmp_path / "bad.json")
-    doc = {"intrinsics": [500, 500, 20, 15], "views": [_tiny_view(tmp_path, mask_size=(20, 10))]}
+    doc = {"intrinsics": [40, 40, 20, 15], "views": [_tiny_view(tmp_path, mask_size=(20, 10))]}
     with pytest.raises(ValueError, match=r"mask .* is 20x10 pixels, the depth image 40x30"):
         load_posed_views(_write(tmp_path, doc))
-    doc = {"intrinsics": [500, 500, 20, 15], "views": [_tiny_view(tmp_path, mask_value=0)]}
+    doc = {"intrinsics": [40, 40, 20, 15], "views": [_tiny_view(tmp_path, mask_value=0)]}
     with pytest.raises(ValueError, match="no object pixel"):
         load_posed_views(_write(tmp_path, doc))
 

@@ -441,7 +441,7 @@ def test_extreme_scales_certify_alike(scale, kwargs):
     ({"time_limit": True}, TypeError, "`time_limit` must be a number"),
     ({"time_limit": math.nan}, ValueError, "`time_limit`"),
     ({"tol": -1e-3}, ValueError, "`tol`"),
-    ({"tol": 0.0}, ValueError, "`tol` must be positive"),
+    ({"tol": 0.0}, ValueError, "`tol` must be a positive finite number"),
 ])
 def test_register_rejects_bad_limits(kwargs, exc, pattern):
     src, dst, _, _ = _instance()

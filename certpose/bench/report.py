@@ -239,8 +239,10 @@ def format_scopes(scopes: Sequence[dict[str, Any]]) -> str:
 
 
 def write_csv(path: Path, columns: Sequence[str], rows: Sequence[dict[str, Any]]) -> Path:
-    """A CSV file of ``rows`` (``None`` as an empty cell)."""
-    with path.open("w", newline="", encoding="utf-8") as fh:
+    """A CSV file of ``rows`` (``None`` as an empty cell), written atomically."""
+    from certpose.io.output import atomic_path
+
+    with atomic_path(path) as tmp, tmp.open("w", newline="", encoding="utf-8") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(columns), extrasaction="ignore")
         writer.writeheader()
         for row in rows:
@@ -285,7 +287,7 @@ def plot_report(
     fig.suptitle(title)
     fig.tight_layout()
     written = [out / "bench.png"]
-    fig.savefig(written[0], dpi=120)
+    _savefig(fig, written[0])
     plt.close(fig)
 
     srows = [r for r in scopes if math.isfinite(r["outlier_ratio"])]
@@ -311,9 +313,16 @@ def plot_report(
         fig.suptitle(title)
         fig.tight_layout()
         written.append(out / "certificates.png")
-        fig.savefig(written[-1], dpi=120)
+        _savefig(fig, written[-1])
         plt.close(fig)
     return written
+
+
+def _savefig(fig: Any, path: Path) -> None:
+    from certpose.io.output import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format=path.suffix.lstrip("."))
 
 
 def _md_num(x: Any, spec: str) -> str:
@@ -389,5 +398,6 @@ def write_markdown(
     if plots:
         lines += ["", "## Plots", ""]
         lines += [f"![{q.stem}]({q.name})" for q in plots]
-    p.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return p
+    from certpose.io.output import write_text_atomic
+
+    return write_text_atomic(p, "\n".join(lines) + "\n")

@@ -312,5 +312,7 @@ def open_rows(
             writer = RowWriter(rows_path, columns, append=False)
     else:
         writer = RowWriter(rows_path, columns, append=False)
-    manifest_path.write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
+    from certpose.io.output import write_text_atomic
+
+    write_text_atomic(manifest_path, json.dumps(manifest, indent=2) + "\n")
     return writer, done

@@ -423,9 +423,67 @@ def _teaser(inst: Instance) -> _Outcome:
     solver = tpp.RobustRegistrationSolver(params)
     solver.solve(np.ascontiguousarray(inst.source.T), np.ascontiguousarray(inst.target.T))
     sol = solver.getSolution()
+    # The released binding's solution has rotation, translation and scale; its C++ `valid`
+    # flag is not exposed (older builds had it). Judge the solution by what is exposed: the
+    # max clique, the translation inliers and the TLS cost of the pose, computed here.
+    clique = _binding_list(solver, "getInlierMaxClique")
+    t_inliers = _binding_list(solver, "getTranslationInliers")
+    flag = getattr(sol, "valid", None)
+    ok, status, T = teaser_verdict(inst, np.asarray(sol.rotation, dtype=np.float64),
+                                   np.asarray(sol.translation, dtype=np.float64).ravel(),
+                                   clique=clique, translation_inliers=t_inliers,
+                                   valid=None if flag is None else bool(flag))
+    return _Outcome(T, status, success=ok)
+
+
+def _binding_list(solver: Any, method: str) -> list[int] | None:
+    """``solver.method()`` as a list of indices, or None when the binding lacks it."""
+    fn = getattr(solver, method, None)
+    if fn is None:
+        return None
+    try:
+        return [int(k) for k in np.ravel(np.asarray(fn()))]
+    except Exception:  # noqa: BLE001 - a binding without the data: judged without it
+        return None
+
+
+def teaser_verdict(
+    inst: Instance, R: NDArray[np.float64], t: NDArray[np.float64], *,
+    clique: Sequence[int] | None, translation_inliers: Sequence[int] | None,
+    valid: bool | None = None,
+) -> tuple[bool, str, NDArray[np.float64]]:
+    """Success, status text and ``T_target_source`` of a TEASER++ solution.
+
+    A solve succeeded when its pose is a finite rigid transform, its max clique (when the
+    binding exposes it) and its translation inliers keep at least 3 correspondences each (fewer
+    fix no pose: TEASER++ then returns an arbitrary one), and the binding's own ``valid`` flag,
+    where it exists, agrees. The status names these and the pose's weighted TLS cost on the
+    instance (the same cost certpose minimises), so that the peers' rows compare.
+    """
+    from solvers import WeightedTLSProblem
+
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = np.asarray(sol.rotation), np.asarray(sol.translation).ravel()
-    return _Outcome(T, "valid" if sol.valid else "invalid", success=bool(sol.valid))
+    finite = R.shape == (3, 3) and t.shape == (3,) and bool(np.isfinite(R).all()
+                                                           and np.isfinite(t).all())
+    rigid = finite and bool(np.allclose(R.T @ R, np.eye(3), atol=1e-6)) and np.linalg.det(R) > 0
+    if rigid:
+        T[:3, :3], T[:3, 3] = R, t
+    problem = WeightedTLSProblem(inst.source, inst.target, noise_bound=inst.noise_bound,
+                                 weights=inst.weights)
+    cost = problem.cost(T[:3, :3], T[:3, 3]) if rigid else float("nan")
+    n_clique = None if clique is None else len(clique)
+    n_trans = None if translation_inliers is None else len(translation_inliers)
+    enough = all(k is None or k >= 3 for k in (n_clique, n_trans))
+    ok = bool(rigid and enough and valid is not False)
+    parts = [("solved" if ok else "failed"),
+             f"max clique {n_clique if n_clique is not None else 'n/a'}",
+             f"translation inliers {n_trans if n_trans is not None else 'n/a'}",
+             f"TLS cost {cost:.6g}"]
+    if not rigid:
+        parts.append("pose not rigid or not finite")
+    if valid is not None:
+        parts.append(f"valid={valid}")
+    return ok, "; ".join(parts), T
 
 
 SOLVERS: dict[str, Callable[[Instance], _Outcome]] = {
@@ -687,19 +745,22 @@ def run_benchmark(
         tmp = tempfile.mkdtemp(prefix="certpose-bench-")
         out_dir = tmp
     manifest = {"noise": config.noise, "suites": sources}
-    writer, done = open_rows(out_dir, TRIAL_COLUMNS, manifest, resume=resume, force=force)
-    try:
-        total = n_protocol = 0
-        for t in plan_tasks(make_specs(), config.solvers, done):  # counted, not kept
-            total += len(t.solvers)
-            n_protocol += t.spec.kind == "protocol"
-        tasks = plan_tasks(make_specs(), config.solvers, done)
-        skipped = _run_tasks(tasks, shapes, config, writer, total=total, n_protocol=n_protocol,
-                             tqdm=tqdm,
-                             progress=progress, workers=workers, scheduler=scheduler,
-                             batch_size=batch_size)
-    finally:
-        writer.close()
+    from certpose.io.output import folder_lock
+
+    # One writer per folder: a second run (--resume or not) is refused while this one writes.
+    with folder_lock(out_dir, what="bench --out folder"):
+        writer, done = open_rows(out_dir, TRIAL_COLUMNS, manifest, resume=resume, force=force)
+        try:
+            total = n_protocol = 0
+            for t in plan_tasks(make_specs(), config.solvers, done):  # counted, not kept
+                total += len(t.solvers)
+                n_protocol += t.spec.kind == "protocol"
+            tasks = plan_tasks(make_specs(), config.solvers, done)
+            skipped = _run_tasks(tasks, shapes, config, writer, total=total,
+                                 n_protocol=n_protocol, tqdm=tqdm, progress=progress,
+                                 workers=workers, scheduler=scheduler, batch_size=batch_size)
+        finally:
+            writer.close()
     for name, why in skipped.items():
         log.warning("skipping solver %s: %s", name, why)
     summary, scopes = summarize_file(writer.path, order=config.solvers)
@@ -860,11 +921,24 @@ def _run_dask(
     except KeyboardInterrupt:
         # Workers busy in a solve are killed on close; that is expected, not worth a warning.
         logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        # Ctrl-C is answered within a second: the busy workers are not waited for (a worker
+        # process exits by itself when its parent does).
+        _close_quickly(client, cluster)
         raise
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+    client.close()
+    if cluster is not None:
+        cluster.close()
+
+
+def _close_quickly(client: Any, cluster: Any, timeout: float = 0.3) -> None:
+    """Close ``client`` and ``cluster`` within about ``timeout`` seconds each, or give up."""
+    for closer in (client, cluster):
+        if closer is None:
+            continue
+        try:
+            closer.close(timeout=timeout)
+        except BaseException as exc:  # noqa: BLE001 - a timeout or a second Ctrl-C: give up
+            log.debug("not closed within %.1f s: %s", timeout, exc)
 
 
 WORKER_ENV: dict[str, str] = {

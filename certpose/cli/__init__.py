@@ -19,6 +19,7 @@ import importlib
 import importlib.abc
 import importlib.util
 import logging
+import os
 import sys
 import threading
 import traceback
@@ -46,11 +47,16 @@ class CLIFailure(Exception):
 
 
 def add_common(p: argparse.ArgumentParser, *, seed_help: str | None = None,
-               json_help: str = "also write the result as JSON to OUT ('-': standard output)"
-               ) -> None:
-    """The options every command takes: --json, --seed, --quiet, --verbose."""
+               json_help: str = "also write the result as JSON to OUT ('-': standard output)",
+               force: bool = True) -> None:
+    """The options every command takes: --json, --seed, --quiet, --verbose and --force (one
+    overwrite policy for every output file; ``force=False`` for a command that defines its
+    own --force)."""
     g = p.add_argument_group("common options")
     g.add_argument("--json", metavar="OUT", default=None, help=json_help)
+    if force:
+        g.add_argument("--force", action="store_true",
+                       help="overwrite output files that exist (refused otherwise)")
     if seed_help is not None:
         g.add_argument("--seed", type=_seed, default=0, help=seed_help)
     g.add_argument("-q", "--quiet", action="store_true",
@@ -85,7 +91,7 @@ def check_json_output(args: argparse.Namespace) -> None:
     if getattr(args, "json", None) not in (None, "-"):
         from certpose.io.output import check_output_path
 
-        check_output_path(args.json, what="--json output")
+        check_output_path(args.json, what="--json output", force=getattr(args, "force", False))
 
 
 def emit_json(args: argparse.Namespace, payload: Any) -> None:
@@ -179,10 +185,21 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+_EXTRAS = {"open3d": "pose", "imageio": "pose", "PIL": "pose", "cv2": "pose", "gtsam": "bench",
+           "tqdm": "bench", "matplotlib": "bench", "distributed": "bench", "dask": "bench",
+           "arviz": "samplers", "nevergrad": "samplers", "emcee": "samplers", "pymc": "samplers"}
+"""The optional extra that brings each optional module (pyproject.toml)."""
+
+
 def _message(exc: BaseException) -> str:
     text = " ".join(str(exc).split()) or type(exc).__name__
     if isinstance(exc, KeyError) and exc.args:
         text = str(exc.args[0])
+    name = getattr(exc, "name", None)
+    if isinstance(exc, ModuleNotFoundError) and name and name.split(".")[0] in _EXTRAS:
+        top = name.split(".")[0]
+        text = (f"this needs {top}, which is not installed: pip install "
+                f"'certpose[{_EXTRAS[top]}]'")
     return text
 
 
@@ -358,8 +375,20 @@ def run() -> None:
     gc.disable()
     try:
         code = main(_startup_gc_paused=True)
+    except KeyboardInterrupt:  # during the start-up imports or the parsing
+        print("certpose: interrupted", file=sys.stderr)
+        code = EXIT_INTERRUPTED
     finally:
         gc.enable()
+    if code == EXIT_INTERRUPTED:
+        # No interpreter shutdown after Ctrl-C: the interrupted work's objects are still
+        # referenced, and libraries' exit-time destructors would report them (Open3D prints
+        # its memory statistics on stdout) or fail the exit code. Files are complete or gone
+        # already (written through temporary files).
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(code)
     # The process ends here: the last collection would walk every object numba and scipy
     # created (about 0.5 s per run); frozen objects are skipped, the OS frees the memory.
     gc.freeze()

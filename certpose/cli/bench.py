@@ -98,7 +98,8 @@ def add_parser(subparsers: Any) -> None:
                         "the end so that the workers finish together)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar (shown only when stderr is a terminal)")
     add_common(p, seed_help="instance seed (default: 0)",
-               json_help="also write the summary as JSON to OUT ('-': standard output)")
+               json_help="also write the summary as JSON to OUT ('-': standard output)",
+               force=False)
     p.set_defaults(func=run)
 
 
@@ -143,6 +144,31 @@ def _check(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """The command, holding the lock of its result folder (--out or --report) throughout: a
+    second run on the same folder is refused at once, before any work."""
+    import contextlib
+    import os
+
+    from certpose.io.output import folder_lock
+
+    folder, what = ((args.report, "--report folder") if args.report is not None
+                    else (args.out, "--out folder") if args.out is not None else (None, ""))
+    if args.report is not None and not os.path.isdir(args.report):
+        folder = None  # nothing to lock: the redraw says what is missing
+    elif folder is not None and args.report is None:
+        from certpose.io.output import check_output_dir
+
+        check_output_dir(folder, what=what)  # before the lock creates it
+    # The local cluster's semaphores outlive an interrupted run; the resource tracker (a
+    # helper process that takes its warning filters from these options) would report them.
+    import sys
+
+    sys.warnoptions.append("ignore:resource_tracker:UserWarning")
+    with folder_lock(folder, what=what) if folder is not None else contextlib.nullcontext():
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from certpose.bench.report import format_scopes, format_table
     from certpose.bench.runner import (
         DEFAULT_SOLVERS,

@@ -125,6 +125,9 @@ def run_build(args: argparse.Namespace) -> int:
         raise CLIError(f"-o {out} must end in .npz")
     if not out.parent.is_dir():
         raise CLIError(f"-o {out}: the folder {out.parent} does not exist")
+    from certpose.io.output import atomic_path, check_output_path
+
+    check_output_path(out, what="-o output", force=args.force)
     name = args.object or Path(args.model).stem
     with busy(args, "certpose object build"):
         if args.ycbv is not None:
@@ -140,7 +143,8 @@ def run_build(args: argparse.Namespace) -> int:
             built = object_from_posed_views(
                 load_model_points(args.model), load_posed_views(args.posed_views), backbone,
                 voxel_size=args.voxel_size, name=name, sampling=args.sampling)
-    built.save(out)
+    with atomic_path(out) as tmp:  # a second writer or Ctrl-C never leaves a partial archive
+        built.save(tmp)
     n, seen = len(built.model), int(built.observed.sum())
     say(args, f"object model {name}: {n} points, {seen} seen by {len(built.views)} "
               f"view(s) ({100.0 * built.seen_fraction:.0f}% of its surface), the other {n - seen} "

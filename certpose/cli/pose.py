@@ -4,8 +4,10 @@ camera, or the demo)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -219,7 +221,7 @@ def run(args: argparse.Namespace) -> int:
     if args.save_problem is not None:
         if not args.save_problem.endswith(".npz"):
             raise CLIError(f"--save-problem {args.save_problem} must end in .npz")
-        check_output_path(args.save_problem, what="--save-problem output")
+        check_output_path(args.save_problem, what="--save-problem output", force=args.force)
     if args.samples < 0:
         raise CLIError(f"--samples must be >= 0, got {args.samples}")
     if args.particles is not None:
@@ -227,11 +229,11 @@ def run(args: argparse.Namespace) -> int:
             raise CLIError("--particles needs --samples N")
         if not args.particles.endswith(".npz"):  # NumPy would append .npz to another name
             raise CLIError(f"--particles {args.particles} must end in .npz")
-        check_output_path(args.particles, what="--particles output")
+        check_output_path(args.particles, what="--particles output", force=args.force)
     if args.plot is not None:
         if args.samples == 0:
             raise CLIError("--plot needs --samples N")
-        check_output_path(args.plot, what="--plot output")
+        check_output_path(args.plot, what="--plot output", force=args.force)
         _check_plot_format(args.plot)
     if args.method != "is" and args.samples == 0:
         raise CLIError("--method needs --samples N")
@@ -337,7 +339,7 @@ def _run_rgbd(args: argparse.Namespace, params: Any) -> int:
         title += ", best buddies in the box given (no mask)"
     if built is not None:
         title += f" (appearance model from {', '.join(built.views) or 'unnamed views'})"
-    with busy(args, "certpose pose"):
+    with busy(args, "certpose pose"), _cli_hints():
         result = run_rgbd(None if color == "-" else color, depth, args.intrinsics,
                           model_path=args.model, object_model=built,
                           depth_scale=1000.0 if args.depth_scale is None else args.depth_scale,
@@ -347,6 +349,27 @@ def _run_rgbd(args: argparse.Namespace, params: Any) -> int:
     if args.json is not None:
         emit_json(args, payload)
     return code
+
+
+@contextlib.contextmanager
+def _cli_hints() -> Iterator[None]:
+    """The library's advice in the command's own options: the scene grid's "crop with `bounds`
+    or `roi_mask`" names keyword arguments the command line does not have."""
+    from certpose.cli import CLIError
+
+    try:
+        yield
+    except ValueError as exc:
+        text = str(exc)
+        if "max_voxels" in text:
+            fix = "use a larger --voxel-size (metres) or a tighter --mask / --box"
+        elif "too coarse" in text:
+            fix = "use a smaller --voxel-size (metres)"
+        else:
+            raise
+        raise CLIError(
+            f"{text.split(';')[0]}; check --depth-scale (raw units per metre: 1000 for "
+            f"millimetres, 10000 for YCB-Video) and --intrinsics, or {fix}") from exc
 
 
 def _check_plot_format(path: str) -> None:
@@ -521,7 +544,7 @@ def _print_distribution(result: object, args: argparse.Namespace) -> None:
               f"{_mode_rotation(m.rotation, result, axis)}, translation "
               f"[{', '.join(f'{v:.4f}' for v in m.translation)}] m")
     if args.particles is not None:
-        dist.save(args.particles)
+        dist.save(args.particles)  # atomic
         say(args, f"wrote {args.particles}")
     if args.plot is not None:
         from certpose.sampling.plots import plot_marginals

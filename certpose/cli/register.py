@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from typing import Any
 
@@ -134,6 +135,13 @@ def _check_options(args: argparse.Namespace) -> None:
     for name, value in defaults.items():
         if getattr(args, name) is None:
             setattr(args, name, value)
+    if args.demo:  # in the options' own names, not the generator's arguments
+        if not args.demo_n >= 3:
+            raise CLIError(f"--demo-n must be >= 3 correspondences, got {args.demo_n}")
+        if not 0 <= args.demo_outliers < 1:
+            raise CLIError(f"--demo-outliers must be a fraction in [0, 1), got {args.demo_outliers}")
+        if not (math.isfinite(args.demo_noise) and args.demo_noise >= 0):
+            raise CLIError(f"--demo-noise must be a finite sigma >= 0, got {args.demo_noise}")
 
 
 def kernels(argv: list[str]) -> tuple[str, ...]:

@@ -938,7 +938,9 @@ def run_rgbd(
     result = estimate_pose(scene, obj, classifier=classifier, frame=frame, params=params, rng=rng,
                            box=box)
     result.timings.update({"load": t_load, "scene": t_scene, "object": t_obj})
-    return result
+    from certpose.geometry.plausibility import judge_observed_extent
+
+    return judge_observed_extent(result, obj.points, voxel_size=params.voxel_size)
 
 
 def build_ycbv_object_model(

@@ -9,6 +9,7 @@ invalid measurement.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -416,6 +417,28 @@ class RGBDFrame:
         return self.color[px[:, 0], px[:, 1]].astype(np.float64) / 255.0
 
 
+_INTRINSICS_KEYS = ("fx", "fy", "cx", "cy")
+
+
+def _intrinsics_vector(intrinsics: Any) -> NDArray[np.float64]:
+    """``(fx, fy, cx, cy)`` from a sequence or a mapping with those keys."""
+    if isinstance(intrinsics, Mapping):
+        missing = [k for k in _INTRINSICS_KEYS if k not in intrinsics]
+        extra = sorted(str(k) for k in intrinsics if k not in _INTRINSICS_KEYS)
+        if missing or extra:
+            raise ValueError(
+                "Expected `intrinsics` to have the keys fx, fy, cx, cy (pixels); "
+                + (f"missing {', '.join(missing)}" if missing else "")
+                + ("; " if missing and extra else "")
+                + (f"unknown {', '.join(extra)}" if extra else "") + ".")
+        intrinsics = [intrinsics[k] for k in _INTRINSICS_KEYS]
+    k = as_float_array(intrinsics, "intrinsics", allow_bool=False).reshape(-1)
+    if k.shape != (4,):
+        raise ValueError(f"Expected `intrinsics` to be (fx, fy, cx, cy) in pixels, got "
+                         f"{k.size} value(s).")
+    return k
+
+
 def load_rgbd(
     color_path: str | Path | None,
     depth_path: str | Path,
@@ -433,12 +456,19 @@ def load_rgbd(
         8-bit RGB image (an alpha channel is dropped, grey is replicated).
     depth_path : path
         Single-channel depth image; metres = value / ``depth_scale``.
-    intrinsics : CameraIntrinsics or (4,) array_like
-        Or ``(fx, fy, cx, cy)`` in pixels, the image size then the depth image's.
+    intrinsics : CameraIntrinsics, (4,) array_like or mapping
+        Or ``(fx, fy, cx, cy)`` in pixels (a sequence, or a mapping with exactly those keys),
+        the image size then the depth image's.
     depth_scale : float, optional
         Raw depth units per metre (1000 for millimetre PNGs; YCB-Video uses 10000).
     T_world_camera : array_like, shape (4, 4), optional
     mask : array_like of bool, shape (H, W), optional
+
+    Raises
+    ------
+    ValueError
+        Malformed intrinsics, or intrinsics implausible for the image size
+        (:func:`certpose.geometry.plausibility.check_intrinsics`).
     """
     if not depth_scale > 0:
         raise ValueError(f"`depth_scale` must be positive, got {depth_scale}.")
@@ -446,11 +476,11 @@ def load_rgbd(
     if raw.ndim != 2:
         raise ValueError(f"Expected the depth image {depth_path} to have one channel, got shape {raw.shape}.")
     if not isinstance(intrinsics, CameraIntrinsics):
-        k = np.asarray(intrinsics, dtype=np.float64).reshape(-1)
-        if k.shape != (4,):
-            raise ValueError(f"Expected `intrinsics` to be (fx, fy, cx, cy), got "
-                             f"{np.asarray(intrinsics).tolist()}.")
+        k = _intrinsics_vector(intrinsics)
         intrinsics = CameraIntrinsics(*(float(v) for v in k), raw.shape[1], raw.shape[0])
+    from certpose.geometry.plausibility import check_intrinsics
+
+    check_intrinsics(intrinsics)
     color = None
     if color_path is not None:
         color = read_image(color_path, "color")
@@ -527,6 +557,11 @@ def read_image(path: str | Path, what: str = "image") -> NDArray[Any]:
     if not path.is_file():
         raise FileNotFoundError(f"The {what} image {path} does not exist.")
     if path.suffix.lower() == ".png":
+        with path.open("rb") as fh:
+            head = fh.read(8)
+        if head != b"\x89PNG\r\n\x1a\n":  # not worth every imageio plugin's attempt
+            raise OSError(f"Cannot read the {what} image {path}: not a PNG file (it starts "
+                          f"with {head!r}; a PNG starts with b'\\x89PNG').")
         from PIL import Image  # imageio's own PNG reader (a dependency of imageio)
 
         try:
@@ -540,7 +575,13 @@ def read_image(path: str | Path, what: str = "image") -> NDArray[Any]:
     try:
         return np.asarray(iio.imread(path))
     except Exception as exc:
-        raise OSError(f"Cannot read the {what} image {path}: {exc}") from exc
+        # imageio's "no backend" advice (install a plugin) is wrong for a file that is not an
+        # image at all: say what the file is not.
+        text = str(exc)
+        if "Could not find a backend" in text or "cannot identify image file" in text:
+            text = (f"not an image file imageio can read (it starts with "
+                    f"{path.read_bytes()[:8]!r}; a PNG starts with b'\\x89PNG')")
+        raise OSError(f"Cannot read the {what} image {path}: {text}") from exc
 
 
 @dataclass(frozen=True, eq=False)

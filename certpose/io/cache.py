@@ -168,7 +168,10 @@ def object_from_points_cached(
 
     if isinstance(rng, (bool, np.bool_)) or not isinstance(rng, (int, np.integer)):
         raise TypeError(f"`rng` must be an int seed, got {type(rng).__name__}.")
+    from certpose.geometry.plausibility import check_model_points
+
     pts = np.asarray(points, dtype=np.float64)
+    check_model_points(pts, name=f"points of model {name!r}" if name else "model points")
     cols = None if colors is None else np.asarray(colors, dtype=np.float64)
     path = None
     if cache_dir is not None:

@@ -98,9 +98,8 @@ def _read_npy(p: Path, what: str) -> NDArray[np.float64]:
         raise ValueError(f"{what} file '{p}' is not a valid .npy array: {reason}") from None
     if not isinstance(arr, np.ndarray):
         raise ValueError(f"{what} file '{p}' does not hold a single array.")
-    if arr.dtype == object or not (
-        np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.bool_)
-    ) or np.iscomplexobj(arr):
+    if arr.dtype == object or not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
+        # Booleans too: a saved mask is not coordinates or weights.
         raise ValueError(f"{what} file '{p}' holds a non-numeric array (dtype {arr.dtype}).")
     return np.asarray(arr, dtype=np.float64)
 

@@ -213,8 +213,10 @@ def save_problem(
     if metadata:
         data["metadata"] = np.asarray(to_json(metadata, indent=None))
     _check(p, data)  # never write a file load_problem would refuse
+    from certpose.io.output import atomic_path
+
     try:
-        with p.open("wb") as fh:
+        with atomic_path(p) as tmp, tmp.open("wb") as fh:
             np.savez(fh, **data)
     except OSError as exc:
         raise OSError(f"cannot write problem file '{p}': {exc.strerror or exc}.") from None

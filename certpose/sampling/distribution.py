@@ -538,7 +538,12 @@ class PoseDistribution:
         )
         if self.log_weights is not None:
             arrays["log_weights"] = self.log_weights
-        np.savez(path, **arrays)
+        from certpose.io.output import atomic_path
+
+        # np.savez adds ".npz" to a name without it: write the name it will have.
+        target = Path(path) if str(path).endswith(".npz") else Path(f"{path}.npz")
+        with atomic_path(target) as tmp, tmp.open("wb") as fh:
+            np.savez(fh, **arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> PoseDistribution:

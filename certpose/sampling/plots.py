@@ -314,6 +314,9 @@ def plot_marginals(
     info.text(0.0, 1.0, "\n".join(lines), va="top", family="monospace", fontsize=9)
     fig.suptitle(title or "pose distribution: marginals (KDE)")
     fig.tight_layout()
-    fig.savefig(p, dpi=int(dpi))
+    from certpose.io.output import atomic_path
+
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=int(dpi), format=p.suffix.lstrip(".") or None)
     log.info("wrote %s", p)
     return p

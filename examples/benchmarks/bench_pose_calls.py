@@ -55,7 +55,7 @@ def objects_of(root: Path, frame: str, min_px: int, limit: int | None) -> list[s
 def call(root: Path, frame: str, objects: list[str], out: Path) -> tuple[float, list[np.ndarray]]:
     """Wall seconds of one ``certpose pose`` process and the poses it wrote (one per object)."""
     cmd = [sys.executable, "-m", "certpose", "pose", "--ycbv", str(root), "--frame", frame,
-           "--object", *objects, "--json", str(out), "-q"]
+           "--object", *objects, "--json", str(out), "--force", "-q"]  # out: reused per call
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)

@@ -16,6 +16,7 @@ from solvers.jit import kernel
 
 # Argument types of the declared signatures: C-contiguous, writable arrays.
 F1, F2, U2 = nt.float64[::1], nt.float64[:, ::1], nt.uint8[:, ::1]
+I1 = nt.int64[::1]
 f8, i8 = nt.float64, nt.int64
 
 
@@ -233,49 +234,53 @@ def _ls_value(s):  # pragma: no cover - compiled
     return max(ga + gb - 2.0 * (sv[0] + sv[1] + d * sv[2]), 0.0), R, cb - R @ ca
 
 
-@kernel(F2, F2, F1, F1, f8, f8, i8)
-def clique_bnb(a, b, v, wout, upper, allowance, max_nodes):  # pragma: no cover - compiled
-    """Depth-first branch and bound of ``min_S [LS_S^* + sum_{k not in S} wout_k]``.
+@kernel(F2, F2, F1, F1, f8, i8, i8, F2, F1, I1, I1, F1)
+def clique_bnb(a, b, v, wout, allowance, stop_nodes, max_nodes, state, out, phase, ints,
+               best):  # pragma: no cover - compiled
+    """Depth-first branch and bound of ``min_S [LS_S^* + sum_{k not in S} wout_k]``, resumable.
 
     ``a``, ``b`` (K, 3) centred points in branching order, ``v`` (K,) least-squares weights
     ``w / beta^2``, ``wout`` (K,) outlier costs ``cbar2 w``. A node's state is the running sums
     of its forced-in set ``[sw, sum v a (3), sum v b (3), sum v a b^T (9), sum v|a|^2,
     sum v|b|^2]`` and its forced-out cost; its bound is ``LS_I^* + out`` (Horn's eigenvalue by
-    QCP Newton from above, :func:`_horn_lambda_max`). Returns ``(best, R, t, complete, nodes,
-    found)``: the best leaf value (``upper`` when none beat it), its least-squares pose in the
-    centred frame (SVD), whether the search finished within ``max_nodes``, the nodes visited,
-    and whether a leaf beat ``upper``.
+    QCP Newton from above, :func:`_horn_lambda_max`).
+
+    The search's whole state lives in the arrays the caller passes (and keeps between calls):
+    ``state`` (K + 1, 18), ``out`` (K + 1,), ``phase`` (K + 1,), ``ints = [depth, nodes,
+    found]`` and ``best = [value, R (9, row-major), t (3)]`` (the best leaf value, initially the
+    known upper bound, and its least-squares pose in the centred frame). A fresh search starts
+    from zeros with ``ints = [0, 0, 0]``. The call returns 0 when the search is complete, 1 when
+    ``stop_nodes`` nodes have been visited (call again to go on: the caller can look at signals
+    in between), 2 when ``max_nodes`` is exceeded (the search is not complete).
     """
     K = a.shape[0]
-    state = np.zeros((K + 1, 18))
-    out = np.zeros(K + 1)
-    phase = np.zeros(K + 1, dtype=np.int64)  # 0: visit node, 1: "in" child next, 2: "out" next
-    best = upper
-    bestR = np.eye(3)
-    bestt = np.zeros(3)
-    found = False
-    nodes = 0
-    depth = 0
+    depth, nodes = ints[0], ints[1]
     while depth >= 0:
         if phase[depth] == 0:
+            if nodes >= stop_nodes and nodes < max_nodes:
+                ints[0], ints[1] = depth, nodes
+                return 1
             nodes += 1
             if nodes > max_nodes:
-                return best, bestR, bestt, False, nodes, found
+                ints[0], ints[1] = depth, nodes
+                return 2
             bound = _ls_bound(state[depth])
             if not bound >= 0.0:  # NaN: least squares is non-negative, nothing more is known
                 bound = 0.0
             bound += out[depth]
-            if bound - allowance >= best:
+            if bound - allowance >= best[0]:
                 depth -= 1
                 continue
             if depth == K:
                 val, R, tp = _ls_value(state[depth])
                 val += out[depth]
-                if val < best:
-                    best = val
-                    bestR = R
-                    bestt = tp
-                    found = True
+                if val < best[0]:
+                    best[0] = val
+                    for i in range(3):
+                        for j in range(3):
+                            best[1 + 3 * i + j] = R[i, j]
+                        best[10 + i] = tp[i]
+                    ints[2] = 1
                 depth -= 1
                 continue
             phase[depth] = 1
@@ -308,7 +313,8 @@ def clique_bnb(a, b, v, wout, upper, allowance, max_nodes):  # pragma: no cover 
             continue
         phase[depth] = 0
         depth -= 1
-    return best, bestR, bestt, True, nodes, found
+    ints[0], ints[1] = depth, nodes
+    return 0
 
 
 @njit(cache=True)

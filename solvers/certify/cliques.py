@@ -258,6 +258,9 @@ def small_clique_optimum(
 NODES_PER_SECOND = 2_000_000
 """Branch-and-bound nodes per second (measured 2.2 M/s on one core of the 2-core test machine), for time limits."""
 
+CHUNK_NODES = NODES_PER_SECOND // 20
+"""Nodes per call of the compiled search (about 50 ms): it returns to Python between calls."""
+
 ENUMERATE_MAX = 12
 """Cliques up to this size are solved by enumerating every inlier set at once (batched)."""
 
@@ -342,9 +345,19 @@ def clique_optimum(
     if time_limit is not None:
         # The compiled search cannot read the clock: the limit becomes a node budget.
         max_nodes = min(max_nodes, int(max(time_limit, 0.0) * NODES_PER_SECOND))
-    best, R, tp, complete, nodes, found = clique_bnb(
-        np.ascontiguousarray(a), np.ascontiguousarray(b), np.ascontiguousarray(v),
-        np.ascontiguousarray(wout), float(upper), float(allowance), int(max_nodes))
+    a, b, v, wout = (np.ascontiguousarray(x) for x in (a, b, v, wout))
+    state, out, phase = np.zeros((K + 1, 18)), np.zeros(K + 1), np.zeros(K + 1, dtype=np.int64)
+    ints = np.zeros(3, dtype=np.int64)
+    found_pose = np.zeros(13)
+    found_pose[0] = float(upper)
+    # In chunks of about 50 ms: between them Python runs, and Ctrl-C is answered.
+    stop, code = 0, 1
+    while code == 1:
+        stop = min(stop + CHUNK_NODES, int(max_nodes))
+        code = clique_bnb(a, b, v, wout, float(allowance), stop, int(max_nodes), state, out,
+                          phase, ints, found_pose)
+    best, complete, nodes, found = found_pose[0], code == 0, int(ints[1]), bool(ints[2])
+    R, tp = found_pose[1:10].reshape(3, 3).copy(), found_pose[10:13].copy()
     if found:
         t = (cb - R @ ca + tp) * unit
         best_cost = float(best)

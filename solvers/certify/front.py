@@ -1259,6 +1259,7 @@ def _certify_once(problem: WeightedTLSProblem, result: RegistrationResult, kw: d
     rot = scoped.label is BoundedProblem.ROTATION_TIM
     cert_new, _, _ = _certify(problem, Rb, tb, **kw, known=bound if rot else None)
     from solvers.lie import make_transform
+    from solvers.registration.solve import judge_pose
 
     if not new <= old and not cert_new.certified:  # accept_worse: only for a certificate
         info["better_subproblem_pose_full_cost"] = new
@@ -1269,17 +1270,23 @@ def _certify_once(problem: WeightedTLSProblem, result: RegistrationResult, kw: d
         info["candidate_T_target_source"] = result.T_target_source.tolist()
     info.update(replaced_candidate=True, candidate_cost=old, candidate_status=result.status.value,
                 candidate_certificate=cert.to_dict())
+    inliers = problem.inliers(Rb, tb)
+    # The status describes the returned pose, not the candidate it replaced: the certifier's
+    # pose when it is a success, else what is wrong with it.
+    status, message = judge_pose(
+        problem, inliers,
+        f"certification found a better pose than the candidate on the {scoped.label.value} "
+        f"(cost {cert.better_upper_bound:.6g} < {cert.upper_bound:.6g}; full-problem cost "
+        f"{new:.6g} vs {old:.6g}){worse}; returning it, certified anew")
+    if status.success:
+        status = SolverStatus.CERTIFIER_POSE
     return dataclasses.replace(
         result,
-        status=SolverStatus.CERTIFIER_POSE,
+        status=status,
         T_target_source=make_transform(Rb, tb),
-        inliers=problem.inliers(Rb, tb),
+        inliers=inliers,
         cost=new,
         certificate=dataclasses.replace(cert_new, solve_time=time.perf_counter() - t0),
         info=info,
-        message=(f"certification found a better pose than the candidate on the "
-                 f"{scoped.label.value} (cost {cert.better_upper_bound:.6g} < {cert.upper_bound:.6g}"
-                 f"; full-problem cost {new:.6g} vs {old:.6g}){worse}; returning it, certified "
-                 f"anew. "
-                 f"Candidate: {result.message}"),
+        message=f"{message}. Candidate ({result.status.value}): {result.message}",
     )

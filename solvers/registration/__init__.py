@@ -1,7 +1,8 @@
 """Robust registration: GNC-TLS, max-clique pruning and scalar TLS voting.
 
 Owns the solvers that turn a :class:`solvers.WeightedTLSProblem` into a
-:class:`solvers.RegistrationResult` and their numba kernels. May import the public modules of
+:class:`solvers.RegistrationResult`, their numba kernels, and the test of whether a consensus
+beats random correspondences (:mod:`~solvers.registration.significance`). May import the public modules of
 :mod:`solvers` (problem, result, lie, procrustes, validation); never :mod:`solvers.certify`.
 """
 

@@ -29,6 +29,8 @@ __all__ = [
     "to_unit_scale",
     "from_unit_scale",
     "check_graph_memory",
+    "check_problem",
+    "judge_pose",
 ]
 
 log = logging.getLogger(__name__)
@@ -137,14 +139,30 @@ def degeneracy(
         return "the inliers are coincident (all at the origin)"
     # Below ~1e-12 of the extent, spread is floating-point rounding, not geometry.
     floor = max(noise_bound, 1e-12 * scale)
+    # Ratios, not lengths: the problem may have been rescaled to unit size.
     if ev0 <= floor:
-        return f"the inliers are coincident (spread {ev0:.3g} <= noise bound {floor:.3g})"
+        return (f"the inliers are coincident (their spread is {ev0 / floor:.3g} times the noise "
+                "bound; is the noise bound far larger than the points' extent?)")
     if ev1 <= floor:
         return (
-            f"the inliers are collinear (spread across the line {ev1:.3g} <= noise bound "
-            f"{floor:.3g}); the rotation about that line is undetermined"
+            f"the inliers are collinear (their spread across the line is {ev1 / floor:.3g} "
+            "times the noise bound); the rotation about that line is undetermined"
         )
     return None
+
+
+def judge_pose(
+    problem: WeightedTLSProblem, inliers: NDArray[np.bool_], message: str
+) -> tuple[SolverStatus, str]:
+    """Status and message of a pose whose solver converged, from its ``inliers`` (N,):
+    ``CONVERGED`` with ``message``, or why the inliers do not fix a pose."""
+    src, _, _, w = problem._kernel_arrays
+    why = degeneracy(src, w * inliers, problem._min_noise_bound)
+    if why is None:
+        return SolverStatus.CONVERGED, message
+    if np.count_nonzero(inliers & (w > 0)) < 3:
+        return SolverStatus.INSUFFICIENT_INLIERS, f"degenerate geometry: {why}"
+    return SolverStatus.DEGENERATE, f"degenerate geometry: {why}"
 
 
 def _finish(
@@ -176,12 +194,7 @@ def _finish(
         cost = problem.cost_from_residuals(r2)
     inliers = r2 <= problem.cbar2
     if status is SolverStatus.CONVERGED:
-        src, _, _, w = problem._kernel_arrays
-        why = degeneracy(src, w * inliers, problem._min_noise_bound)
-        if why is not None:
-            status, message = SolverStatus.DEGENERATE, f"degenerate geometry: {why}"
-            if inliers.sum() < 3:
-                status = SolverStatus.INSUFFICIENT_INLIERS
+        status, message = judge_pose(problem, inliers, message)
     return RegistrationResult._fresh(
         T_target_source=T,
         inliers=inliers,
@@ -458,6 +471,17 @@ def _available_memory() -> int | None:
         return None
 
 
+def check_problem(problem: object) -> WeightedTLSProblem:
+    """``problem`` if it is a :class:`~solvers.problem.WeightedTLSProblem`, else a ``TypeError``
+    saying how to make one."""
+    if not isinstance(problem, WeightedTLSProblem):
+        raise TypeError(
+            f"Expected `problem` to be a WeightedTLSProblem, got {type(problem).__name__}; build "
+            "one with WeightedTLSProblem(source, target, noise_bound=...) or call "
+            "certpose.register(source, target, noise_bound=...).")
+    return problem
+
+
 def solve_gnc(
     problem: WeightedTLSProblem, *, params: GNCParams | None = None
 ) -> RegistrationResult:
@@ -466,6 +490,7 @@ def solve_gnc(
     Robust to roughly 70-80% outliers; use :func:`solve_pruned` beyond. The problem is scaled
     to unit size first, so any finite scale of the points and noise bound is solved alike.
     """
+    check_problem(problem)
     unit, scale = to_unit_scale(problem)
     return from_unit_scale(_solve_gnc(unit, params=params), scale)
 
@@ -487,6 +512,7 @@ def solve_pruned(
         When the dense consistency graph (N^2 bytes) does not fit in the available memory;
         raised before anything is allocated.
     """
+    check_problem(problem)
     unit, scale = to_unit_scale(problem)
     return from_unit_scale(_solve_pruned(unit, params=params, pruning=pruning), scale)
 
@@ -513,6 +539,7 @@ def solve_registration(
     MemoryError
         ``method="pruned"`` with more correspondences than the memory's consistency graph holds.
     """
+    check_problem(problem)
     if method not in ("auto", "gnc", "pruned"):
         raise ValueError(f"`method` must be 'auto', 'gnc' or 'pruned', got {method!r}.")
     unit, scale = to_unit_scale(problem)
