@@ -438,7 +438,7 @@ class TangentMixture:
             kern(np.ascontiguousarray(R), np.ascontiguousarray(t), *fixed, out)
             return out
         for k in range(K):
-            w = so3_log(np.einsum("ji,njk->nik", self.rotations[k], R))
+            w = so3_log(np.einsum("ji,njk->nik", self.rotations[k], R), check=False)
             theta = np.linalg.norm(w, axis=1)
             u = np.where(theta[:, None] > 1e-12, w / np.maximum(theta, 1e-300)[:, None],
                          np.array([1.0, 0.0, 0.0]))
@@ -709,7 +709,7 @@ def _refit(proposal: TangentMixture, logs: NDArray, n_adapted: int, R: NDArray, 
             # it there, as a too-wide one would need, starves the ridge of draws).
             wk = wk / mass
             Rk = proposal.rotations[k]
-            Rk = Rk @ _so3_exp(wk @ so3_log(np.einsum("ji,njk->nik", Rk, R)))
+            Rk = Rk @ _so3_exp(wk @ so3_log(np.einsum("ji,njk->nik", Rk, R), check=False))
             Rs.append(Rk)
             ts.append(wk @ t)
             Cs.append(proposal.covariances[k])
@@ -719,9 +719,9 @@ def _refit(proposal: TangentMixture, logs: NDArray, n_adapted: int, R: NDArray, 
         # A few Karcher steps from the old centre.
         Rk = proposal.rotations[k]
         for _ in range(3):
-            Rk = Rk @ _so3_exp(wk @ so3_log(np.einsum("ji,njk->nik", Rk, R)))
+            Rk = Rk @ _so3_exp(wk @ so3_log(np.einsum("ji,njk->nik", Rk, R), check=False))
         tk = wk @ t
-        x = np.concatenate([so3_log(np.einsum("ji,njk->nik", Rk, R)), t - tk], axis=1)
+        x = np.concatenate([so3_log(np.einsum("ji,njk->nik", Rk, R), check=False), t - tk], axis=1)
         C = (x * wk[:, None]).T @ x / max(1.0 - np.sum(wk**2), 1e-12) + floor
         if alpha < 1.0:
             # The draws were weighted by target^a q^(1-a): for Gaussians its precision is
@@ -782,7 +782,7 @@ def _sweep(log_target: LogTarget, adapted: TangentMixture, temp: float, best: fl
 
     def near(Rj: NDArray, tj: NDArray, Lj: NDArray, T: NDArray) -> NDArray:
         """(n,) whether the poses ``T`` lie within 2 standard deviations of a component."""
-        x = np.concatenate([so3_log(np.einsum("ji,njk->nik", Rj, T[:, :3, :3])),
+        x = np.concatenate([so3_log(np.einsum("ji,njk->nik", Rj, T[:, :3, :3]), check=False),
                             T[:, :3, 3] - tj], axis=1)
         return np.sum(np.linalg.solve(Lj, x.T) ** 2, axis=0) <= 4.0
 
@@ -871,7 +871,7 @@ def _basin_of(R: NDArray, t: NDArray, circles: list[list[NDArray]], rot_tol: flo
     ``rot_tol`` (rad) and ``trans_tol`` (m) of the pose ``(R, t)``; -1 if none does."""
     for b, turns in enumerate(circles):
         for T in turns:
-            ang = np.linalg.norm(so3_log(np.einsum("ji,njk->nik", R, T[:, :3, :3])), axis=1)
+            ang = np.linalg.norm(so3_log(np.einsum("ji,njk->nik", R, T[:, :3, :3]), check=False), axis=1)
             if np.any((ang <= rot_tol) & (np.linalg.norm(T[:, :3, 3] - t, axis=1) <= trans_tol)):
                 return b
     return -1
@@ -933,7 +933,7 @@ def _births(log_target: LogTarget, mix: TangentMixture, logs: NDArray, R: NDArra
         if w[i] <= p.birth_weight:
             break
         k = int(np.argmax(logs[:, i]))
-        x = np.concatenate([so3_log(mix.rotations[k].T @ R[i]), t[i] - mix.translations[k]])
+        x = np.concatenate([so3_log(mix.rotations[k].T @ R[i], check=False), t[i] - mix.translations[k]])
         if np.sum((mix._chol_inv[k] @ x) ** 2) <= 9.0:  # noqa: SLF001
             continue
         Rs.append(R[i])
@@ -1164,7 +1164,7 @@ def half_turn_seeds(likelihood, T: ArrayLike) -> tuple[NDArray[np.float64], NDAr
 def _is_new(T: NDArray[np.float64], others: NDArray[np.float64]) -> bool:
     """Whether ``T`` lies more than 2 mm or 0.02 rad from every pose of ``others``."""
     return all(np.linalg.norm(T[:3, 3] - S[:3, 3]) > 2e-3
-               or np.linalg.norm(so3_log(S[:3, :3].T @ T[:3, :3])) > 0.02 for S in others)
+               or np.linalg.norm(so3_log(S[:3, :3].T @ T[:3, :3], check=False)) > 0.02 for S in others)
 
 
 def sample_pose_distribution(
