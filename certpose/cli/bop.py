@@ -116,7 +116,6 @@ def add_pose_options(p: argparse.ArgumentParser, sources: Any) -> None:
                    help="a running Dask scheduler (e.g. tcp://host:8786)")
     g.add_argument("--resume", action="store_true",
                    help="continue a run: keep the images already complete in --out")
-    g.add_argument("--force", action="store_true", help="overwrite an existing --out")
     g.add_argument("--particles-dir", metavar="DIR", default=None,
                    help="with --samples N: each instance's particles as DIR/<scene>_<im>_<obj>_"
                         "<gt>.npz")
