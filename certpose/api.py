@@ -158,7 +158,7 @@ def _judge_significance(unit: Any, result: RegistrationResult) -> RegistrationRe
     from solvers.registration.significance import consensus_significance
     from solvers.result import SolverStatus
 
-    if result.status is not SolverStatus.CONVERGED:
+    if result.status not in (SolverStatus.CONVERGED, SolverStatus.CERTIFIER_POSE):
         return result
     sig = consensus_significance(unit, result.inliers)
     info = dict(result.info, consensus_log10_nfa=sig.log10_nfa,

@@ -18,7 +18,8 @@ REPO = Path(__file__).resolve().parents[1]
 MODULE_OF = {"pillow": "PIL", "opencv-python-headless": "cv2"}
 # Declared but never imported by name: cvxpy's SDP backend, selected by name (cp.CLARABEL).
 NAMED_NOT_IMPORTED = {"clarabel"}
-# Dev-only tools (run, not imported by the package).
+# Dev-only tools (run, not imported by the package); the docs extra builds the site.
+DOCS = {"mkdocs", "mkdocs_material", "mkdocstrings"}
 TOOLS = {"pytest", "hypothesis", "ruff", "networkx", "pandas"}
 
 
@@ -56,11 +57,11 @@ def test_declared_dependencies_are_the_imported_ones():
     assert core - NAMED_NOT_IMPORTED <= imported, f"declared, never imported: {core - imported}"
     # distributed: imported through bench_extra's string; emcee and PyMC: the samplers extra
     # installs what certpose.sampling.initialisers prepares inputs for (the examples run them).
-    unused = optional - imported - {"distributed", "emcee", "pymc"}
+    unused = optional - imported - {"distributed", "emcee", "pymc"} - DOCS
     assert not unused, f"extras never imported: {unused}"
     assert "igraph" not in core | optional
     # [dev] installs everything the tests need: every extra's packages.
-    tests_skip_without = {"torch"}  # a large download; its tests skip without it
+    tests_skip_without = {"torch"} | DOCS  # torch: a large download, its tests skip; DOCS: CI installs [docs]
     missing = optional - extras["dev"] - tests_skip_without
     assert not missing, f"missing from [dev]: {missing}"
     assert not {"open3d", "gtsam", "imageio", "cv2"} & core

@@ -37,7 +37,7 @@ def test_status_describes_the_certified_replacement_pose():
     assert res.info.get("replaced_candidate")
     assert res.info["candidate_status"] == "insufficient_inliers"
     assert res.num_inliers >= 3
-    assert res.status is SolverStatus.CONVERGED
+    assert res.status is SolverStatus.CERTIFIER_POSE and res.success
     assert "only 2 inlier" not in res.message.split("Candidate")[0]
 
 

@@ -1135,9 +1135,9 @@ EXPLAIN_DISTANCE = 0.015
 #: classifier (``ObjectClassification.method``). A mask marks the object alone: true poses on
 #: the 60 shared YCB-Video pairs explain 77-100% of its positives, and the mustard bottle or the
 #: banana moved 8-13 cm off 0-48%. Best buddies inside a box also mark the object's look-alikes
-#: there: true poses explain 25-100% of them (the wood block in 0002/000001 25%, the banana in
-#: 0002 34-44%).
-EXPLAINED = {"mask": 0.5, "best_buddies": 0.2}
+#: there, and true poses explain as little as 10% of them (the wood block in 0002/000001, the
+#: banana in 0002 34-44%): the test does not separate them from wrong ones, and is not applied.
+EXPLAINED = {"mask": 0.5, "best_buddies": 0.0}
 
 
 def explained_fraction(classification: ObjectClassification, object_model: ObjectModel,

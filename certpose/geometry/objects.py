@@ -345,11 +345,17 @@ def _sample_surface(points: ArrayLike, voxel_size: float, density: float, rng: A
 
 def _input_normals(pts: NDArray[np.float64], samples: NDArray[np.float64], normals: NDArray[np.float64],
                    vs: float) -> NDArray[np.float64]:
-    """Each sample's normal as the input points show it (their nearest one's, estimated from its
-    neighbours), turned to agree with ``normals``."""
+    """Each sample's normal fitted to the samples within ``3 vs`` of it (they are even over the
+    surface, so that opposite faces get the same normals however unevenly ``pts`` sampled
+    them; edges blend as a sensor's normals do), turned to agree with ``normals``."""
     from scipy.spatial import cKDTree
 
-    local = _oriented_normals(pts, 3.0 * vs)[cKDTree(pts).query(samples)[1]]
+    tree = cKDTree(samples)
+    local = normals.copy()
+    for i, nb in enumerate(tree.query_ball_point(samples, 3.0 * vs)):
+        if len(nb) >= 3:
+            q = samples[nb] - samples[nb].mean(axis=0)
+            local[i] = np.linalg.eigh(q.T @ q)[1][:, 0]
     return np.where(np.sum(local * normals, axis=1, keepdims=True) < 0, -local, local)
 
 
