@@ -129,7 +129,7 @@ def check_pose_options(args: argparse.Namespace) -> None:
         bop_only = [f"--{o.replace('_', '-')}" for o in ("targets", "out", "workers",
                                                          "scheduler", "particles_dir")
                     if getattr(args, o) is not None]
-        bop_only += [f"--{o}" for o in ("resume", "force") if getattr(args, o)]
+        bop_only += [f"--{o}" for o in ("resume",) if getattr(args, o)]
         if bop_only or args.split != "test":
             raise CLIError(f"{'/'.join(bop_only) or '--split'} need(s) --bop DIR")
         return
