@@ -135,10 +135,12 @@ def test_descriptor_blur_flattens_the_similarity_of_the_mug_body_along_its_arc()
     s, G, C, turned_pose = mug_on_0000("000001")
     body = mug_body(s.object_model)
     ranges = {}
+    # Measured on the voxel free space of the paper's eq. (1), where every point counts.
     for blur in (0.0, 0.0075):
-        params = LikelihoodParams(field_blur=0.0075, descriptor_blur=blur)
+        params = LikelihoodParams(field_blur=0.0075, descriptor_blur=blur, free_space="voxels")
         lik = PoseLikelihood(s.scene, s.classification, body, params=params)
-        geo = lik.with_object(body, params=LikelihoodParams(field_blur=0.0075, beta=0.0))
+        geo = lik.with_object(body, params=LikelihoodParams(field_blur=0.0075, beta=0.0,
+                                                            free_space="voxels"))
         sim = []
         for a in np.arange(-20.0, 71.0, 5.0):
             T = refined_turn(lik, G, C, turned_pose, a)
