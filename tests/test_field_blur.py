@@ -126,7 +126,7 @@ def test_field_blur_flattens_the_mug_body_along_its_hidden_handle_arc():
     body = mug_body(s.object_model)
     ranges = {}
     for blur in (0.0, 0.0075):
-        lik = PoseLikelihood(s.scene, s.classification, body, params=LikelihoodParams(field_blur=blur))
+        lik = PoseLikelihood(s.scene, s.classification, body, params=LikelihoodParams(field_blur=blur, free_space="voxels"))
         best = [float(lik(refined_turn(lik, G, C, turned_pose, a))) for a in np.arange(-20.0, 71.0, 10.0)]
         ranges[blur] = float(np.ptp(best))
     assert ranges[0.0075] < 10.0 < ranges[0.0], ranges

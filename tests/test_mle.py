@@ -694,9 +694,13 @@ def test_a_flip_that_ties_reports_the_truth_among_the_modes():
     out (there the flip leads by 6.1 nats, beyond the window, since the models' Voronoi areas of
     2026-11-26)."""
     from certpose.estimation.pipeline import pose_errors
+    from certpose.model.likelihood import PoseLikelihood
+    from certpose.sampling.sampler import default_temperature
 
     setup, T_gt, ll_ref, res, params = _ycbv_mle_case("0050/000010", "006_mustard_bottle")
-    window = params.mle.mode_window
+    # The window is in tempered nats: eq. (1) over the sampler's default temperature.
+    lik = PoseLikelihood(setup.scene, setup.classification, setup.object_model, params=params.likelihood)
+    window = params.mle.mode_window * max(1.0, default_temperature(lik, res.T_scene_object))
     assert ll_ref >= res.log_likelihood - window  # the premise: a tie
     rot = [pose_errors(m.T_scene_object, T_gt, setup.model_points).rotation_deg for m in res.modes]
     assert min(rot) < 10.0, rot

@@ -263,13 +263,14 @@ def test_even_sampling_smooths_eq1_along_the_mugs_hidden_handle_arc():
     # is on the same scale (total weight 1139 and 1144).
     from scipy.spatial.transform import Rotation
 
-    from certpose.model.likelihood import PoseLikelihood
+    from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 
     s, G, C, _ = mug_on_0000("000002")
     steps = {}
     for sampling in ("voxel", "surface"):
         obj = object_from_points(s.model_points, FPFHBackbone(), voxel_size=VS, sampling=sampling)
-        lik = PoseLikelihood(s.scene, s.classification, obj)
+        # Measured on the voxel free space of the paper's eq. (1), where every point counts.
+        lik = PoseLikelihood(s.scene, s.classification, obj, params=LikelihoodParams(free_space="voxels"))
         body = obj.points[:, 0] < 0.045
         vals = []
         for a in np.radians(np.arange(-10.0, 61.0, 2.0)):
