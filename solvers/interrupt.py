@@ -8,6 +8,8 @@ benchmark) would then swallow the user's Ctrl-C: it calls :func:`reraise_interru
 
 from __future__ import annotations
 
+import threading
+
 __all__ = ["interrupt_in", "reraise_interrupt"]
 
 
@@ -31,3 +33,15 @@ def reraise_interrupt(exc: BaseException) -> None:
     found = interrupt_in(exc)
     if found is not None:
         raise KeyboardInterrupt() from exc
+
+
+#: Set by the command line's SIGINT handler: a Ctrl-C that Python swallowed (raised inside a
+#: weakref callback of the import machinery, "Exception ignored") still counts, and outputs are
+#: not committed after it (:func:`certpose.io.output.atomic_path`).
+INTERRUPTED = threading.Event()
+
+
+def raise_if_interrupted() -> None:
+    """Raise ``KeyboardInterrupt`` if a Ctrl-C was received (:data:`INTERRUPTED`)."""
+    if INTERRUPTED.is_set():
+        raise KeyboardInterrupt()

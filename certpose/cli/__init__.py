@@ -369,6 +369,16 @@ def defer_numpy_extras() -> None:
 def run() -> None:
     """The ``certpose`` program (console script and ``python -m certpose``): :func:`main`, then
     exit without the interpreter's last garbage collection."""
+    import signal
+
+    from solvers.interrupt import INTERRUPTED
+
+    def on_sigint(signum: int, frame: Any) -> None:
+        INTERRUPTED.set()
+        raise KeyboardInterrupt
+
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        signal.signal(signal.SIGINT, on_sigint)
     defer_open3d_plotly()
     defer_numpy_extras()
     # No collections while the start-up imports build their ~10^6 objects (none of them garbage).
@@ -380,6 +390,11 @@ def run() -> None:
         code = EXIT_INTERRUPTED
     finally:
         gc.enable()
+    if INTERRUPTED.is_set() and code != EXIT_INTERRUPTED:
+        # A Ctrl-C that Python swallowed (inside a weakref callback of the imports) still ends
+        # the command as interrupted; no output was committed after it.
+        print("certpose: interrupted", file=sys.stderr)
+        code = EXIT_INTERRUPTED
     if code == EXIT_INTERRUPTED:
         # No interpreter shutdown after Ctrl-C: the interrupted work's objects are still
         # referenced, and libraries' exit-time destructors would report them (Open3D prints

@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from solvers.interrupt import raise_if_interrupted
+
 __all__ = [
     "FolderBusyError",
     "atomic_path",
@@ -98,6 +100,7 @@ def atomic_path(path: str | PathLike[str]) -> Iterator[Path]:
                 umask = os.umask(0)
                 os.umask(umask)
                 os.chmod(tmp, 0o666 & ~umask)
+        raise_if_interrupted()  # a Ctrl-C Python swallowed commits nothing
         os.replace(tmp, p)
     except BaseException:
         with contextlib.suppress(OSError):
