@@ -113,6 +113,23 @@ def _uniform_value(background, x0, y0, z0, cell, c_empty, c_unobs):  # pragma: n
     return background[x0, y0, z0]
 
 
+@njit(inline="always")
+def _point_term(T, points, i, zdesc, index, cells, background, desc, logp, origin, inv_vs, offset,
+                beta, c_empty, c_unobs, cv):  # pragma: no cover
+    """Point ``i``'s unweighted term of eq. (1) at the pose ``T`` (4, 4) (``cv``: scratch (8,))."""
+    px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+    qx = T[0, 0] * px + T[0, 1] * py + T[0, 2] * pz + T[0, 3]
+    qy = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
+    qz = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
+    x0, y0, z0, cell, ax, ay, az = _cell(cells, qx, qy, qz, origin, inv_vs, offset)
+    if x0 < 0:
+        return c_unobs
+    if cell != MIXED:
+        return _uniform_value(background, x0, y0, z0, cell, c_empty, c_unobs)
+    _corner_values(index, background, desc, logp, zdesc[i], x0, y0, z0, beta, c_unobs, cv)
+    return _interpolate(cv, ax, ay, az)
+
+
 # Poses per block of eq1_batch (their 12 transform entries stay in L1 beside the point).
 _POSE_BLOCK = 32
 
@@ -182,19 +199,8 @@ def eq1_points(T, points, weights, zdesc, index, cells, background, desc, logp, 
     out = np.empty(N)
     cv = np.empty(8)
     for i in range(N):
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        qx = T[0, 0] * px + T[0, 1] * py + T[0, 2] * pz + T[0, 3]
-        qy = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
-        qz = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
-        x0, y0, z0, cell, ax, ay, az = _cell(cells, qx, qy, qz, origin, inv_vs, offset)
-        if x0 < 0:
-            term = c_unobs
-        elif cell != MIXED:
-            term = _uniform_value(background, x0, y0, z0, cell, c_empty, c_unobs)
-        else:
-            _corner_values(index, background, desc, logp, zdesc[i], x0, y0, z0, beta, c_unobs, cv)
-            term = _interpolate(cv, ax, ay, az)
-        out[i] = weights[i] * term
+        out[i] = weights[i] * _point_term(T, points, i, zdesc, index, cells, background, desc, logp,
+                                          origin, inv_vs, offset, beta, c_empty, c_unobs, cv)
     return out
 
 
@@ -431,16 +437,7 @@ def eq1_points_visible(T, points, weights, zdesc, index, cells, background, desc
         out[i] = weights[i] * (1.0 - vis) * c_unobs
         if vis <= 0.0:
             continue
-        qx = T[0, 0] * px + T[0, 1] * py + T[0, 2] * pz + T[0, 3]
-        qy = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
-        qz = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
-        x0, y0, z0, cell, ax, ay, az = _cell(cells, qx, qy, qz, origin, inv_vs, offset)
-        if x0 < 0:
-            term = c_unobs
-        elif cell != MIXED:
-            term = _uniform_value(background, x0, y0, z0, cell, c_empty, c_unobs)
-        else:
-            _corner_values(index, background, desc, logp, zdesc[i], x0, y0, z0, beta, c_unobs, cv)
-            term = _interpolate(cv, ax, ay, az)
-        out[i] += weights[i] * vis * term
+        out[i] += weights[i] * vis * _point_term(T, points, i, zdesc, index, cells, background, desc,
+                                                 logp, origin, inv_vs, offset, beta, c_empty,
+                                                 c_unobs, cv)
     return out
