@@ -12,6 +12,7 @@ World frame of the scene: the table is the plane ``z = 0``, ``+z`` up.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -302,20 +303,28 @@ class SyntheticScene:
         n_views: int = 4,
         *,
         distance: float = 0.45,
-        elevation_deg: float = 30.0,
+        elevation_deg: float | Sequence[float] = (30.0, -30.0),
     ) -> list[RGBDFrame]:
         """Posed RGB-D views of the isolated mug (for building an object model).
 
-        Cameras circle the mug at ``elevation_deg`` above its equator, azimuths evenly spaced.
+        Cameras circle the mug at azimuths evenly spaced, view ``k`` at the elevation
+        ``elevation_deg[k % len(elevation_deg)]`` above its equator (a number: every view at it).
+        The default alternates above and below, as a scan turns the object over: views from
+        above only never see the mug's bottom, and a model without its bottom is the same
+        turned upside down (a bottomless tube with a handle symmetric about the equator).
         The world frame of these frames is the *object* frame (``T_world_camera`` =
         ``T_object_camera``); each frame's mask is the mug's pixels.
         """
         if int(n_views) != n_views or n_views < 1:
             raise ValueError(f"`n_views` must be a positive integer, got {n_views}.")
+        elevations = np.atleast_1d(np.asarray(elevation_deg, dtype=np.float64))
+        if elevations.ndim != 1 or elevations.size == 0 or not np.all(np.abs(elevations) < 90.0):
+            raise ValueError(f"`elevation_deg` must be a number or a non-empty sequence of numbers in "
+                             f"(-90, 90) degrees, got {elevation_deg!r}.")
         meshes = mug_parts()
-        e = np.deg2rad(elevation_deg)
         frames = []
         for k in range(int(n_views)):
+            e = np.deg2rad(elevations[k % elevations.size])
             az = np.deg2rad(45.0) + 2.0 * np.pi * k / n_views
             eye = distance * np.array([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)])
             T_object_camera = look_at(eye, np.zeros(3))

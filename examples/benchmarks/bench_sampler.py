@@ -16,11 +16,12 @@ import numpy as np
 
 
 def build_demo(seed: int = 0, likelihood_params=None, revolution: str | None = "auto", *,  # noqa: ANN001, ANN201
-               mle: bool = True):
+               mle: bool = True, elevation_deg=None):
     """The `certpose pose --demo` scene, its likelihood, MLE and ground truth (``likelihood_params``:
     other eq. (1) constants than the defaults, for the MLE and the likelihood; ``revolution``:
     the object model's, as :func:`certpose.estimation.pipeline.run_demo`'s; ``mle=False``: no
-    MLE, None in its place, about 2 s less)."""
+    MLE, None in its place, about 2 s less; ``elevation_deg``: the model views' elevations,
+    :meth:`~certpose.data.synthetic.SyntheticScene.render_object_views`'s default when None)."""
     from certpose.data.synthetic import make_mug_scene
     from certpose.estimation.mle import estimate_mle
     from certpose.estimation.pipeline import PoseParams, _scene_for
@@ -33,7 +34,8 @@ def build_demo(seed: int = 0, likelihood_params=None, revolution: str | None = "
     if likelihood_params is not None:
         params = replace(params, likelihood=likelihood_params)
     sc = make_mug_scene(rng=gen)
-    views = sc.render_object_views(4)
+    views = (sc.render_object_views(4) if elevation_deg is None else
+             sc.render_object_views(4, elevation_deg=elevation_deg))
     scene = _scene_for(sc.frame, sc.object_mask, params, backbone)
     obj = object_from_views(views, backbone, voxel_size=params.voxel_size, name="mug", revolution=revolution)
     cls = classify_from_mask(scene, sc.frame.with_mask(sc.object_mask), params=params.classifier)
