@@ -117,6 +117,24 @@ def test_object_views_show_the_isolated_mug(scene):
     assert handle_seen > 100  # the views reveal the handle
     with pytest.raises(ValueError, match="n_views"):
         scene.render_object_views(n_views=0)
+    for bad in (90.0, (), (30.0, float("nan"))):
+        with pytest.raises(ValueError, match="elevation_deg"):
+            scene.render_object_views(n_views=2, elevation_deg=bad)
+
+
+def test_object_views_see_the_mugs_bottom_unless_all_from_above(scene):
+    # The outer bottom (z = -height / 2) is a disc of radius MUG_RADIUS: views from below see it,
+    # views from above never do (a model built from them has no bottom).
+    def bottom_points(views) -> int:  # noqa: ANN001
+        n = 0
+        for view in views:
+            pts, _ = view.backproject(world=True)
+            n += int(np.sum((pts[:, 2] < pts[:, 2].min() + 0.002)
+                            & (np.hypot(pts[:, 0], pts[:, 1]) < 0.5 * MUG_RADIUS)))
+        return n
+
+    assert bottom_points(scene.render_object_views(4)) > 200
+    assert bottom_points(scene.render_object_views(4, elevation_deg=30.0)) == 0
 
 
 def test_depth_noise_is_applied():

@@ -480,6 +480,11 @@ class MLEParams:
         Try the winner's near-symmetric turns (:func:`~certpose.estimation.modes.explore_modes`:
         the 180-degree flips of boxes and cans, where the coarse search misses basins); a turn
         that scores better on eq. (1) becomes the winner.
+    ring_modes : bool
+        For an object with an axis of revolution, also report the poses of its ring (turns
+        about the axis every 15 deg, upright and upside down) that score within the window
+        after a short climb (:func:`~certpose.estimation.modes.revolution_turns`): a can's or a
+        hidden-handle mug's continuous ambiguity as a set of modes.
     mode_window : float
         Local maxima of eq. (1) within this many tempered nats of the best are reported as
         competing modes (:attr:`MLEResult.modes`): nats of eq. (1) divided by the sampler's
@@ -560,6 +565,7 @@ class MLEParams:
     coarse_maxiter: int = 30
     refine_maxiter: int = 60
     explore_modes: bool = True
+    ring_modes: bool = True
     mode_window: float = 5.0
     mode_refine: int = 12
     hop_rounds: int = 3
@@ -1101,9 +1107,11 @@ def _modes(search: _Search, best: Hypothesis, object_model: ObjectModel) -> tupl
         return best, (PoseMode(best.pose, best.score, best.source),)
     t = time.perf_counter()
     for _ in range(3):  # a better turn may itself have better turns
+        window = _window(search, best.pose) * (2 if search.full is search.exact else 3)
         modes = explore_modes(search.full, best.pose, object_model,
                               coarse_likelihood=search.small, maxiter=params.refine_maxiter,
-                              num_refine=int(params.mode_refine))
+                              num_refine=int(params.mode_refine),
+                              ring_margin=window if params.ring_modes else None)
         top = modes[0]
         if not top.log_likelihood > best.score + 1e-6:
             break
