@@ -115,21 +115,33 @@ _AXES: dict[bytes, object] = {}
 
 def _revolution_axis(points: NDArray[np.float64]) -> object:
     """The points' axis of revolution (:func:`~certpose.geometry.revolution.find_revolution_axis`,
-    tolerance 2.5 median neighbour gaps) or None; kept per distinct point set (it takes 0.2-1 s)."""
+    tolerance 2.5 median neighbour gaps) or None; kept per distinct point set in memory, and on
+    disk when the program turned that on (:mod:`certpose.io.derived`; it takes 0.2-1 s)."""
     import hashlib
 
     from scipy.spatial import cKDTree
 
-    from certpose.geometry.revolution import find_revolution_axis
+    from certpose.geometry.revolution import RevolutionAxis, find_revolution_axis
+    from certpose.io.derived import cached_arrays
 
-    key = hashlib.sha1(np.ascontiguousarray(points).tobytes()).digest()
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    key = hashlib.sha1(pts.tobytes()).digest()
     if key not in _AXES:
-        gap = cKDTree(points).query(points, k=2)[0][:, 1]
-        tol = 2.5 * float(np.median(gap))
-        axis = None
-        if tol > 0:
-            axis = find_revolution_axis(points, tolerance=tol, min_fraction=RING_MIN_FRACTION,
-                                        max_points=400, search_points=250)
+
+        def compute() -> dict[str, NDArray[np.float64]]:
+            gap = cKDTree(pts).query(pts, k=2)[0][:, 1]
+            tol = 2.5 * float(np.median(gap))
+            axis = None
+            if tol > 0:
+                axis = find_revolution_axis(pts, tolerance=tol, min_fraction=RING_MIN_FRACTION,
+                                            max_points=400, search_points=250)
+            if axis is None:
+                return {"none": np.zeros(0)}
+            return {"point": axis.point, "direction": axis.direction, "fraction": np.array(axis.fraction)}
+
+        inputs = pts.tobytes() + repr((pts.shape, RING_MIN_FRACTION)).encode()
+        d = cached_arrays("revolution-axis", inputs, (__name__, "certpose.geometry.revolution"), compute)
+        axis = None if "none" in d else RevolutionAxis(d["point"], d["direction"], float(d["fraction"]))
         if len(_AXES) > 64:
             _AXES.clear()
         _AXES[key] = axis

@@ -1010,6 +1010,11 @@ def _demo_object_model(views: Any, backbone: Any, voxel_size: float, revolution:
     (:func:`~certpose.io.cache.object_from_points_cached` of the views' fused cloud)."""
     from certpose.geometry.objects import object_from_views
 
+    if cache_dir is not None:
+        from certpose.io.derived import derived_cache_dir, use_derived_cache
+
+        if derived_cache_dir() is None:
+            use_derived_cache(cache_dir)
     if revolution is None or cache_dir is None:
         return object_from_views(views, backbone, voxel_size=voxel_size, name="mug", revolution=revolution)
     from certpose.geometry.objects import fuse_views

@@ -150,7 +150,9 @@ def object_from_points_cached(
     rng : int, optional
         Seed of the surface sampling (an int: a generator would make the build irreproducible).
     cache_dir : path, optional
-        Where models are kept; ``None`` builds without caching.
+        Where models are kept; ``None`` builds without caching. Given one, this process also
+        keeps the data derived from models there (:func:`~certpose.io.derived.use_derived_cache`,
+        unless it was set already): their visibility tables and axes of revolution.
     revolution : {"auto"} or None, optional
         :func:`~certpose.geometry.objects.object_from_points`' option (part of the key).
     colors : (N, 3) array_like, optional
@@ -175,6 +177,10 @@ def object_from_points_cached(
     cols = None if colors is None else np.asarray(colors, dtype=np.float64)
     path = None
     if cache_dir is not None:
+        from certpose.io.derived import derived_cache_dir, use_derived_cache
+
+        if derived_cache_dir() is None:
+            use_derived_cache(cache_dir)
         try:
             key = _key(pts, backbone, voxel_size, name, int(rng), revolution, cols, mesh)
             path = Path(cache_dir) / "objects" / f"{key}.npz"

@@ -231,7 +231,9 @@ _TABLES_MAX = 16
 def cached_visibility_table(points: ArrayLike, normals: ArrayLike, *, grazing: float = 0.25) -> VisibilityTable:
     """:func:`visibility_table` with default options, kept in memory for the same points and
     normals (a process builds the likelihood of one model many times: each frame, each
-    sampler). At most ``_TABLES_MAX`` tables are kept."""
+    sampler), and on disk when the program turned that on
+    (:func:`~certpose.io.derived.use_derived_cache`). At most ``_TABLES_MAX`` tables are kept in
+    memory."""
     import hashlib
 
     p = np.ascontiguousarray(points, dtype=np.float64)
@@ -239,11 +241,28 @@ def cached_visibility_table(points: ArrayLike, normals: ArrayLike, *, grazing: f
     key = hashlib.sha1(p.tobytes() + n.tobytes() + repr((p.shape, float(grazing))).encode()).digest()
     table = _TABLES.get(key)
     if table is None:
-        table = visibility_table(p, n, grazing=grazing)
+        table = _from_disk(p, n, float(grazing))
         if len(_TABLES) >= _TABLES_MAX:
             _TABLES.pop(next(iter(_TABLES)))
         _TABLES[key] = table
     return table
+
+
+def _from_disk(points: NDArray[np.float64], normals: NDArray[np.float64], grazing: float) -> VisibilityTable:
+    """:func:`visibility_table` through the derived-data cache (:mod:`certpose.io.derived`)."""
+    from certpose.io.derived import cached_arrays
+
+    def compute() -> dict[str, NDArray[Any]]:
+        t = visibility_table(points, normals, grazing=grazing)
+        out = {"normals": t.normals, "faces": np.array(t.faces), "grazing": np.array(t.grazing)}
+        if t.table is not None:
+            out["table"] = t.table
+        return out
+
+    inputs = points.tobytes() + normals.tobytes() + repr((points.shape, grazing)).encode()
+    d = cached_arrays("visibility", inputs, (__name__,), compute)
+    return VisibilityTable(d.get("table"), np.asarray(d["normals"], dtype=np.float64), int(d["faces"]),
+                           float(d["grazing"]))
 
 
 def scene_cameras(scene: Any) -> NDArray[np.float64]:
