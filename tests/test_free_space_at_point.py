@@ -24,7 +24,7 @@ def test_no_free_space_charge_inside_the_mugs_hidden_handle_arc():
 
     s, G, C, turned_pose = mug_on_0000("000001")
     obj = s.object_model
-    arc = free_space_arc(s.scene, obj.points, G, centre=C, tolerance=0.005)
+    arc = free_space_arc(s.scene, obj.points, G, centre=C, tolerance=0.005, free_space="voxels")
     assert arc.success
     lo, hi = arc.arc
     assert hi - lo > 60  # the handle hides over a wide arc

@@ -196,7 +196,7 @@ def test_arc_of_a_point_turning_towards_the_camera(tolerance: float) -> None:
     scene = build_scene_field(RGBDFrame(None, np.full((200, 200), 1.0), big), np.ones((200, 200, 2)),
                               voxel_size=0.02)
     res = free_space_arc(scene, [[0.08, 0.0, 0.0]], T, axis=(0, 1, 0), free_space="pixels",
-                         tolerance=tolerance, window=0)
+                         tolerance=tolerance, window=0, baseline="none", max_violations=0)
     a = np.radians(res.angles)
     # Rotation about +y by a sends (0.08, 0, 0) to (0.08 cos a, 0, -0.08 sin a).
     np.testing.assert_allclose(res.depth, np.maximum(0.08 * np.sin(a) - 0.05, 0), atol=1e-9)
@@ -205,6 +205,31 @@ def test_arc_of_a_point_turning_towards_the_camera(tolerance: float) -> None:
     lo, hi = res.arc
     # The free run wraps around: from 180 - end to 360 + end.
     assert hi - lo == pytest.approx(360.0 - (180.0 - 2 * end), abs=1.0)
+
+
+def test_pixel_arc_counts_points_beyond_the_reference_poses_own() -> None:
+    # The object's origin 5 cm in front of a wall at 1 m, turning about its y axis: a point on the
+    # axis stands 5 cm deep in free space at every angle (as an annotated pose's silhouette
+    # points stand past the observed silhouette), one 10 cm behind the origin stands
+    # 0.05 - 0.1 cos a in front of the wall (free while cos a >= 0.4 at a 1-cm tolerance).
+    # Against no baseline nothing is free; against the reference pose's own count the arc is
+    # the turning point's.
+    T = np.eye(4)
+    T[2, 3] = 0.95
+    big = CameraIntrinsics(100.0, 100.0, 99.5, 99.5, 200, 200)
+    scene = build_scene_field(RGBDFrame(None, np.full((200, 200), 1.0), big), np.ones((200, 200, 2)),
+                              voxel_size=0.02)
+    pts = [[0.0, 0.0, 0.1], [0.0, 0.01, 0.0]]
+    none = free_space_arc(scene, pts, T, axis=(0, 1, 0), window=0, baseline="none", max_violations=0)
+    assert not none.success and not none.free.any()
+    ref = free_space_arc(scene, pts, T, axis=(0, 1, 0), window=0, max_violations=0)
+    alone = free_space_arc(scene, pts[:1], T, axis=(0, 1, 0), window=0, baseline="none", max_violations=0)
+    assert ref.success and ref.arc == alone.arc
+    end = np.degrees(np.arccos(0.4))
+    assert ref.arc[0] == pytest.approx(-end, abs=0.5) and ref.arc[1] == pytest.approx(end, abs=0.5)
+    assert "baseline: 1 points" in ref.message
+    with pytest.raises(ValueError, match="baseline"):
+        free_space_arc(scene, pts, T, baseline="truth")
 
 
 @pytest.mark.slow

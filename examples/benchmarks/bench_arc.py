@@ -384,7 +384,8 @@ def profile(root: Path, frame: str, angles: np.ndarray, overrides: dict, refine:
     lp = replace(params.likelihood or LikelihoodParams(), **overrides)
     G = yf.poses["025_mug"]
     C = body_axis_offset(pts)
-    arc = free_space_arc(scene, pts, G, centre=C, tolerance=arc_tolerance, **(arc_options or {}))
+    arc = free_space_arc(scene, pts, G, centre=C, tolerance=arc_tolerance,
+                         **{"free_space": "voxels", **(arc_options or {})})
     weights = None
     if symmetrise:
         obj, weights = symmetrised_body(obj, C, symmetrise)

@@ -143,7 +143,7 @@ def demo_problem(seed: int, lparams=None, arc_test: str = "render", *, mle: bool
         arc = sc.hidden_handle_arc(step=0.5)
     else:
         scene = _scene_for(sc.frame, sc.object_mask, PoseParams(), FPFHBackbone())
-        arc = free_space_arc(scene, sc.model_points, gt, axis=AXIS)
+        arc = free_space_arc(scene, sc.model_points, gt, axis=AXIS, free_space="voxels")
     seeds = seeds_from_mle(mle_result) if mle_result is not None else None
     return lik, seeds, gt, arc, np.zeros(3)
 
@@ -163,10 +163,7 @@ def tv_uniform(dist, T_gt: np.ndarray, arc) -> float:  # noqa: ANN001
     return float(0.5 * np.abs(h - u / u.sum()).sum())
 
 
-PIXEL_ARC = {"free_space": "pixels", "window": 15, "tolerance": 0.01, "max_violations": 10}
-
-
-def ycbv_mug(root: Path, frame: str, lparams=None, arc_test: str = "voxels",  # noqa: ANN001, ANN201
+def ycbv_mug(root: Path, frame: str, lparams=None, arc_test: str = "pixels",  # noqa: ANN001, ANN201
              revolution: str | None = None):
     """Scene 0000's mug without the MLE: scene, classification (ground-truth mask), object model,
     likelihood, ground truth (scene frame), the free-space arc about the body's axis, the axis's
@@ -196,11 +193,11 @@ def ycbv_mug(root: Path, frame: str, lparams=None, arc_test: str = "voxels",  # 
     lik = PoseLikelihood(scene, cls, obj, params=params.likelihood)
     T_gt = yf.frame.T_world_camera @ yf.poses["025_mug"]
     centre = body_axis_offset(pts)
-    arc = free_space_arc(scene, pts, T_gt, centre=centre, **(PIXEL_ARC if arc_test == "pixels" else {}))
+    arc = free_space_arc(scene, pts, T_gt, centre=centre, free_space=arc_test)
     return scene, cls, obj, lik, T_gt, arc, centre, yf.frame.T_world_camera, params
 
 
-def ycbv_problem(root: Path, frame: str, seed: int, lparams=None, arc_test: str = "voxels",  # noqa: ANN001, ANN201
+def ycbv_problem(root: Path, frame: str, seed: int, lparams=None, arc_test: str = "pixels",  # noqa: ANN001, ANN201
                  revolution: str | None = None):
     """Scene 0000's mug: likelihood (ground-truth mask classifier), seeds, ground truth (scene
     frame), the free-space arc about the body's axis and the axis's centre (object frame)."""
@@ -488,9 +485,9 @@ def main() -> None:
     ap.add_argument("--revolution", choices=("auto",), default=None,
                     help="YCB-Video mug: object_from_points' revolution (the body sampled with its "
                          "axial symmetry; the MLE and the target)")
-    ap.add_argument("--arc-test", choices=("voxels", "pixels"), default="voxels",
-                    help="the free-space arc's test: EMPTY voxels (default) or the per-pixel depth "
-                         "test (window 15 px, tolerance 1 cm, at most 10 points beyond it)")
+    ap.add_argument("--arc-test", choices=("voxels", "pixels"), default="pixels",
+                    help="the free-space arc's test: the per-pixel depth test (default: "
+                         "free_space_arc's, beyond the truth's own points) or EMPTY voxels")
     ap.add_argument("--arc", choices=("free", "slice"), default="free",
                     help="the demo's reference arc: the free-space arc (default) or the eq. (1) slice")
     ap.add_argument("--demo-arc", choices=("render", "voxels"), default="render",
