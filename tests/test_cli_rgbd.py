@@ -148,6 +148,9 @@ def test_run_rgbd_checks_image_sizes_and_the_mask(tmp_path: Path) -> None:
 @pytest.mark.parametrize("argv, message", [
     (["--axis", "0", "0", "1"], "--axis needs --samples N"),
     (["--samples", "10", "--axis", "0", "0", "0"], "--axis must be a non-zero finite direction"),
+    (["--model-error", "3", "3"], "--model-error needs --samples N"),
+    (["--samples", "10", "--model-error", "-1", "3"], "--model-error must be two non-negative"),
+    (["--samples", "10", "--model-error", "nan", "3"], "--model-error must be two non-negative"),
 ])
 def test_axis_option_is_checked(argv: list[str], message: str, capsys) -> None:  # noqa: ANN001
     assert main(["pose", "--demo", *argv]) == 2
@@ -171,3 +174,20 @@ def test_axis_option_names_the_turn_the_modes_report(tmp_path: Path, capsys) -> 
     mode = PoseDistribution.load(out).modes()[0]
     assert turn == pytest.approx(np.degrees(axis_angles(mode.rotation[None], (1, 0, 0), T)[0]), abs=0.06)
     assert turn != pytest.approx(np.degrees(axis_angles(mode.rotation[None], (0, 0, 1), T)[0]), abs=0.5)
+
+
+@pytest.mark.slow
+def test_model_error_option_sets_the_kernel(tmp_path: Path) -> None:
+    """`--model-error 0 0` gives the bare distribution, a wider kernel a wider one: the spread of
+    the particles' translations (the demo's mug, 300 draws) grows with it."""
+    from certpose.sampling import PoseDistribution
+
+    spread = {}
+    for deg, mm in (("0", "0"), ("10", "10")):
+        out = tmp_path / f"p{deg}.npz"
+        assert main(["pose", "--demo", "--samples", "300", "--particles", str(out),
+                     "--model-error", deg, mm]) == 0
+        d = PoseDistribution.load(out)
+        spread[deg] = float(np.sqrt(np.average(np.sum((d.translations - np.average(
+            d.translations, axis=0, weights=d.weights)) ** 2, axis=1), weights=d.weights)))
+    assert spread["10"] > spread["0"] + 0.005, spread

@@ -130,6 +130,10 @@ def add_parser(subparsers: Any) -> None:
                           "Metropolis on SE(3). The baselines get the same target and number of "
                           "eq. (1) evaluations. calibrated: exact draws of the calibrated "
                           "distribution (eq. (1)'s basins and flips, a model-error kernel; docs/concepts.md)")
+    smp.add_argument("--model-error", type=float, nargs=2, metavar=("DEG", "MM"), default=None,
+                     help="the model-error kernel the distribution is convolved with: rotation "
+                          "(degrees) and translation (millimetres) standard deviations per axis "
+                          "(default 3 3; 0 0: the bare distribution)")
     add_common(p, seed_help="random seed (default: 0)")
     p.set_defaults(func=run)
 
@@ -237,6 +241,12 @@ def run(args: argparse.Namespace) -> int:
         _check_plot_format(args.plot)
     if args.method != "is" and args.samples == 0:
         raise CLIError("--method needs --samples N")
+    if args.model_error is not None:
+        if args.samples == 0:
+            raise CLIError("--model-error needs --samples N")
+        if not all(math.isfinite(v) and v >= 0 for v in args.model_error):
+            raise CLIError(f"--model-error must be two non-negative numbers (degrees, millimetres), "
+                           f"got {args.model_error}")
     if args.axis is not None:
         if args.samples == 0:
             raise CLIError("--axis needs --samples N (it names the turn the modes and the plot show)")
@@ -267,6 +277,9 @@ def run(args: argparse.Namespace) -> int:
         params = replace(params, sampler=ISParams(draws=max(10_000, args.samples),
                                                   resample=args.samples),
                          sampling_method=args.method)
+        if args.model_error is not None:
+            deg, mm = args.model_error
+            params = replace(params, model_error=None if deg == mm == 0 else (math.radians(deg), mm / 1000.0))
     if args.rgbd is not None:
         return _run_rgbd(argparse.Namespace(**{**vars(args), "object": rgbd_name}), params)
     if args.demo:
