@@ -352,3 +352,16 @@ def test_model_error_kernel_spreads_each_particle_about_the_centre() -> None:
         d.with_model_error(-1.0, 0.0)
     with pytest.raises(ValueError, match="copies"):
         d.with_model_error(0.1, 0.0, copies=0)
+    # Student t kernel: per particle one scale for rotation and translation, the translation's
+    # marginal a t with dof degrees of freedom (tails far heavier than the Gaussian's).
+    from scipy import stats
+
+    g = d.with_model_error(np.radians(2.0), 0.002, centre=c, copies=20000, dof=3.0, rng=2)
+    x = (g.translations - (R0 @ c + t0) + np.einsum("nij,j->ni", g.rotations, c)) / 0.002
+    assert stats.kstest(x[:, 0], stats.t(3.0).cdf).pvalue > 0.01
+    rv = np.linalg.norm(Rotation.from_matrix(np.einsum("ji,njk->nik", R0, g.rotations)).as_rotvec(), axis=1)
+    tn = np.linalg.norm(x, axis=1)
+    assert np.corrcoef(rv, tn)[0, 1] > 0.3  # one scale draw for both
+    for bad in (0.0, -2.0, float("nan")):
+        with pytest.raises(ValueError, match="dof"):
+            d.with_model_error(0.1, 0.0, dof=bad)

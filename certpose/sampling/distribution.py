@@ -8,6 +8,7 @@ reference ``(R0, t0)`` is the 6-vector ``(log(R0^T R), t - t0)``, rotation vecto
 from __future__ import annotations
 
 import logging
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -242,7 +243,7 @@ class PoseDistribution:
         return PoseDistribution(self.rotations[idx], self.translations[idx], np.full(n, 1.0 / n))
 
     def with_model_error(self, rotation_sigma: float, translation_sigma: float, *,
-                         centre: ArrayLike = (0.0, 0.0, 0.0), copies: int = 1,
+                         centre: ArrayLike = (0.0, 0.0, 0.0), copies: int = 1, dof: float = math.inf,
                          rng: np.random.Generator | int | None = None) -> PoseDistribution:
         """This distribution convolved with a model-error kernel: each particle turned by a
         random rotation about ``centre`` (object frame, metres) and shifted.
@@ -251,7 +252,10 @@ class PoseDistribution:
         and the scene field are not exact: a pose a few degrees off can explain the data as well
         under a slightly different model. The kernel carries that error into the distribution:
         ``T' = T exp(w) (about centre) + d``, ``w ~ N(0, rotation_sigma^2 I)`` (radians, object
-        frame), ``d ~ N(0, translation_sigma^2 I)`` (metres, the particles' frame).
+        frame), ``d ~ N(0, translation_sigma^2 I)`` (metres, the particles' frame). With a finite
+        ``dof`` both are scaled by one draw of ``sqrt(dof / chi2(dof))`` per particle: a
+        multivariate Student t kernel, whose core is as narrow as the Gaussian's and whose tails
+        are heavier (a model that is right for most poses and off by more for a few).
 
         Parameters
         ----------
@@ -263,6 +267,8 @@ class PoseDistribution:
             Object-frame point the rotations turn about (e.g. the model's centroid).
         copies : int
             Perturbed copies of each particle (>= 1); weights are shared among them.
+        dof : float
+            Degrees of freedom of the Student t kernel (> 0; ``inf``, the default: Gaussian).
         rng : numpy Generator, int or None
 
         Returns
@@ -270,6 +276,8 @@ class PoseDistribution:
         PoseDistribution
             ``copies * len(self)`` particles, without ``log_weights``.
         """
+        if not (dof > 0):
+            raise ValueError(f"Expected `dof` > 0, got {dof}.")
         for name, v in (("rotation_sigma", rotation_sigma), ("translation_sigma", translation_sigma)):
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"Expected `{name}` to be finite and >= 0, got {v}.")
@@ -280,9 +288,12 @@ class PoseDistribution:
         R = np.repeat(self.rotations, int(copies), axis=0)
         t = np.repeat(self.translations, int(copies), axis=0)
         w = np.repeat(self.weights, int(copies)) / int(copies)
-        E = Rotation.from_rotvec(gen.normal(scale=float(rotation_sigma), size=(len(w), 3))).as_matrix()
+        k = np.ones((len(w), 1))
+        if math.isfinite(dof):
+            k = np.sqrt(float(dof) / gen.chisquare(float(dof), size=(len(w), 1)))
+        E = Rotation.from_rotvec(k * gen.normal(scale=float(rotation_sigma), size=(len(w), 3))).as_matrix()
         R2 = R @ E
-        t2 = t + R @ c - R2 @ c + gen.normal(scale=float(translation_sigma), size=(len(w), 3))
+        t2 = t + R @ c - R2 @ c + k * gen.normal(scale=float(translation_sigma), size=(len(w), 3))
         return PoseDistribution(R2, t2, w)
 
     def tangent(self, R0: ArrayLike, t0: ArrayLike) -> NDArray[np.float64]:
