@@ -1082,8 +1082,9 @@ def _finish(search: _Search, best: Hypothesis,
     # below the polished winner; its peak is 4.0 below, and the truth's, refined from the truth,
     # 4.9). Those inside are reported anyway: no polish (about 0.3 s each) to decide it.
     w = _window(search, best.pose)
-    near = [_polish(search, h) if best.score - 2 * w <= h.score < best.score - w else h
-            for h in others_h]
+    # The ring's poses (an axis of revolution) are samples of a flat ridge, not peaks: no polish.
+    near = [_polish(search, h) if best.score - 2 * w <= h.score < best.score - w
+            and not h.source.startswith("ring") else h for h in others_h]
     kept = [PoseMode(best.pose, best.score, best.source)] + [
         PoseMode(h.pose, h.score, h.source, _angle_deg(h.pose[:3, :3], best.pose[:3, :3]))
         for h in sorted(near, key=lambda h: -h.score) if h.score >= best.score - w]
