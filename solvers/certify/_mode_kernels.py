@@ -9,9 +9,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import types as nt
-
 from numba import njit
+from numba import types as nt
 
 from solvers.jit import kernel
 

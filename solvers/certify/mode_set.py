@@ -171,6 +171,19 @@ class ModeRegion:
                 and float(np.abs(T[:3, 3] - self.translation).max())
                 <= self.translation_half_width + 1e-12)
 
+    def moved(self, T_left: ArrayLike) -> ModeRegion:
+        """The region of the poses ``T_left @ T`` (e.g. another frame's): the rotation ball moves
+        with its centre; the translation box, turned by ``T_left``'s rotation, is replaced by the
+        axis-aligned box that holds it."""
+        T_left = np.asarray(T_left, dtype=np.float64)
+        if T_left.shape != (4, 4):
+            raise ValueError(f"Expected `T_left` to have shape (4, 4), got {T_left.shape}.")
+        A = T_left[:3, :3]
+        grow = float(np.abs(A).sum(axis=1).max())  # a cube of half-width 1, turned by A
+        return ModeRegion(A @ self.rotation, self.rotation_radius,
+                          A @ self.translation + T_left[:3, 3],
+                          self.translation_half_width * grow, self.cost, self.num_boxes)
+
     def to_dict(self) -> dict[str, object]:
         return {"T_target_source": self.T_target_source.tolist(),
                 "rotation_radius_deg": math.degrees(self.rotation_radius),
@@ -225,6 +238,14 @@ class ModeSetResult:
     def contains(self, T: ArrayLike) -> bool:
         """Whether the pose ``T`` (4, 4) lies in one of the regions."""
         return any(r.contains(T) for r in self.regions)
+
+    def moved(self, T_left: ArrayLike) -> ModeSetResult:
+        """The result for the poses ``T_left @ T`` (see :meth:`ModeRegion.moved`)."""
+        from dataclasses import replace
+
+        T_left = np.asarray(T_left, dtype=np.float64)
+        return replace(self, regions=tuple(r.moved(T_left) for r in self.regions),
+                       T_target_source=T_left @ self.T_target_source)
 
     def to_dict(self) -> dict[str, object]:
         return {"success": self.success, "status": self.status.value, "message": self.message,
@@ -480,8 +501,7 @@ def certify_mode_set(problem: WeightedTLSProblem, candidates: ArrayLike, *,
     threshold = U + fraction * abs(U) + tol
     regions = _seed_regions(problem, tab, T_c[np.argsort(costs)][np.sort(costs) <= threshold],
                             U, threshold, beta_min, gen)
-    search = _search(tab, regions, U, T_best, fraction, tol, beta_min, params, t0,
-                     math.sqrt(problem.cbar2), float(problem.noise_bound.max()))
+    search = _search(problem, tab, regions, U, T_best, fraction, tol, beta_min, params, t0, gen)
     U, T_best = search.U, search.T_best
     threshold = U + fraction * abs(U) + tol
     if search.status is not ModeSetStatus.CERTIFIED:
@@ -518,6 +538,13 @@ class _Regions:
     half: NDArray[np.float64]  # (n,)
     cost: NDArray[np.float64]  # (n,)
 
+    def add(self, other: _Regions) -> None:
+        self.R = np.concatenate([self.R, other.R])
+        self.u = np.concatenate([self.u, other.u])
+        self.radius = np.concatenate([self.radius, other.radius])
+        self.half = np.concatenate([self.half, other.half])
+        self.cost = np.concatenate([self.cost, other.cost])
+
     def covers(self, boxes: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Whether each box lies wholly inside one region."""
         out = np.zeros(boxes.shape[0], dtype=bool)
@@ -542,7 +569,8 @@ def _internal(T: NDArray[np.float64], tab: _Tables) -> NDArray[np.float64]:
 
 _SAMPLES = 4096  # poses sampled about each seed to size its region
 _SAMPLE_ANGLE = math.radians(30.0)
-_SIZE_MARGINS = 4.0
+_SIZE_MARGINS = 8.0
+_MAX_REGIONS = 64
 
 
 def _seed_regions(problem: WeightedTLSProblem, tab: _Tables, seeds: NDArray[np.float64],
@@ -593,13 +621,14 @@ class _Search:
     lower: float  # least lower bound of the boxes covered by regions or left open
 
 
-def _search(tab: _Tables, regions: _Regions, U: float, T_best: NDArray[np.float64],
-            fraction: float, tol: float, beta: float, params: ModeSetParams, t0: float,
-            cbar: float, beta_max: float) -> _Search:
+def _search(problem: WeightedTLSProblem, tab: _Tables, regions: _Regions, U: float,
+            T_best: NDArray[np.float64], fraction: float, tol: float, beta: float,
+            params: ModeSetParams, t0: float, gen: np.random.Generator) -> _Search:
     """The branch and bound: boxes are pruned (above the threshold), dropped (inside a
-    region), kept (undecided at the resolution) or split."""
+    region), kept (undecided at the resolution) or split. A box whose centre is within the
+    margin and outside every region seeds a new region (at most :data:`_MAX_REGIONS`)."""
     resolution = params.resolution * beta
-    stack = [_initial_boxes(tab, cbar, beta_max)]
+    stack = [_initial_boxes(tab, math.sqrt(problem.cbar2), float(problem.noise_bound.max()))]
     kept_boxes, kept_lower, kept_upper = [], [], []
     explored = kept = 0
     covered_lower = float("inf")
@@ -624,6 +653,13 @@ def _search(tab: _Tables, regions: _Regions, U: float, T_best: NDArray[np.float6
             live = lower <= U + fraction * abs(U) + tol
             boxes, lower, upper = boxes[live], lower[live], upper[live]
             inside = regions.covers(boxes)
+            thr = U + fraction * abs(U) + tol
+            fresh = ~inside & (upper <= thr)
+            if fresh.any() and regions.R.shape[0] < _MAX_REGIONS:
+                k = int(np.flatnonzero(fresh)[np.argmin(upper[fresh])])
+                regions.add(_seed_regions(problem, tab, _pose(boxes[k], tab)[None], U, thr,
+                                          beta, gen))
+                inside = regions.covers(boxes)
             if inside.any():
                 covered_lower = min(covered_lower, float(lower[inside].min()))
                 boxes, lower, upper = boxes[~inside], lower[~inside], upper[~inside]
