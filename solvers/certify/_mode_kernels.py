@@ -211,7 +211,8 @@ def box_bounds(boxes, group_src, sub_start, sub_centre, sub_weight, sub_const, s
     ball never lowers a subset's cost there (``sub_mask``: the subset's terms, bit ``i`` for the
     group's ``i``-th term from ``term_start``). ``upper[b]``: the cost at the box's centre (terms ``min(a ||R s + u -
     d||^2, wc)``). Boxes whose group bound is at most ``threshold`` and over which no point
-    moves more than ``couple_rho`` also get the rigid (coupled) bound; the larger counts.
+    moves more than ``couple_rho`` also get the rigid (coupled) bound; the larger counts. Boxes
+    whose lower bound exceeds ``threshold`` get ``upper = inf`` (not computed: no use).
     """
     B = boxes.shape[0]
     G = group_src.shape[0]
@@ -276,6 +277,9 @@ def box_bounds(boxes, group_src, sub_start, sub_centre, sub_weight, sub_const, s
         if lb <= threshold and chord * rmax + rt <= couple_rho:
             lb = max(lb, _coupled_bound(R, u0, u1, u2, ang, boxes[b, 7], src, dst, a, wc, tau))
         lower[b] = lb
+        if lb > threshold:
+            upper[b] = np.inf  # pruned: its centre cannot beat the best (cost >= lb)
+            continue
         ub = 0.0
         for i in range(K):
             s0, s1, s2 = src[i, 0], src[i, 1], src[i, 2]
