@@ -571,6 +571,7 @@ _SAMPLES = 4096  # poses sampled about each seed to size its region
 _SAMPLE_ANGLE = math.radians(30.0)
 _SIZE_MARGINS = 8.0
 _MAX_REGIONS = 64
+_SEED_MARGINS = 1.0  # a box centre this many margins above the threshold seeds a region
 
 
 def _seed_regions(problem: WeightedTLSProblem, tab: _Tables, seeds: NDArray[np.float64],
@@ -625,8 +626,9 @@ def _search(problem: WeightedTLSProblem, tab: _Tables, regions: _Regions, U: flo
             T_best: NDArray[np.float64], fraction: float, tol: float, beta: float,
             params: ModeSetParams, t0: float, gen: np.random.Generator) -> _Search:
     """The branch and bound: boxes are pruned (above the threshold), dropped (inside a
-    region), kept (undecided at the resolution) or split. A box whose centre is within the
-    margin and outside every region seeds a new region (at most :data:`_MAX_REGIONS`)."""
+    region), kept (undecided at the resolution) or split. A box outside every region whose
+    centre is within :data:`_SEED_MARGINS` margins above the threshold, or that is undecided
+    at the resolution, seeds a new region (at most :data:`_MAX_REGIONS`)."""
     resolution = params.resolution * beta
     stack = [_initial_boxes(tab, math.sqrt(problem.cbar2), float(problem.noise_bound.max()))]
     kept_boxes, kept_lower, kept_upper = [], [], []
@@ -654,7 +656,11 @@ def _search(problem: WeightedTLSProblem, tab: _Tables, regions: _Regions, U: flo
             boxes, lower, upper = boxes[live], lower[live], upper[live]
             inside = regions.covers(boxes)
             thr = U + fraction * abs(U) + tol
-            fresh = ~inside & (upper <= thr)
+            rot, tr = _displacements(boxes, tab.radius)
+            # A centre within a few margins, or a box undecided at the resolution, outside
+            # every region: the near-optimal set reaches there (e.g. along a symmetry's ring).
+            fresh = ~inside & ((upper <= thr + _SEED_MARGINS * fraction * abs(U))
+                               | (rot + tr <= resolution))
             if fresh.any() and regions.R.shape[0] < _MAX_REGIONS:
                 k = int(np.flatnonzero(fresh)[np.argmin(upper[fresh])])
                 regions.add(_seed_regions(problem, tab, _pose(boxes[k], tab)[None], U, thr,
