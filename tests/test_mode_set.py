@@ -4,6 +4,8 @@ lies outside its regions (dense sampling), and a time limit claims nothing."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -134,6 +136,8 @@ def test_tiny_time_budget_claims_nothing():
     assert res.regions == () and not res.contains(T0)
     assert res.lower_bound <= res.best_cost and np.isfinite(res.literature_gap)
     assert "no mode set claimed" in res.message
+    d = json.loads(json.dumps(res.to_dict(), allow_nan=False))
+    assert d["status"] == "time_limit" and d["regions"] == [] and not d["success"]
 
 
 def test_regions_move_with_the_frame():

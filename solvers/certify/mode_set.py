@@ -251,9 +251,15 @@ class ModeSetResult:
         return {"success": self.success, "status": self.status.value, "message": self.message,
                 "regions": [r.to_dict() for r in self.regions],
                 "T_target_source": self.T_target_source.tolist(), "best_cost": self.best_cost,
-                "margin": self.margin, "lower_bound": self.lower_bound,
-                "literature_gap": self.literature_gap, "boxes_explored": self.boxes_explored,
+                "margin": self.margin, "lower_bound": _finite(self.lower_bound),
+                "literature_gap": _finite(self.literature_gap),
+                "boxes_explored": self.boxes_explored,
                 "boxes_kept": self.boxes_kept, "solve_time": self.solve_time}
+
+
+def _finite(x: float) -> float | None:
+    """JSON has no inf or NaN: ``None`` for them."""
+    return float(x) if math.isfinite(x) else None
 
 
 def _angle(R1: NDArray[np.float64], R2: NDArray[np.float64]) -> float:
