@@ -202,3 +202,19 @@ def test_undecided_boxes_are_covered_by_the_final_regions():
             T[:3, :3] = R
             T[:3, 3] = b[4:7] + rng.uniform(-1, 1, 3) * b[7] + tab.dst_origin - R @ tab.src_origin
             assert any(r.contains(T) for r in regions)
+
+
+def test_box_limit_claims_nothing_and_its_bound_holds():
+    """Stopped on the kept boxes' limit: no regions, and the lower bound still bounds the
+    problem (the boxes of the batch it stopped in count)."""
+    problem, T0, T1 = symmetric_problem(0)
+    best = solve_registration(problem).cost
+    for resolution in (3.0, 1.0, 0.5):
+        for limit in (1, 10, 100, 1000):
+            res = certify_mode_set(problem, T0, params=ModeSetParams(
+                resolution=resolution, max_kept_boxes=limit, time_limit=60))
+            if res.status is ModeSetStatus.CERTIFIED:
+                continue
+            assert res.status is ModeSetStatus.BOX_LIMIT and not res.success
+            assert res.regions == ()
+            assert res.lower_bound <= min(best, res.best_cost) + 1e-9, (resolution, limit)

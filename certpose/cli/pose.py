@@ -468,7 +468,7 @@ def _report(args: argparse.Namespace, params: Any, title: str,
     # The certificate bounds eq. (2) at its minimiser; say so, and whether that is this pose.
     say(args, f"certificate: {result.certificate_scope}")
     if result.mode_set is not None:
-        _print_mode_set(args, result.mode_set)
+        _print_mode_set(args, result.mode_set, result.certificate)
     if len(result.modes) > 1:
         say(args, f"competing modes of eq. (1) (within {params.mle.mode_window:g} tempered nats of the best; "
               "eq. (1) barely tells them apart):")
@@ -526,15 +526,22 @@ def _report(args: argparse.Namespace, params: Any, title: str,
     return 0, payload
 
 
-def _print_mode_set(args: argparse.Namespace, ms: Any) -> None:
-    """The eq. (2) mode set: what it proves, its regions (camera frame) and the minimiser's gap."""
+def _print_mode_set(args: argparse.Namespace, ms: Any, certificate: Any) -> None:
+    """The eq. (2) mode set: what it proves, its regions (camera frame) and the minimiser's gap
+    (the larger of the mode set's and the eq. (2) certificate's lower bounds: both bound the
+    same problem)."""
     import numpy as np
     from scipy.spatial.transform import Rotation
 
     from certpose.cli import say
+    from solvers.certificate import relative_gap
 
-    bound = (f"literature gap of the minimiser {ms.literature_gap:.3g} (lower bound "
-             f"{ms.lower_bound:.6g}, best {ms.best_cost:.6g})")
+    lower, source = ms.lower_bound, "the mode set's"
+    cert_lower = float("nan") if certificate is None else float(certificate.lower_bound)
+    if math.isfinite(cert_lower) and cert_lower > lower:
+        lower, source = cert_lower, "the certificate's"
+    bound = (f"literature gap of the minimiser {relative_gap(ms.best_cost, lower):.3g} "
+             f"({source} lower bound {lower:.6g}, best {ms.best_cost:.6g})")
     if not ms.success:
         say(args, f"eq. (2) mode set: not certified ({ms.status.value}: {ms.message}); {bound}; "
                   f"{ms.solve_time:.1f} s")

@@ -513,9 +513,10 @@ def certify_mode_set(problem: WeightedTLSProblem, candidates: ArrayLike, *,
     if search.status is not ModeSetStatus.CERTIFIED:
         why = ("time limit" if search.status is ModeSetStatus.TIME_LIMIT
                else f"more than {params.max_kept_boxes} boxes kept")
+        kept_lower = float(search.kept_lower.min()) if search.kept_lower.size else math.inf
         return result(search.status, f"{why} after {search.explored} boxes ({search.kept} "
                       "left undecided at the resolution): no mode set claimed",
-                      lower=min(search.lower, threshold), explored=search.explored,
+                      lower=min(search.lower, kept_lower, threshold), explored=search.explored,
                       kept=search.kept)
     live = search.kept_lower <= threshold
     final = _final_regions(regions, search.kept_boxes[live], search.kept_upper[live], tab)
@@ -682,12 +683,12 @@ def _search(problem: WeightedTLSProblem, tab: _Tables, regions: _Regions, U: flo
                 kept_lower.append(lower[small])
                 kept_upper.append(upper[small])
                 kept += int(small.sum())
-                if kept > params.max_kept_boxes:
-                    status = ModeSetStatus.BOX_LIMIT
-                    break
             if (~small).any():
                 boxes[:, 8] = lower  # the children's bound until they have their own
                 stack.append(_split(boxes[~small], tab.radius))
+            if kept > params.max_kept_boxes:
+                status = ModeSetStatus.BOX_LIMIT
+                break
     finally:
         bounder.close()
     kb = np.concatenate(kept_boxes) if kept_boxes else np.empty((0, 9))
