@@ -218,3 +218,14 @@ def test_box_limit_claims_nothing_and_its_bound_holds():
             assert res.status is ModeSetStatus.BOX_LIMIT and not res.success
             assert res.regions == ()
             assert res.lower_bound <= min(best, res.best_cost) + 1e-9, (resolution, limit)
+
+
+def test_the_kernel_is_called_with_its_declared_signature_only():
+    """A second signature would be a second compilation on a first run."""
+    from solvers import jit
+
+    problem, T0, _ = symmetric_problem(0)
+    certify_mode_set(problem, T0)
+    (spec,) = jit.declared(["solvers.certify._mode_kernels"])
+    sigs = spec.dispatcher().signatures
+    assert sigs and all(tuple(s) == spec.signature for s in sigs), sigs
