@@ -18,27 +18,36 @@ A branch and bound over rotation vectors (cubes in ``[-pi, pi]^3``, cubes wholly
 complete: a pose whose translation puts no source point within ``cbar beta_k`` of its target has
 every term truncated, cost ``cbar2 sum w``, and is pruned as a whole when that exceeds ``U + m``.
 
-A box's lower bound: the source points are grouped by position (eq. (2)'s candidates: one
-model point, several grid points). Over a rotation cube of half-side ``sigma`` and a
-translation cube of half-width ``h``, a point ``a``'s image lies in the ball about its image at
-the box centre of radius ``2 sin(min(sqrt(3) sigma, pi) / 2) ||a|| + sqrt(3) h`` (the angle
-between two rotations is at most the distance of their rotation vectors). Each group's minimum
-over its ball is exact: over inlier subsets ``S`` with weight ``A_S`` (``sum w_k / beta_k^2``),
-weighted mean ``m_S`` and cost ``k_S`` at that mean (outliers at ``cbar2 w_k``), it is
-``min_S k_S + A_S max(0, ||m_S - c|| - rho)^2`` (the quadratic's minimum over a ball), the
-subsets enumerated once (:mod:`solvers.certify.groups`' tables) and tried in increasing
-``k_S`` until none can do better. The sum over groups bounds the box (the groups' images move
-together in truth). The upper bound is the cost at the box centre.
+Two lower bounds per box, the larger counts. (1) Groups: the source points are grouped by
+position (eq. (2)'s candidates: one model point, several grid points). Over a rotation cube of
+half-side ``sigma`` and a translation cube of half-width ``h``, a point ``a``'s image lies in the
+ball of radius ``2 sin(min(sqrt(3) sigma, pi) / 2) ||a||`` about its image at the box centre,
+plus the translation cube (the angle between two rotations is at most the distance of their
+rotation vectors). Each group's minimum over that set is exact: over inlier subsets ``S`` with
+weight ``A_S`` (``sum w_k / beta_k^2``), weighted mean ``m_S`` and cost ``k_S`` at that mean
+(outliers at ``cbar2 w_k``), it is ``min_S k_S + A_S d(m_S, set)^2``, the subsets enumerated
+once (:mod:`solvers.certify.groups`' tables), tried in increasing ``k_S`` until none can do
+better, only those of terms the set can bring within their truncation radius. The sum over
+groups bounds the box. (2) Rigid, on small boxes: each term's minorant over its set (the exact
+quadratic for a term inlier throughout, ``cbar2 w_k`` for one outlier throughout, an affine
+minorant along its centre's direction for one that crosses its truncation radius), summed and
+minimised over the box's motions linearised about the centre (``exp(w) p = p + w x p + e``, the
+remainder ``|e| <= |p| (theta^2 / 2 + theta^3 / 6)`` charged to each term): a convex quadratic
+in six variables over a ball times a cube, bounded below at any point by its tangent plane's
+least value over the set. The upper bound is the cost at the box centre.
 
-A box is pruned when its lower bound exceeds ``U + m``; it is kept (part of a region) when the
-largest displacement of a source point over it is at most ``resolution`` noise bounds; otherwise
-it is split in the rotation or the translation half, whichever moves the points more (8
-children). Kept boxes that touch are joined; each component is reported as the ball and box
-about its best pose that hold all its boxes. When ``U`` falls, the margin's threshold falls
-with it, so earlier prunings stay valid; kept boxes are checked again at the end.
+Regions are seeded about the candidates within the margin and sized on poses sampled about them
+(the farthest within a few margins: the border then lies where boxes of moderate size can be
+pruned); a box that lies inside a region is dropped, one outside is pruned when its lower bound
+exceeds ``U + m``, kept (undecided) when no source point moves more than ``resolution`` noise
+bounds over it, or split in its rotation or its translation half, whichever moves the points
+more (8 children). A box outside every region whose centre is within a margin above ``U + m``,
+or that is kept, seeds one more region. At the end, kept boxes join the region they touch or form
+their own. When ``U`` falls, the threshold falls with it, so earlier prunings stay valid.
 
-The lower bound of the whole problem comes out too: the least lower bound of the kept boxes
-(every other box is above ``U + m``), with the literature's gap of the best pose.
+A lower bound of the whole problem comes out too, whatever the status: the least lower bound of
+the boxes in the regions, kept or still open (every other box is above ``U + m``), with the
+literature's gap of the best pose. It does not resolve the near-ties inside the regions.
 """
 
 from __future__ import annotations
@@ -218,7 +227,7 @@ class ModeSetResult:
     boxes_explored : int
         Boxes bounded.
     boxes_kept : int
-        Boxes in the regions.
+        Boxes left undecided at the resolution (each joined to a region).
     solve_time : float
         Seconds.
     """
