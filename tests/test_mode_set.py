@@ -229,3 +229,37 @@ def test_the_kernel_is_called_with_its_declared_signature_only():
     (spec,) = jit.declared(["solvers.certify._mode_kernels"])
     sigs = spec.dispatcher().signatures
     assert sigs and all(tuple(s) == spec.signature for s in sigs), sigs
+
+
+@pytest.mark.slow  # the demo's pose pipeline first
+def test_demo_eq2_problem_no_sampled_pose_within_the_margin_outside_the_regions():
+    """On the demo's own eq. (2) problem (a real one: 350 terms, near-ties along the mug's
+    axis), dense sampling about the minimiser and far from it finds no pose within the margin
+    outside the regions, and none below the lower bound."""
+    from certpose.estimation.pipeline import run_demo
+
+    res = run_demo(rng=0)
+    problem = res.mle.eq2_problem.problem
+    T0 = res.mle.eq2_result.T_target_source
+    ms_res = certify_mode_set(problem, T0, params=ModeSetParams(time_limit=120))
+    assert ms_res.success, ms_res.message
+    thr = ms_res.best_cost + ms_res.margin
+    rng = np.random.default_rng(0)
+    c = problem.source.mean(axis=0)
+    below = 0
+    for spread, shift, n in ((np.radians(10), 0.005, 100_000), (np.radians(45), 0.03, 100_000)):
+        ang = spread * rng.random(n) ** 2
+        axis = rng.normal(size=(n, 3))
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        R = Rotation.from_rotvec(axis * ang[:, None]).as_matrix() @ T0[:3, :3]
+        t = (T0[:3, :3] @ c + T0[:3, 3] - np.einsum("nij,j->ni", R, c)
+             + rng.uniform(-shift, shift, (n, 3)) * rng.random((n, 1)) ** 2)
+        for lo in range(0, n, 20_000):
+            f = cost(problem, R[lo:lo + 20_000], t[lo:lo + 20_000])
+            assert f.min() >= ms_res.lower_bound - 1e-6
+            for k in np.flatnonzero(f <= thr):
+                T = np.eye(4)
+                T[:3, :3], T[:3, 3] = R[lo + k], t[lo + k]
+                assert ms_res.contains(T), (f[k], thr)
+                below += 1
+    assert below > 100  # not vacuous

@@ -182,6 +182,9 @@ def run(args: argparse.Namespace) -> int:
 
     check_pose_options(args)
     if args.bop is not None:
+        if args.certify_modes is not None or args.mode_margin != 0.02:
+            raise CLIError("--certify-modes/--mode-margin concern one pose's eq. (2) problem, "
+                           "not --bop")
         return run_pose(args)
     check_json_output(args)
     if args.demo:
