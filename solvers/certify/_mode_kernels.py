@@ -211,8 +211,9 @@ def box_bounds(boxes, group_src, sub_start, sub_centre, sub_weight, sub_const, s
     ball never lowers a subset's cost there (``sub_mask``: the subset's terms, bit ``i`` for the
     group's ``i``-th term from ``term_start``). ``upper[b]``: the cost at the box's centre (terms ``min(a ||R s + u -
     d||^2, wc)``). Boxes whose group bound is at most ``threshold`` and over which no point
-    moves more than ``couple_rho`` also get the rigid (coupled) bound; the larger counts. Boxes
-    whose lower bound exceeds ``threshold`` get ``upper = inf`` (not computed: no use).
+    moves more than ``couple_rho`` also get the rigid (coupled) bound; the larger counts. A box's
+    sum stops once it exceeds ``threshold`` (the partial sum is its lower bound; the groups come
+    with the largest all-outlier costs first), and its ``upper`` is then ``inf`` (no use).
     """
     B = boxes.shape[0]
     G = group_src.shape[0]
@@ -253,11 +254,17 @@ def box_bounds(boxes, group_src, sub_start, sub_centre, sub_weight, sub_const, s
             best = cap[g]
             reach = 0
             for i in range(term_start[g], term_start[g + 1]):
-                if _set_distance(term_dst[i, 0] - q0, term_dst[i, 1] - q1, term_dst[i, 2] - q2,
-                                 hb, rr) < term_tau[i]:
+                # Within reach: the distance from the cube's points to the target is below
+                # the truncation radius plus the ball's (squares: no root).
+                x = max(abs(term_dst[i, 0] - q0) - hb, 0.0)
+                y = max(abs(term_dst[i, 1] - q1) - hb, 0.0)
+                z = max(abs(term_dst[i, 2] - q2) - hb, 0.0)
+                if x * x + y * y + z * z < (term_tau[i] + rr) * (term_tau[i] + rr):
                     reach |= 1 << (i - term_start[g])
             if reach == 0:
                 lb += best
+                if lb > threshold:
+                    break  # pruned already: the partial sum is a lower bound too
                 continue
             for j in range(sub_start[g], sub_start[g + 1]):
                 k = sub_const[j]
@@ -274,6 +281,8 @@ def box_bounds(boxes, group_src, sub_start, sub_centre, sub_weight, sub_const, s
                 if val < best:
                     best = val
             lb += best
+            if lb > threshold:
+                break  # pruned already: the partial sum is a lower bound too
         if lb <= threshold and chord * rmax + rt <= couple_rho:
             lb = max(lb, _coupled_bound(R, u0, u1, u2, ang, boxes[b, 7], src, dst, a, wc, tau))
         lower[b] = lb

@@ -352,6 +352,12 @@ def _tables(problem: WeightedTLSProblem) -> _Tables:
             masks.append(keep + 1)  # subset codes: bit i for the group's i-th term
             tdst.append(d[idx])
             ttau.append(tau_all[idx])
+    # Largest all-outlier costs first: a box's sum passes the threshold sooner.
+    order = np.argsort(-np.asarray(caps), kind="stable")
+    gsrc, caps = [gsrc[i] for i in order], [caps[i] for i in order]
+    centres, weights = [centres[i] for i in order], [weights[i] for i in order]
+    consts, masks = [consts[i] for i in order], [masks[i] for i in order]
+    tdst, ttau = [tdst[i] for i in order], [ttau[i] for i in order]
     sub_start = np.concatenate([[0], np.cumsum([c.size for c in consts])]).astype(np.int64)
     return _Tables(np.ascontiguousarray(gsrc, dtype=np.float64), sub_start,
                    np.ascontiguousarray(np.concatenate(centres)),
