@@ -263,3 +263,11 @@ def test_demo_eq2_problem_no_sampled_pose_within_the_margin_outside_the_regions(
                 assert ms_res.contains(T), (f[k], thr)
                 below += 1
     assert below > 100  # not vacuous
+
+
+def test_pose_params_take_mode_set_params_only():
+    from certpose.estimation.pipeline import PoseParams
+
+    assert PoseParams(mode_set=ModeSetParams(time_limit=5)).mode_set.time_limit == 5
+    with pytest.raises(TypeError, match="ModeSetParams"):
+        PoseParams(mode_set=10.0)

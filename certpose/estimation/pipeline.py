@@ -143,6 +143,10 @@ class PoseParams:
     mode_set: Any = None
 
     def __post_init__(self) -> None:
+        if self.mode_set is not None and not all(
+                hasattr(self.mode_set, a) for a in ("margin", "resolution", "time_limit")):
+            raise TypeError("`mode_set` must be a solvers.certify.mode_set.ModeSetParams or None, "
+                            f"got {type(self.mode_set).__name__}.")
         if self.sampling_method not in ("is", "de", "mcmc", "calibrated"):
             raise ValueError("`sampling_method` must be 'is', 'de', 'mcmc' or 'calibrated', got "
                              f"{self.sampling_method!r}.")
