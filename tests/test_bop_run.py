@@ -183,7 +183,7 @@ def test_sigkill_and_resume_equal_an_uninterrupted_run(bop_ycbv, tmp_path):
     assert len(read_bop_results(killed)) == 13
 
 
-def test_cli_refuses_bad_bop_options(bop_ycbv, tmp_path):
+def test_cli_refuses_bad_bop_options(bop_ycbv, tmp_path, capsys):
     from certpose.cli import main
 
     _, ds = bop_ycbv
@@ -191,6 +191,9 @@ def test_cli_refuses_bad_bop_options(bop_ycbv, tmp_path):
     assert main(["pose", "--bop", str(ds), "-q"]) == 2  # no --out
     assert main(["pose", "--bop", str(ds), "--out", str(out), "--object", "025_mug", "-q"]) == 2
     assert main(["pose", "--demo", "--out", str(out), "-q"]) == 2
+    capsys.readouterr()
+    assert main(["pose", "--bop", str(ds), "--out", str(out), "--certify-modes", "-q"]) == 2
+    assert "--certify-modes" in capsys.readouterr().err
     assert main(["pose", "--bop", str(ds), "--out", str(out), "--workers", "1",
                  "--scheduler", "tcp://x:1", "-q"]) == 2
     out.write_text("x")

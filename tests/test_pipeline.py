@@ -370,3 +370,31 @@ def test_cli_box_only_geometry_model(tmp_path, capsys):
     data = strict_json(out.read_text())
     assert data["input"]["classifier"] == "best-buddies" and data["input"]["box"] is None
     assert data["errors"]["add_s"] <= 0.01
+
+
+@pytest.mark.slow  # the demo, then its mode set (10 s at most)
+def test_pose_demo_certify_modes_lists_the_regions(tmp_path, capsys):
+    """`certpose pose --demo --certify-modes`: eq. (2)'s certified mode set, its regions on
+    the command line and in the JSON, around the certified minimiser (camera frame)."""
+    from certpose.cli import main
+
+    out = tmp_path / "demo.json"
+    assert main(["pose", "--demo", "--certify-modes", "60", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "eq. (2) mode set: CERTIFIED" in text and "region 0: rotation within" in text
+    d = json.loads(out.read_text())
+    ms = d["mode_set"]
+    assert ms["status"] == "certified" and ms["success"] and ms["regions"]
+    assert ms["margin"] == pytest.approx(0.02 * ms["best_cost"])
+    assert ms["lower_bound"] <= ms["best_cost"]
+    # The certified eq. (2) minimiser (camera frame) lies in a listed region.
+    from solvers.certify.mode_set import ModeRegion
+
+    T = np.asarray(d["certified_pose"]["T_camera_object"]) if d["certified_pose"] else None
+    regions = [ModeRegion(np.asarray(r["T_target_source"])[:3, :3],
+                          np.radians(r["rotation_radius_deg"]),
+                          np.asarray(r["T_target_source"])[:3, 3], r["translation_half_width"],
+                          r["cost"], r["num_boxes"]) for r in ms["regions"]]
+    if T is not None:
+        assert any(r.contains(T) for r in regions)
+    assert any(r.contains(np.asarray(ms["T_target_source"])) for r in regions)

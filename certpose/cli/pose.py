@@ -108,6 +108,14 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--no-certify", action="store_true", help="skip the eq. (2) certificate")
     p.add_argument("--require-certificate", action="store_true",
                    help="exit with code 1 unless the eq. (2) solution is certified")
+    p.add_argument("--certify-modes", type=float, nargs="?", const=10.0, default=None,
+                   metavar="SECONDS",
+                   help="also certify eq. (2)'s mode set: every pose whose eq. (2) cost is within "
+                        "--mode-margin of the best lies in the listed regions (a branch and bound "
+                        "over rotations x translations; SECONDS: its time limit, default 10)")
+    p.add_argument("--mode-margin", type=float, default=0.02, metavar="FRACTION",
+                   help="with --certify-modes: the margin, a fraction of the best cost "
+                        "(default: 0.02)")
     p.add_argument("--save-problem", metavar="FILE.npz", default=None,
                    help="write the eq. (2) problem (scene frame, metres; ground truth "
                         "T_scene_object when the frame has one) as a problem file for "
@@ -155,6 +163,10 @@ def kernels(argv: list[str]) -> tuple[str, ...]:
     from solvers.registration import PRUNED_SOLVE_KERNELS
 
     certify = () if "--no-certify" in argv else CERTIFY_KERNELS
+    if any(a == "--certify-modes" or a.startswith("--certify-modes=") for a in argv):
+        from solvers.certify.mode_set import MODE_SET_KERNELS
+
+        certify = (*certify, *MODE_SET_KERNELS)
     samples = ("certpose.sampling._kernels:mixture_log_densities",) \
         if any(a == "--samples" or a.startswith("--samples=") for a in argv) else ()
     return (PRUNED_SOLVE_KERNELS[0], *certify, "solvers.registration._kernels:max_clique_bnb",
@@ -174,6 +186,9 @@ def run(args: argparse.Namespace) -> int:
 
     check_pose_options(args)
     if args.bop is not None:
+        if args.certify_modes is not None or args.mode_margin != 0.02:
+            raise CLIError("--certify-modes/--mode-margin concern one pose's eq. (2) problem, "
+                           "not --bop")
         return run_pose(args)
     check_json_output(args)
     if args.demo:
@@ -271,6 +286,18 @@ def run(args: argparse.Namespace) -> int:
         params = replace(params, likelihood=replace(params.likelihood, free_space=args.free_space))
     if args.no_certify:
         params = replace(params, mle=replace(MLEParams(), certify=False))
+    if args.certify_modes is not None:
+        from solvers.certify.mode_set import ModeSetParams
+
+        if not (math.isfinite(args.certify_modes) and args.certify_modes > 0):
+            raise CLIError(f"--certify-modes must be a positive number of seconds, got "
+                           f"{args.certify_modes}")
+        if not (math.isfinite(args.mode_margin) and args.mode_margin >= 0):
+            raise CLIError(f"--mode-margin must be >= 0, got {args.mode_margin}")
+        params = replace(params, mode_set=ModeSetParams(margin=args.mode_margin,
+                                                        time_limit=args.certify_modes))
+    elif args.mode_margin != 0.02:
+        raise CLIError("--mode-margin needs --certify-modes")
     if args.samples:
         from certpose.sampling.sampler import ISParams
 
@@ -456,6 +483,8 @@ def _report(args: argparse.Namespace, params: Any, title: str,
           f"({_fmt(result.eq2_refined_log_likelihood)} after refinement)")
     # The certificate bounds eq. (2) at its minimiser; say so, and whether that is this pose.
     say(args, f"certificate: {result.certificate_scope}")
+    if result.mode_set is not None:
+        _print_mode_set(args, result.mode_set, result.certificate)
     if len(result.modes) > 1:
         say(args, f"competing modes of eq. (1) (within {params.mle.mode_window:g} tempered nats of the best; "
               "eq. (1) barely tells them apart):")
@@ -511,6 +540,39 @@ def _report(args: argparse.Namespace, params: Any, title: str,
               f"({result.certificate_message or 'no certificate'})", file=sys.stderr)
         return 1, payload
     return 0, payload
+
+
+def _print_mode_set(args: argparse.Namespace, ms: Any, certificate: Any) -> None:
+    """The eq. (2) mode set: what it proves, its regions (camera frame) and the minimiser's gap
+    (the larger of the mode set's and the eq. (2) certificate's lower bounds: both bound the
+    same problem)."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from certpose.cli import say
+    from solvers.certificate import relative_gap
+
+    lower, source = ms.lower_bound, "the mode set's"
+    cert_lower = float("nan") if certificate is None else float(certificate.lower_bound)
+    if math.isfinite(cert_lower) and cert_lower > lower:
+        lower, source = cert_lower, "the certificate's"
+    bound = (f"literature gap of the minimiser {relative_gap(ms.best_cost, lower):.3g} "
+             f"({source} lower bound {lower:.6g}, best {ms.best_cost:.6g})")
+    if not ms.success:
+        say(args, f"eq. (2) mode set: not certified ({ms.status.value}: {ms.message}); {bound}; "
+                  f"{ms.solve_time:.1f} s")
+        return
+    say(args, f"eq. (2) mode set: CERTIFIED: every pose of eq. (2) cost <= "
+              f"{ms.best_cost + ms.margin:.6g} (best + {ms.margin:.4g}) lies in "
+              f"{len(ms.regions)} region(s) (camera frame); {bound}; {ms.boxes_explored} boxes, "
+              f"{ms.solve_time:.1f} s")
+    for k, r in enumerate(ms.regions):
+        rv = np.degrees(Rotation.from_matrix(r.rotation).as_rotvec())
+        say(args, f"  region {k}: rotation within {np.degrees(r.rotation_radius):.2f} deg of "
+                  f"rotvec ({rv[0]:.1f}, {rv[1]:.1f}, {rv[2]:.1f}) deg, translation within "
+                  f"{100 * r.translation_half_width:.2f} cm (each axis) of ("
+                  + ", ".join(f"{100 * v:.2f}" for v in r.translation)
+                  + f") cm; eq. (2) cost {r.cost:.6g} at its centre")
 
 
 def _mode_rotation(R_mode: object, result: object, axis: object) -> str:

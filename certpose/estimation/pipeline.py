@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from certpose.geometry.rgbd import RGBDFrame
     from certpose.model.classifier import ObjectClassification
     from solvers import Certificate
+    from solvers.certify.mode_set import ModeSetResult
 
 __all__ = [
     "PoseParams",
@@ -82,6 +83,10 @@ class PoseParams:
     roi_margin : float or None
         :func:`run_ycbv` / :func:`run_demo` build the scene field in the box of the object's
         mask grown by this many metres (``None``: the whole frame, which is slower).
+    mode_set : ModeSetParams or None
+        Certify eq. (2)'s mode set (:func:`solvers.certify.mode_set.certify_mode_set`) on the
+        problem whose minimiser is certified, seeded by that minimiser, the returned pose and
+        the modes; ``None`` (default): not attempted (it takes up to its time limit).
     sampler : ISParams or None
         When given, the pose distribution is sampled after the MLE
         (:func:`certpose.sampling.sample_pose_distribution`, seeded by the MLE, the eq. (2)
@@ -135,8 +140,13 @@ class PoseParams:
     sampling_method: str = "is"
     model_error: tuple[float, float] | None = (math.radians(3.0), 0.003)
     model_revolution: bool = False
+    mode_set: Any = None
 
     def __post_init__(self) -> None:
+        if self.mode_set is not None and not all(
+                hasattr(self.mode_set, a) for a in ("margin", "resolution", "time_limit")):
+            raise TypeError("`mode_set` must be a solvers.certify.mode_set.ModeSetParams or None, "
+                            f"got {type(self.mode_set).__name__}.")
         if self.sampling_method not in ("is", "de", "mcmc", "calibrated"):
             raise ValueError("`sampling_method` must be 'is', 'de', 'mcmc' or 'calibrated', got "
                              f"{self.sampling_method!r}.")
@@ -261,6 +271,9 @@ class PoseResult:
         The classifier ``p_O`` the estimate used.
     scene : SceneField or None
         The scene field it ran on.
+    mode_set : ModeSetResult or None
+        Eq. (2)'s certified mode set (regions in the camera frame), when
+        ``PoseParams.mode_set`` asked for it.
     success : bool
     status : str
     message : str
@@ -289,6 +302,7 @@ class PoseResult:
     symmetry_axis: tuple[float, float, float] | None = None
     classification: ObjectClassification | None = field(default=None, repr=False)
     scene: Any = field(default=None, repr=False)
+    mode_set: ModeSetResult | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary."""
@@ -311,6 +325,7 @@ class PoseResult:
             "status": self.status,
             "message": self.message,
             "sampling": dict(self.sampling) or None,
+            "mode_set": None if self.mode_set is None else self.mode_set.to_dict(),
         }
 
 
@@ -601,6 +616,11 @@ def estimate_pose(
             d["errors"] = pose_errors(Tm, T_camera_object_gt, pts,
                                       symmetry_axis=symmetry_axis).to_dict()
         modes.append(d)
+    mode_set = None
+    if params.mode_set is not None and mle.eq2_problem is not None and mle.eq2_result is not None:
+        t = time.perf_counter()
+        mode_set = _mode_set(mle, params.mode_set, T_cw)
+        timings["mode_set"] = time.perf_counter() - t
     distribution, sampling = None, {}
     if params.sampler is not None:
         t = time.perf_counter()
@@ -614,7 +634,18 @@ def estimate_pose(
                       else np.asarray(T_camera_object_gt, dtype=np.float64),
                       np.asarray(T_world_camera, dtype=np.float64),
                       None if symmetry_axis is None
-                      else tuple(float(v) for v in np.ravel(symmetry_axis)), cls, scene)
+                      else tuple(float(v) for v in np.ravel(symmetry_axis)), cls, scene,
+                      mode_set)
+
+
+def _mode_set(mle: Any, params: Any, T_cw: NDArray[np.float64]) -> Any:
+    """Eq. (2)'s certified mode set about its minimiser, the returned pose and the modes
+    (camera frame)."""
+    from solvers.certify.mode_set import certify_mode_set
+
+    seeds = [mle.eq2_result.T_target_source, mle.T_scene_object,
+             *(m.T_scene_object for m in mle.modes)]
+    return certify_mode_set(mle.eq2_problem.problem, np.stack(seeds), params=params).moved(T_cw)
 
 
 def _sample(scene: Any, cls: Any, object_model: Any, mle: Any, T_cw: NDArray[np.float64],
