@@ -482,9 +482,9 @@ class MLEParams:
         that scores better on eq. (1) becomes the winner.
     ring_modes : bool
         For an object with an axis of revolution, also report the poses of its ring (turns
-        about the axis every 15 deg, upright and upside down) that score within the window
-        after a short climb (:func:`~certpose.estimation.modes.revolution_turns`): a can's or a
-        hidden-handle mug's continuous ambiguity as a set of modes.
+        about the axis every 15 deg, upright and upside down) that score within twice the
+        window after a short climb, unpolished (:func:`~certpose.estimation.modes.revolution_turns`):
+        a can's or a hidden-handle mug's continuous ambiguity as a set of modes.
     mode_window : float
         Local maxima of eq. (1) within this many tempered nats of the best are reported as
         competing modes (:attr:`MLEResult.modes`): nats of eq. (1) divided by the sampler's
@@ -1082,12 +1082,17 @@ def _finish(search: _Search, best: Hypothesis,
     # below the polished winner; its peak is 4.0 below, and the truth's, refined from the truth,
     # 4.9). Those inside are reported anyway: no polish (about 0.3 s each) to decide it.
     w = _window(search, best.pose)
-    # The ring's poses (an axis of revolution) are samples of a flat ridge, not peaks: no polish.
-    near = [_polish(search, h) if best.score - 2 * w <= h.score < best.score - w
-            and not h.source.startswith("ring") else h for h in others_h]
+    # The ring's poses (an axis of revolution) are samples of a flat ridge, not peaks: no polish
+    # (0.3 s each, 9 s for a can's ring); those a polish would have tried are reported as they are
+    # (a polish lifted most of them into the window).
+    def ring(h: Hypothesis) -> bool:
+        return h.source.startswith("ring")
+
+    near = [_polish(search, h) if best.score - 2 * w <= h.score < best.score - w and not ring(h) else h
+            for h in others_h]
     kept = [PoseMode(best.pose, best.score, best.source)] + [
         PoseMode(h.pose, h.score, h.source, _angle_deg(h.pose[:3, :3], best.pose[:3, :3]))
-        for h in sorted(near, key=lambda h: -h.score) if h.score >= best.score - w]
+        for h in sorted(near, key=lambda h: -h.score) if h.score >= best.score - (2 * w if ring(h) else w)]
     return best, tuple(kept)
 
 
