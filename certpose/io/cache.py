@@ -27,7 +27,7 @@ from numpy.typing import ArrayLike
 
 from certpose.geometry.objects import ObjectModel
 
-__all__ = ["default_cache_dir", "object_from_points_cached"]
+__all__ = ["default_cache_dir", "object_from_points_cached", "visibility_table_cached"]
 
 log = logging.getLogger(__name__)
 
@@ -47,11 +47,11 @@ def default_cache_dir() -> Path | None:
     return Path(base) / "certpose"
 
 
-def _source_digest() -> bytes:
+def _source_digest(sources: tuple[str, ...] = _SOURCES) -> bytes:
     import importlib.util
 
     h = hashlib.sha256()
-    for name in _SOURCES:
+    for name in sources:
         spec = importlib.util.find_spec(name)
         origin = None if spec is None else spec.origin
         if origin is None or not os.path.isfile(origin):
@@ -108,6 +108,10 @@ def _write(path: Path, model: ObjectModel) -> None:
     for k in ("colors", "normals", "areas"):
         if getattr(model, k) is not None:
             arrays[k] = getattr(model, k)
+    _save_npz(path, arrays, "object")
+
+
+def _save_npz(path: Path, arrays: dict[str, Any], what: str) -> None:
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -117,7 +121,7 @@ def _write(path: Path, model: ObjectModel) -> None:
             np.savez(f, **arrays)
         os.replace(tmp, path)
     except OSError as exc:  # a read-only or full disk costs the next call a rebuild, no more
-        log.debug("object cache %s not written: %s", path, exc)
+        log.debug("%s cache %s not written: %s", what, path, exc)
         if tmp is not None and os.path.exists(tmp):  # no half-written file left behind
             os.unlink(tmp)
 
@@ -190,3 +194,63 @@ def object_from_points_cached(
     if path is not None:
         _write(path, model)
     return model
+
+
+_VIS_FORMAT = "certpose-visibility-cache-1"
+
+
+def visibility_table_cached(points: ArrayLike, normals: ArrayLike, *, grazing: float = 0.25,
+                            cache_dir: str | os.PathLike[str] | None = None) -> Any:
+    """:func:`~certpose.model.visibility.cached_visibility_table` (default options), read from
+    ``cache_dir`` when built there before from the same points, normals and code.
+
+    A table takes about 0.5 s of ray casting per YCB-Video model; every process that builds a
+    likelihood of the model needs it (each Dask worker of a dataset run, each
+    ``certpose pose`` call). The table read back is also kept in the process's own table
+    memory, where :class:`~certpose.model.likelihood.PoseLikelihood` finds it.
+
+    Parameters
+    ----------
+    points, normals : (N, 3) array_like
+        The model's points (metres, object frame) and outward unit normals.
+    grazing : float
+        See :func:`~certpose.model.visibility.visibility_table`.
+    cache_dir : path, optional
+        Where tables are kept; ``None``: the table of the process's memory, built if needed.
+
+    Returns
+    -------
+    VisibilityTable
+        The same arrays as a fresh build.
+    """
+    from certpose.model import visibility as vis
+
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    n = np.ascontiguousarray(normals, dtype=np.float64)
+    if cache_dir is None or vis.table_in_memory(p, n, grazing=grazing):
+        return vis.cached_visibility_table(p, n, grazing=grazing)
+    h = hashlib.sha256()
+    h.update(_VIS_FORMAT.encode())
+    h.update(_source_digest(("certpose.model.visibility",)))
+    h.update(repr((p.shape, float(grazing))).encode())
+    h.update(p.tobytes())
+    h.update(n.tobytes())
+    path = Path(cache_dir) / "visibility" / f"{h.hexdigest()[:32]}.npz"
+    table = None
+    try:
+        with np.load(path, allow_pickle=False) as d:
+            if str(d["format"]) == _VIS_FORMAT:
+                table = vis.VisibilityTable(d["table"] if "table" in d.files else None,
+                                            d["normals"], int(d["faces"]), float(d["grazing"]))
+    except Exception as exc:  # absent, unreadable or partial: build afresh
+        log.debug("visibility cache %s not used: %s", path, exc)
+    if table is not None:
+        vis.remember_table(p, n, table, grazing=grazing)
+        return table
+    table = vis.cached_visibility_table(p, n, grazing=grazing)
+    arrays = {"format": np.array(_VIS_FORMAT), "normals": table.normals,
+              "faces": np.array(table.faces), "grazing": np.array(table.grazing)}
+    if table.table is not None:
+        arrays["table"] = table.table
+    _save_npz(path, arrays, "visibility")
+    return table
