@@ -121,6 +121,10 @@ def test_cached_visibility_table_is_the_built_one(tmp_path, monkeypatch) -> None
     monkeypatch.setattr(vis, "_TABLES", {})
     files[0].write_bytes(b"not an npz")
     _same_table(visibility_table_cached(model.points, model.normals, cache_dir=tmp_path), fresh)
+    # A table this process holds already is written for the other processes too.
+    files[0].unlink()
+    _same_table(visibility_table_cached(model.points, model.normals, cache_dir=tmp_path), fresh)
+    assert files[0].is_file()
     # Without a cache folder: the process's memory only.
     monkeypatch.setattr(vis, "_TABLES", {})
     _same_table(visibility_table_cached(model.points, model.normals), fresh)

@@ -227,7 +227,7 @@ def visibility_table_cached(points: ArrayLike, normals: ArrayLike, *, grazing: f
 
     p = np.ascontiguousarray(points, dtype=np.float64)
     n = np.ascontiguousarray(normals, dtype=np.float64)
-    if cache_dir is None or vis.table_in_memory(p, n, grazing=grazing):
+    if cache_dir is None:
         return vis.cached_visibility_table(p, n, grazing=grazing)
     h = hashlib.sha256()
     h.update(_VIS_FORMAT.encode())
@@ -237,6 +237,11 @@ def visibility_table_cached(points: ArrayLike, normals: ArrayLike, *, grazing: f
     h.update(n.tobytes())
     path = Path(cache_dir) / "visibility" / f"{h.hexdigest()[:32]}.npz"
     table = None
+    if vis.table_in_memory(p, n, grazing=grazing):  # built here: on disk too, for the others
+        table = vis.cached_visibility_table(p, n, grazing=grazing)
+        if not path.is_file():
+            _save_table(path, table)
+        return table
     try:
         with np.load(path, allow_pickle=False) as d:
             if str(d["format"]) == _VIS_FORMAT:
@@ -248,9 +253,13 @@ def visibility_table_cached(points: ArrayLike, normals: ArrayLike, *, grazing: f
         vis.remember_table(p, n, table, grazing=grazing)
         return table
     table = vis.cached_visibility_table(p, n, grazing=grazing)
+    _save_table(path, table)
+    return table
+
+
+def _save_table(path: Path, table: Any) -> None:
     arrays = {"format": np.array(_VIS_FORMAT), "normals": table.normals,
               "faces": np.array(table.faces), "grazing": np.array(table.grazing)}
     if table.table is not None:
         arrays["table"] = table.table
     _save_npz(path, arrays, "visibility")
-    return table
