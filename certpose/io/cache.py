@@ -8,6 +8,11 @@ is a hash of everything the result depends on: the points, the backbone, the vox
 name, the seed, and the source of the modules that build the model (and the open3d version),
 so that editing that code or upgrading open3d builds afresh instead of reading a stale model.
 
+:func:`visibility_table_cached` keeps an object model's visibility table the same way (under
+``visibility/``, keyed by the points, the normals, the grazing option and the source of
+:mod:`certpose.model.visibility`), so that the processes of a dataset run read it instead of
+each casting its rays.
+
 The program uses :func:`default_cache_dir` (``$CERTPOSE_CACHE_DIR``, else
 ``$XDG_CACHE_HOME/certpose``, else ``~/.cache/certpose``; ``CERTPOSE_CACHE_DIR=""`` turns the
 cache off); the library caches only when given a directory.
