@@ -203,8 +203,15 @@ def cluster():
     pytest.importorskip("distributed")
     from certpose.bench.runner import _local_cluster
 
-    with _local_cluster(2) as cl:
-        yield cl
+    # A cluster started before with Dask's defaults (another test) wrote Dask's malloc setting
+    # into this process's environment, which every later worker would inherit.
+    saved = os.environ.pop("MALLOC_TRIM_THRESHOLD_", None)
+    try:
+        with _local_cluster(2) as cl:
+            yield cl
+    finally:
+        if saved is not None:
+            os.environ["MALLOC_TRIM_THRESHOLD_"] = saved
 
 
 @pytest.mark.slow  # starts a 2-process LocalCluster
@@ -240,6 +247,50 @@ def test_embedded_workers_run_without_the_profiler(cluster):
     with Client(cluster.scheduler_address) as client:
         states = client.run(profiler)
     assert len(states) == 2 and all(s == (False, False) for s in states.values()), states
+
+
+@pytest.mark.slow  # starts a 2-process LocalCluster
+def test_embedded_workers_split_no_eq1_batch_among_threads(cluster):
+    # One single-thread worker per core: a worker that split its eq. (1) batches between
+    # threads would compete with the other workers for the cores.
+    from distributed import Client
+
+    def pool_threads() -> int:
+        from certpose.model.likelihood import _pool
+
+        return _pool()[1]
+
+    with Client(cluster.scheduler_address) as client:
+        sizes = client.run(pool_threads)
+    assert len(sizes) == 2 and set(sizes.values()) == {1}, sizes
+
+
+def _faults_of_reallocations() -> int:
+    """Page faults of 50 allocations of a freed 2 MB array (glibc serves them from the heap
+    once its dynamic mmap threshold has seen one freed: about one allocation's 512 pages)."""
+    import resource
+
+    a = np.ones(1 << 18)
+    del a
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(50):
+        a = np.ones(1 << 18)
+        del a
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+
+@pytest.mark.slow  # starts a 2-process LocalCluster
+def test_embedded_workers_reuse_freed_memory(cluster):
+    # Dask's default MALLOC_TRIM_THRESHOLD_ turns off glibc's dynamic mmap threshold: every
+    # large array is mapped and faulted in afresh (50 x 512 pages here; in a pose run, 20 s of
+    # system time over the 60 YCB-Video targets).
+    from distributed import Client
+
+    with Client(cluster.scheduler_address) as client:
+        faults = client.run(_faults_of_reallocations)
+        env = client.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_"))
+    assert len(faults) == 2 and all(f < 50 * 512 / 4 for f in faults.values()), faults
+    assert set(env.values()) == {None}, env
 
 
 def _threadpools() -> list[dict]:

@@ -7,7 +7,12 @@ import pytest
 
 from certpose.geometry.features import FPFHBackbone
 from certpose.geometry.objects import object_from_points
-from certpose.io.cache import _key, default_cache_dir, object_from_points_cached
+from certpose.io.cache import (
+    _key,
+    default_cache_dir,
+    object_from_points_cached,
+    visibility_table_cached,
+)
 from tests.conftest import box_surface
 
 
@@ -73,3 +78,54 @@ def test_cached_revolution_model_has_its_own_key(tmp_path) -> None:
                                     revolution="auto"), sym)
     assert not np.array_equal(plain.points, sym.points)
     assert _key(pts, FPFHBackbone(), 0.005, "", 0) != _key(pts, FPFHBackbone(), 0.005, "", 0, "auto")
+
+
+def _same_table(a, b) -> None:
+    assert (a.faces, a.grazing) == (b.faces, b.grazing)
+    np.testing.assert_array_equal(a.normals, b.normals)
+    assert (a.table is None) == (b.table is None)
+    if a.table is not None:
+        np.testing.assert_array_equal(a.table, b.table)
+
+
+def test_cached_visibility_table_is_the_built_one(tmp_path, monkeypatch) -> None:
+    from certpose.model import visibility as vis
+
+    # Two balls 3 cm apart: not convex (each hides part of the other), so a table is not None.
+    rng = np.random.default_rng(2)
+    normals = rng.normal(size=(800, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    points = 0.01 * normals + np.where(np.arange(800)[:, None] < 400, 0.0, 1.0) * [0.03, 0, 0]
+    model = type("Model", (), {"points": points, "normals": normals})
+    build = vis.visibility_table
+    fresh = build(model.points, model.normals)
+    assert fresh.table is not None
+    monkeypatch.setattr(vis, "_TABLES", {})
+    first = visibility_table_cached(model.points, model.normals, cache_dir=tmp_path)
+    files = list((tmp_path / "derived").glob("visibility-*.npz"))
+    assert len(files) == 1
+    _same_table(first, fresh)
+    # Another process (an empty table memory) reads it back instead of casting rays, and
+    # keeps it where the likelihood looks for it.
+    monkeypatch.setattr(vis, "_TABLES", {})
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("rebuilt")
+
+    monkeypatch.setattr(vis, "visibility_table", no_build)
+    second = visibility_table_cached(model.points, model.normals, cache_dir=tmp_path)
+    _same_table(second, fresh)
+    assert vis.cached_visibility_table(model.points, model.normals) is second
+    # A damaged file is rebuilt, not read.
+    monkeypatch.setattr(vis, "visibility_table", build)
+    monkeypatch.setattr(vis, "_TABLES", {})
+    files[0].write_bytes(b"not an npz")
+    _same_table(visibility_table_cached(model.points, model.normals, cache_dir=tmp_path), fresh)
+    # A table this process holds already is written for the other processes too.
+    files[0].unlink()
+    _same_table(visibility_table_cached(model.points, model.normals, cache_dir=tmp_path), fresh)
+    assert files[0].is_file()
+    # Without a cache folder: the process's memory only.
+    monkeypatch.setattr(vis, "_TABLES", {})
+    _same_table(visibility_table_cached(model.points, model.normals), fresh)
+    assert len(list((tmp_path / "derived").glob("visibility-*.npz"))) == 1

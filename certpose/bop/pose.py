@@ -30,17 +30,26 @@ _MODELS: dict[tuple[Any, ...], Any] = {}
 def object_model(ds: Any, obj_id: int, params: Any, *, cache_dir: str | Path | None = None) -> Any:
     """The geometry-only object model of ``obj_id`` (FPFH descriptors, the pipeline's voxel size
     and revolution option), built once per process and dataset object; with ``cache_dir``
-    kept on disk across processes (:func:`~certpose.io.cache.object_from_points_cached`)."""
+    kept on disk across processes (:func:`~certpose.io.cache.object_from_points_cached`), and
+    so is its visibility table when eq. (1) weighs points by visibility
+    (:func:`~certpose.io.cache.visibility_table_cached`): a dataset run's workers read both
+    instead of building them each."""
     from certpose.geometry.features import FPFHBackbone
-    from certpose.io.cache import object_from_points_cached
+    from certpose.io.cache import object_from_points_cached, visibility_table_cached
 
     key = (str(ds.root.resolve()), int(obj_id), float(params.voxel_size),
            bool(params.model_revolution), None if cache_dir is None else str(cache_dir))
     if key not in _MODELS:
         obj = ds.object(obj_id)
-        _MODELS[key] = object_from_points_cached(
+        model = object_from_points_cached(
             obj.points, FPFHBackbone(), voxel_size=params.voxel_size, name=obj.name,
             cache_dir=cache_dir, revolution="auto" if params.model_revolution else None)
+        lik = params.likelihood
+        if (cache_dir is not None and lik.visibility and lik.free_space != "voxels"
+                and model.normals is not None):
+            visibility_table_cached(model.points, model.normals, grazing=lik.visibility_grazing,
+                                    cache_dir=cache_dir)
+        _MODELS[key] = model
     return _MODELS[key]
 
 

@@ -204,6 +204,18 @@ def _pose_task(root: str, split: str, scene_id: int, im_id: int,
     return pose_image(root, split, scene_id, im_id, targets, **kwargs)
 
 
+def _one_thread_open3d() -> None:
+    """Open3D's parallel loops on one thread in an embedded worker (its TBB pool takes every
+    core by default and ignores the worker's thread variables): the worker is one of one
+    single-thread worker per core. The poses do not depend on it (the benchmark and the tests
+    compare the rows with those of an in-process run)."""
+    try:
+        import open3d as o3d
+    except ImportError:
+        return
+    o3d.utility.set_max_threads(1)
+
+
 def _run_dask(todo: Sequence[tuple[int, int, list[tuple[int, int]]]], root: str, split: str,
               kwargs: dict[str, Any], *, workers: int | None, scheduler: str | None,
               emit: Callable[[Any], None]) -> None:
@@ -223,6 +235,7 @@ def _run_dask(todo: Sequence[tuple[int, int, list[tuple[int, int]]]], root: str,
             cluster = _local_cluster(workers or os.cpu_count() or 1)
             client = distributed.Client(cluster)
         client.run(_ignore_sigint)
+        client.run(_one_thread_open3d)
     try:
         slots = max(sum(client.nthreads().values()), 1)
         # Images with the most targets first: the last tasks are short, the workers end together.

@@ -8,6 +8,11 @@ is a hash of everything the result depends on: the points, the backbone, the vox
 name, the seed, and the source of the modules that build the model (and the open3d version),
 so that editing that code or upgrading open3d builds afresh instead of reading a stale model.
 
+:func:`visibility_table_cached` keeps an object model's visibility table the same way (under
+``visibility/``, keyed by the points, the normals, the grazing option and the source of
+:mod:`certpose.model.visibility`), so that the processes of a dataset run read it instead of
+each casting its rays.
+
 The program uses :func:`default_cache_dir` (``$CERTPOSE_CACHE_DIR``, else
 ``$XDG_CACHE_HOME/certpose``, else ``~/.cache/certpose``; ``CERTPOSE_CACHE_DIR=""`` turns the
 cache off); the library caches only when given a directory.
@@ -27,7 +32,7 @@ from numpy.typing import ArrayLike
 
 from certpose.geometry.objects import ObjectModel
 
-__all__ = ["default_cache_dir", "object_from_points_cached"]
+__all__ = ["default_cache_dir", "object_from_points_cached", "visibility_table_cached"]
 
 log = logging.getLogger(__name__)
 
@@ -47,11 +52,11 @@ def default_cache_dir() -> Path | None:
     return Path(base) / "certpose"
 
 
-def _source_digest() -> bytes:
+def _source_digest(sources: tuple[str, ...] = _SOURCES) -> bytes:
     import importlib.util
 
     h = hashlib.sha256()
-    for name in _SOURCES:
+    for name in sources:
         spec = importlib.util.find_spec(name)
         origin = None if spec is None else spec.origin
         if origin is None or not os.path.isfile(origin):
@@ -108,6 +113,10 @@ def _write(path: Path, model: ObjectModel) -> None:
     for k in ("colors", "normals", "areas"):
         if getattr(model, k) is not None:
             arrays[k] = getattr(model, k)
+    _save_npz(path, arrays, "object")
+
+
+def _save_npz(path: Path, arrays: dict[str, Any], what: str) -> None:
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -117,7 +126,7 @@ def _write(path: Path, model: ObjectModel) -> None:
             np.savez(f, **arrays)
         os.replace(tmp, path)
     except OSError as exc:  # a read-only or full disk costs the next call a rebuild, no more
-        log.debug("object cache %s not written: %s", path, exc)
+        log.debug("%s cache %s not written: %s", what, path, exc)
         if tmp is not None and os.path.exists(tmp):  # no half-written file left behind
             os.unlink(tmp)
 
@@ -196,3 +205,51 @@ def object_from_points_cached(
     if path is not None:
         _write(path, model)
     return model
+
+
+def visibility_table_cached(points: ArrayLike, normals: ArrayLike, *, grazing: float = 0.25,
+                            cache_dir: str | os.PathLike[str] | None = None) -> Any:
+    """:func:`~certpose.model.visibility.cached_visibility_table` (default options), read from
+    ``cache_dir`` when built there before from the same points, normals and code.
+
+    A table takes about 0.5 s of ray casting per YCB-Video model; every process that builds a
+    likelihood of the model needs it (each Dask worker of a dataset run, each
+    ``certpose pose`` call). The table is kept in the derived-data cache of ``cache_dir``
+    (:mod:`certpose.io.derived`; a table this process holds already is written there too) and
+    in the process's own table memory, where :class:`~certpose.model.likelihood.PoseLikelihood`
+    finds it.
+
+    Parameters
+    ----------
+    points, normals : (N, 3) array_like
+        The model's points (metres, object frame) and outward unit normals.
+    grazing : float
+        See :func:`~certpose.model.visibility.visibility_table`.
+    cache_dir : path, optional
+        Where tables are kept; ``None``: the table of the process's memory (and of the derived
+        cache, when the program turned it on), built if needed.
+
+    Returns
+    -------
+    VisibilityTable
+        The same arrays as a fresh build.
+    """
+    from certpose.io.derived import derived_cache_dir, use_derived_cache
+    from certpose.model import visibility as vis
+
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    n = np.ascontiguousarray(normals, dtype=np.float64)
+    if cache_dir is None:
+        return vis.cached_visibility_table(p, n, grazing=grazing)
+    before = derived_cache_dir()
+    use_derived_cache(cache_dir)
+    try:
+        held = vis.cached_visibility_table(p, n, grazing=grazing) if vis.table_in_memory(
+            p, n, grazing=grazing) else None
+        table = vis._from_disk(p, n, float(grazing), built=held)
+    finally:
+        use_derived_cache(before)
+    vis.remember_table(p, n, held if held is not None else table, grazing=grazing)
+    return held if held is not None else table
+
+

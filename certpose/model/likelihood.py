@@ -96,11 +96,17 @@ _PARALLEL_MIN_BATCH = 16
 
 @functools.lru_cache(maxsize=1)
 def _pool() -> tuple[ThreadPoolExecutor, int]:
-    """Threads for large batches (the eq. (1) kernel releases the GIL)."""
+    """Threads for large batches (the eq. (1) kernel releases the GIL): one per core this
+    process may run on, at most numba's thread count (``NUMBA_NUM_THREADS``), so that a
+    process told to run numba on one thread (a Dask worker of a one-thread-per-core cluster)
+    does not split its batches among threads that only compete with the other workers."""
+    from numba import config
+
     try:
         n = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         n = os.cpu_count() or 1
+    n = max(1, min(n, int(config.NUMBA_NUM_THREADS)))
     return ThreadPoolExecutor(max_workers=n, thread_name_prefix="eq1"), n
 
 @dataclass(frozen=True)

@@ -33,7 +33,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from solvers.validation import check_points
 
-__all__ = ["VisibilityTable", "cached_visibility_table", "cube_directions", "scene_cameras",
+__all__ = ["VisibilityTable", "cached_visibility_table", "cube_directions", "remember_table",
+           "scene_cameras", "table_in_memory",
            "visibility_table"]
 
 log = logging.getLogger(__name__)
@@ -228,32 +229,51 @@ _TABLES: dict[bytes, VisibilityTable] = {}
 _TABLES_MAX = 16
 
 
+def _table_key(points: ArrayLike, normals: ArrayLike, grazing: float) -> bytes:
+    import hashlib
+
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    n = np.ascontiguousarray(normals, dtype=np.float64)
+    return hashlib.sha1(p.tobytes() + n.tobytes() + repr((p.shape, float(grazing))).encode()).digest()
+
+
+def remember_table(points: ArrayLike, normals: ArrayLike, table: VisibilityTable, *,
+                   grazing: float = 0.25) -> None:
+    """Keep ``table`` as :func:`cached_visibility_table`'s table of these points and normals
+    (a table read back from disk, :func:`certpose.io.cache.visibility_table_cached`)."""
+    if len(_TABLES) >= _TABLES_MAX:
+        _TABLES.pop(next(iter(_TABLES)))
+    _TABLES[_table_key(points, normals, grazing)] = table
+
+
+def table_in_memory(points: ArrayLike, normals: ArrayLike, *, grazing: float = 0.25) -> bool:
+    """Whether :func:`cached_visibility_table` holds the table of these points and normals."""
+    return _table_key(points, normals, grazing) in _TABLES
+
+
 def cached_visibility_table(points: ArrayLike, normals: ArrayLike, *, grazing: float = 0.25) -> VisibilityTable:
     """:func:`visibility_table` with default options, kept in memory for the same points and
     normals (a process builds the likelihood of one model many times: each frame, each
     sampler), and on disk when the program turned that on
     (:func:`~certpose.io.derived.use_derived_cache`). At most ``_TABLES_MAX`` tables are kept in
     memory."""
-    import hashlib
-
     p = np.ascontiguousarray(points, dtype=np.float64)
     n = np.ascontiguousarray(normals, dtype=np.float64)
-    key = hashlib.sha1(p.tobytes() + n.tobytes() + repr((p.shape, float(grazing))).encode()).digest()
-    table = _TABLES.get(key)
+    table = _TABLES.get(_table_key(p, n, grazing))
     if table is None:
         table = _from_disk(p, n, float(grazing))
-        if len(_TABLES) >= _TABLES_MAX:
-            _TABLES.pop(next(iter(_TABLES)))
-        _TABLES[key] = table
+        remember_table(p, n, table, grazing=grazing)
     return table
 
 
-def _from_disk(points: NDArray[np.float64], normals: NDArray[np.float64], grazing: float) -> VisibilityTable:
-    """:func:`visibility_table` through the derived-data cache (:mod:`certpose.io.derived`)."""
+def _from_disk(points: NDArray[np.float64], normals: NDArray[np.float64], grazing: float,
+               built: VisibilityTable | None = None) -> VisibilityTable:
+    """:func:`visibility_table` through the derived-data cache (:mod:`certpose.io.derived`);
+    ``built``: the table, already built (stored when the cache lacks it)."""
     from certpose.io.derived import cached_arrays
 
     def compute() -> dict[str, NDArray[Any]]:
-        t = visibility_table(points, normals, grazing=grazing)
+        t = built if built is not None else visibility_table(points, normals, grazing=grazing)
         out = {"normals": t.normals, "faces": np.array(t.faces), "grazing": np.array(t.grazing)}
         if t.table is not None:
             out["table"] = t.table

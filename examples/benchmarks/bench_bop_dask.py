@@ -75,7 +75,7 @@ def main() -> int:
                 wall, cpu = run(ds, out, w)
                 res[w] = (wall, out)
                 print(f"round {k + 1}, --workers {w}: {wall:.1f} s wall, {cpu:.1f} s CPU "
-                      f"(load {load0} -> {_load()})", flush=True)
+                      f"({cpu / wall:.2f} cores; load {load0} -> {_load()})", flush=True)
             same = rows(res[0][1]) == rows(res[args.workers][1])
             ratios.append(res[args.workers][0] / res[0][0])
             print(f"round {k + 1}: {args.workers} workers / in process = {ratios[-1]:.2f}; "
