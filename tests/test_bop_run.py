@@ -254,6 +254,6 @@ def test_object_build_bop_fills_the_cache(bop_ycbv, tmp_path, monkeypatch):
     assert [o["obj_id"] for o in json.loads(out.read_text())["objects"]] == [14]
     assert len(list((tmp_path / "cache" / "objects").glob("*.npz"))) == 1
     # The mug's visibility table too: the workers of a run read it instead of casting rays.
-    assert len(list((tmp_path / "cache" / "visibility").glob("*.npz"))) == 1
+    assert len(list((tmp_path / "cache" / "derived").glob("visibility-*.npz"))) == 1
     assert main(["object", "build", "--bop", str(ds), "--objects", "99", "-q"]) == 2
     assert main(["object", "build", "--bop", str(ds), "-o", "x.npz", "-q"]) == 2
