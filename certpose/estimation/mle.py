@@ -482,9 +482,11 @@ class MLEParams:
         that scores better on eq. (1) becomes the winner.
     ring_modes : bool
         For an object with an axis of revolution, also report the poses of its ring (turns
-        about the axis every 15 deg, upright and upside down) that score within twice the
-        window after a short climb, unpolished (:func:`~certpose.estimation.modes.revolution_turns`):
-        a can's or a hidden-handle mug's continuous ambiguity as a set of modes.
+        about the axis every 15 deg, upright and upside down) that score within the window
+        after a short climb, the best few just outside it polished and their gain credited to
+        the ring's other samples (:func:`~certpose.estimation.modes.revolution_turns`,
+        :data:`RING_POLISH`): a can's or a hidden-handle mug's continuous ambiguity as a set of
+        modes.
     mode_window : float
         Local maxima of eq. (1) within this many tempered nats of the best are reported as
         competing modes (:attr:`MLEResult.modes`): nats of eq. (1) divided by the sampler's
@@ -1082,18 +1084,36 @@ def _finish(search: _Search, best: Hypothesis,
     # below the polished winner; its peak is 4.0 below, and the truth's, refined from the truth,
     # 4.9). Those inside are reported anyway: no polish (about 0.3 s each) to decide it.
     w = _window(search, best.pose)
-    # The ring's poses (an axis of revolution) are samples of a flat ridge, not peaks: no polish
-    # (0.3 s each, 9 s for a can's ring); those a polish would have tried are reported as they are
-    # (a polish lifted most of them into the window).
-    def ring(h: Hypothesis) -> bool:
-        return h.source.startswith("ring")
+    # The ring's poses (an axis of revolution) are samples of a flat ridge: a polish costs about
+    # 0.3 s each (9 s for a can's ring), so only the RING_POLISH best of each ring (upright,
+    # upside down) just outside the window are polished, and what they gained is credited to
+    # that ring's other samples (unpolished, they stand lower on the same ridge).
+    band = [h for h in others_h if best.score - 2 * w <= h.score < best.score - w]
+    polish = {id(h) for h in band if not h.source.startswith("ring")}
+    for kind in ("ring:", "ring-flip:"):
+        ring_band = sorted((h for h in band if h.source.startswith(kind)), key=lambda h: -h.score)
+        polish |= {id(h) for h in ring_band[:RING_POLISH]}
+    near, gain = [], {"ring:": 0.0, "ring-flip:": 0.0}
+    for h in others_h:
+        if id(h) in polish:
+            p = _polish(search, h)
+            for kind in gain:
+                if h.source.startswith(kind):
+                    gain[kind] = max(gain[kind], p.score - h.score)
+            h = p
+        near.append(h)
 
-    near = [_polish(search, h) if best.score - 2 * w <= h.score < best.score - w and not ring(h) else h
-            for h in others_h]
+    def credit(h: Hypothesis) -> float:
+        return next((g for kind, g in gain.items() if h.source.startswith(kind)), 0.0)
+
     kept = [PoseMode(best.pose, best.score, best.source)] + [
         PoseMode(h.pose, h.score, h.source, _angle_deg(h.pose[:3, :3], best.pose[:3, :3]))
-        for h in sorted(near, key=lambda h: -h.score) if h.score >= best.score - (2 * w if ring(h) else w)]
+        for h in sorted(near, key=lambda h: -h.score) if h.score + credit(h) >= best.score - w]
     return best, tuple(kept)
+
+
+#: Ring poses just outside the modes' window that :func:`estimate_mle` polishes (the best first).
+RING_POLISH = 4
 
 
 def _window(search: _Search, T: NDArray[np.float64]) -> float:
