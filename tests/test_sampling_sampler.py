@@ -552,42 +552,30 @@ def test_half_turns_of_a_real_model_are_half_turns_refined():
 
 
 @pytest.mark.slow
-def test_half_turns_option_seeds_the_upside_down_basin():
-    # The demo at seed 4 (MLE and sampler) with a model from views above the mug only (it lacks
-    # its bottom, so upside down it is nearly itself): the mug upside down is a basin 4 tempered
-    # nats below the MLE that no pilot round reaches; without the half-turn seeds 67 tail draws there carry
-    # 5% of the weight, one of them 4% (final ESS 563 of 10,000, 2026-11-26); with them 151
-    # draws carry 0.8%, the heaviest draw 0.3% (ESS 6,193).
+def test_the_upside_down_basin_of_a_bottomless_mug_is_drawn_not_hit():
+    # The demo at seed 4 with a model from views above the mug only: it lacks its bottom, so
+    # upside down it is nearly itself. The upside-down basin scored 4 tempered nats below the MLE
+    # when no seed reached it, and 67 tail draws carried 5% of the weight, one of them 4% (ESS
+    # 563 of 10,000); the half-turn seeds were added for it. The MLE's refined principal turns
+    # now report that basin among its modes (within a few nats), so the sampler's own seeds
+    # reach it: it is drawn by many draws, none holding 1% of the weight.
     import sys
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "benchmarks"))
     from bench_sampler import build_demo
 
-    from certpose.sampling.sampler import half_turn_seeds, sample_pose_distribution, seeds_from_mle
+    from certpose.sampling.sampler import sample_pose_distribution, seeds_from_mle
 
-    lik, mle, gt = build_demo(seed=4, elevation_deg=30.0)
+    lik, mle, gt = build_demo(seed=4, elevation_deg=30.0, ring_modes=False)
     seeds = seeds_from_mle(mle)
-    H, _ = half_turn_seeds(lik, seeds[0])
-    upside = [Hi for Hi in H if _tilt_deg(Hi[:3, :3], gt[:3, :3]) > 150.0]
-    assert upside
-
-    def near_upside(mix) -> bool:  # noqa: ANN001
-        return any(np.allclose(R, U[:3, :3], atol=1e-12) and np.allclose(t, U[:3, 3], atol=1e-12)
-                   for R, t in zip(mix.rotations, mix.translations, strict=True) for U in upside)
-
-    p = ISParams(resample=10_000, half_turns=True)
-    on = sample_pose_distribution(lik, seeds, params=p, rng=4)
-    off = sample_pose_distribution(lik, seeds, params=ISParams(resample=10_000, half_turns=False), rng=4)
-    # The half turns are components of the proposal (the defensive ones keep their centres).
-    assert near_upside(on.proposal) and not near_upside(off.proposal)
-    assert "half-turn seeds" in on.message
-    assert on.success and on.weighted.ess >= 2000, on.message
-    assert on.weighted.pareto_k() < 0.7
-    # The upside-down basin is drawn, not hit by a few tail draws: no draw holds 1% of the weight.
-    w = on.weighted.weights
-    tilt = np.degrees(np.arccos(np.clip(on.weighted.rotations[:, :, 2] @ gt[:3, 2], -1, 1)))
+    assert sum(_tilt_deg(S[:3, :3], gt[:3, :3]) > 150.0 for S in seeds) >= 1
+    res = sample_pose_distribution(lik, seeds, params=ISParams(resample=10_000), rng=4)
+    assert res.success and res.weighted.ess >= 2000, res.message
+    assert res.weighted.pareto_k() < 0.7
+    w = res.weighted.weights
+    tilt = np.degrees(np.arccos(np.clip(res.weighted.rotations[:, :, 2] @ gt[:3, 2], -1, 1)))
     # Without its bottom the upturned mug differs from the upright one only where eq. (1)'s
-    # visibility and free-space tests tell them apart (about 15 nats): a fifth of the mass.
-    assert np.count_nonzero(tilt > 90.0) >= 50 and 0.0 < w[tilt > 90.0].sum() < 0.5
+    # visibility and free-space tests tell them apart: it takes a share of the mass.
+    assert np.count_nonzero(tilt > 90.0) >= 50 and 0.0 < w[tilt > 90.0].sum() < 0.6
     assert w.max() < 0.01

@@ -16,12 +16,13 @@ import numpy as np
 
 
 def build_demo(seed: int = 0, likelihood_params=None, revolution: str | None = "auto", *,  # noqa: ANN001, ANN201
-               mle: bool = True, elevation_deg=None):
+               mle: bool = True, elevation_deg=None, ring_modes: bool = True):
     """The `certpose pose --demo` scene, its likelihood, MLE and ground truth (``likelihood_params``:
     other eq. (1) constants than the defaults, for the MLE and the likelihood; ``revolution``:
     the object model's, as :func:`certpose.estimation.pipeline.run_demo`'s; ``mle=False``: no
     MLE, None in its place, about 2 s less; ``elevation_deg``: the model views' elevations,
-    :meth:`~certpose.data.synthetic.SyntheticScene.render_object_views`'s default when None)."""
+    :meth:`~certpose.data.synthetic.SyntheticScene.render_object_views`'s default when None;
+    ``ring_modes``: the MLE's, :class:`~certpose.estimation.mle.MLEParams`)."""
     from certpose.data.synthetic import make_mug_scene
     from certpose.estimation.mle import estimate_mle
     from certpose.estimation.pipeline import PoseParams, _scene_for
@@ -33,6 +34,7 @@ def build_demo(seed: int = 0, likelihood_params=None, revolution: str | None = "
     params, backbone, gen = PoseParams(), FPFHBackbone(), np.random.default_rng(seed)
     if likelihood_params is not None:
         params = replace(params, likelihood=likelihood_params)
+    params = replace(params, mle=replace(params.mle, ring_modes=ring_modes))
     sc = make_mug_scene(rng=gen)
     views = (sc.render_object_views(4) if elevation_deg is None else
              sc.render_object_views(4, elevation_deg=elevation_deg))
