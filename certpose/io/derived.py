@@ -46,22 +46,11 @@ def derived_cache_dir() -> Path | None:
 
 
 def _digest(modules: Sequence[str]) -> bytes:
-    import importlib.util
+    """The modules' source and the open3d version (:mod:`certpose.io.cache`'s digest), with
+    this cache's format."""
+    from certpose.io.cache import _source_digest
 
-    h = hashlib.sha256(_FORMAT.encode())
-    for name in modules:
-        spec = importlib.util.find_spec(name)
-        origin = None if spec is None else spec.origin
-        if origin is None or not os.path.isfile(origin):
-            raise OSError(f"no source for {name}")
-        h.update(Path(origin).read_bytes())
-    try:
-        from importlib.metadata import version
-
-        h.update(version("open3d").encode())
-    except Exception:  # open3d absent or without metadata: the key just lacks it
-        h.update(b"open3d?")
-    return h.digest()
+    return hashlib.sha256(_FORMAT.encode() + _source_digest(tuple(modules))).digest()
 
 
 def _read(path: Path) -> dict[str, NDArray[np.generic]] | None:
