@@ -53,22 +53,9 @@ def default_cache_dir() -> Path | None:
 
 
 def _source_digest(sources: tuple[str, ...] = _SOURCES) -> bytes:
-    import importlib.util
+    from certpose.io.derived import source_digest
 
-    h = hashlib.sha256()
-    for name in sources:
-        spec = importlib.util.find_spec(name)
-        origin = None if spec is None else spec.origin
-        if origin is None or not os.path.isfile(origin):
-            raise OSError(f"no source for {name}")
-        h.update(Path(origin).read_bytes())
-    try:
-        from importlib.metadata import version
-
-        h.update(version("open3d").encode())
-    except Exception:  # open3d without metadata: its absence breaks the build anyway
-        h.update(b"open3d?")
-    return h.digest()
+    return source_digest(sources)
 
 
 def _key(points: np.ndarray, backbone: Any, voxel_size: float, name: str, rng: int,

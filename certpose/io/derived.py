@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["cached_arrays", "derived_cache_dir", "use_derived_cache"]
+__all__ = ["cached_arrays", "derived_cache_dir", "source_digest", "use_derived_cache"]
 
 log = logging.getLogger(__name__)
 
@@ -45,12 +45,35 @@ def derived_cache_dir() -> Path | None:
     return _DIR[0]
 
 
-def _digest(modules: Sequence[str]) -> bytes:
-    """The modules' source and the open3d version (:mod:`certpose.io.cache`'s digest), with
-    this cache's format."""
-    from certpose.io.cache import _source_digest
+def source_digest(modules: Sequence[str]) -> bytes:
+    """SHA-256 of the modules' source files and the open3d version: what a cached result was
+    computed with (:mod:`certpose.io.cache` keys object models by it too).
 
-    return hashlib.sha256(_FORMAT.encode() + _source_digest(tuple(modules))).digest()
+    Raises
+    ------
+    OSError
+        When a module has no source file (e.g. an installed wheel without sources).
+    """
+    import importlib.util
+
+    h = hashlib.sha256()
+    for name in modules:
+        spec = importlib.util.find_spec(name)
+        origin = None if spec is None else spec.origin
+        if origin is None or not os.path.isfile(origin):
+            raise OSError(f"no source for {name}")
+        h.update(Path(origin).read_bytes())
+    try:
+        from importlib.metadata import version
+
+        h.update(version("open3d").encode())
+    except Exception:  # open3d absent or without metadata: the key just lacks it
+        h.update(b"open3d?")
+    return h.digest()
+
+
+def _digest(modules: Sequence[str]) -> bytes:
+    return hashlib.sha256(_FORMAT.encode() + source_digest(modules)).digest()
 
 
 def _read(path: Path) -> dict[str, NDArray[np.generic]] | None:
