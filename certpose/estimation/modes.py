@@ -260,7 +260,8 @@ def explore_modes(
     T0 = check_transform(T_scene_object, "T_scene_object", atol=1e-3)
     coarse = coarse_likelihood or likelihood
     scale = object_model.radius
-    S, labels = principal_symmetries(object_model.points), [f"turn:{k}" for k in range(23)]
+    S = principal_symmetries(object_model.points)
+    labels = [f"turn:{k}" for k in range(len(S))]
     if ring_margin is not None:
         R, ring_labels = revolution_turns(object_model.points)
         S, labels = np.concatenate([S, R]), labels + ring_labels
