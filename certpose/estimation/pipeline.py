@@ -1050,10 +1050,9 @@ def _demo_object_model(views: Any, backbone: Any, voxel_size: float, revolution:
     from certpose.geometry.objects import object_from_views
 
     if cache_dir is not None:
-        from certpose.io.derived import derived_cache_dir, use_derived_cache
+        from certpose.io.derived import use_derived_cache_unless_set
 
-        if derived_cache_dir() is None:
-            use_derived_cache(cache_dir)
+        use_derived_cache_unless_set(cache_dir)
     if revolution is None or cache_dir is None:
         return object_from_views(views, backbone, voxel_size=voxel_size, name="mug", revolution=revolution)
     from certpose.geometry.objects import fuse_views

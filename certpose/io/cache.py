@@ -173,10 +173,9 @@ def object_from_points_cached(
     cols = None if colors is None else np.asarray(colors, dtype=np.float64)
     path = None
     if cache_dir is not None:
-        from certpose.io.derived import derived_cache_dir, use_derived_cache
+        from certpose.io.derived import use_derived_cache_unless_set
 
-        if derived_cache_dir() is None:
-            use_derived_cache(cache_dir)
+        use_derived_cache_unless_set(cache_dir)
         try:
             key = _key(pts, backbone, voxel_size, name, int(rng), revolution, cols, mesh)
             path = Path(cache_dir) / "objects" / f"{key}.npz"

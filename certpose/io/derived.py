@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["cached_arrays", "derived_cache_dir", "source_digest", "use_derived_cache"]
+__all__ = ["cached_arrays", "derived_cache_dir", "source_digest", "use_derived_cache",
+           "use_derived_cache_unless_set"]
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +39,13 @@ def use_derived_cache(directory: str | os.PathLike[str] | None) -> None:
     """Keep derived data in ``directory`` (its ``derived/`` folder) from now on in this process;
     ``None`` turns the cache off (the default)."""
     _DIR[0] = None if directory is None else Path(directory)
+
+
+def use_derived_cache_unless_set(directory: str | os.PathLike[str]) -> None:
+    """:func:`use_derived_cache` with ``directory`` when no directory is set yet: the model
+    cache's folder keeps the models' derived data too, unless the program chose another."""
+    if _DIR[0] is None:
+        use_derived_cache(directory)
 
 
 def derived_cache_dir() -> Path | None:
