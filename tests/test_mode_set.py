@@ -271,3 +271,55 @@ def test_pose_params_take_mode_set_params_only():
     assert PoseParams(mode_set=ModeSetParams(time_limit=5)).mode_set.time_limit == 5
     with pytest.raises(TypeError, match="ModeSetParams"):
         PoseParams(mode_set=10.0)
+
+
+def ring_problem(seed: int = 0, n: int = 12) -> tuple[WeightedTLSProblem, np.ndarray]:
+    """An eq. (2)-like problem of a body of revolution: two rings of ``n`` points about z, each
+    point with every point of its ring as a candidate target, so the ``n`` turns of the true pose
+    about z are tied minima (a can's or a marker's ring)."""
+    rng = np.random.default_rng(seed)
+    a = np.arange(n) * 2 * np.pi / n
+    T0 = np.eye(4)
+    T0[:3, :3] = Rotation.random(random_state=seed).as_matrix()
+    T0[:3, 3] = rng.uniform(-0.2, 0.2, 3)
+    src, dst = [], []
+    for z in (-0.03, 0.03):
+        ring = np.c_[0.05 * np.cos(a), 0.05 * np.sin(a), np.full(n, z)]
+        for p in ring:
+            for q in ring @ T0[:3, :3].T + T0[:3, 3]:
+                src.append(p)
+                dst.append(q + rng.normal(scale=0.2 * BETA, size=3))
+    return WeightedTLSProblem(np.array(src), np.array(dst), noise_bound=BETA), T0
+
+
+def test_a_ring_of_minima_is_covered_by_few_wide_regions(monkeypatch):
+    """Near-optimal poses as far out as the seed's sampling reaches widen it: a ring of tied
+    minima ends in a few wide regions, with fewer boxes bounded than narrow regions need, and
+    every turn of the ring (and every sampled pose within the margin) inside them."""
+    problem, T0 = ring_problem()
+    params = ModeSetParams(time_limit=300, margin=0.02)
+    res = certify_mode_set(problem, T0, params=params)
+    assert res.success and res.status is ModeSetStatus.CERTIFIED, res.message
+    assert len(res.regions) <= 3 and max(r.rotation_radius for r in res.regions) > np.radians(60)
+    rng = np.random.default_rng(1)
+    n = 60_000
+    turns = 30.0 * rng.integers(0, 12, (n, 1)) + rng.normal(scale=4.0, size=(n, 1))
+    twist = Rotation.from_euler("z", turns, degrees=True).as_matrix()
+    tilt = Rotation.from_rotvec(rng.normal(scale=np.radians(1.0), size=(n, 3))).as_matrix()
+    R = T0[:3, :3] @ twist @ tilt
+    t = T0[:3, 3] + rng.normal(scale=0.3 * BETA, size=(n, 3))
+    f = cost(problem, R, t)
+    thr = res.best_cost + res.margin
+    assert np.sum(f <= thr) > 500  # the check is not vacuous
+    for k in np.flatnonzero(f <= thr):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R[k], t[k]
+        assert res.contains(T), (f[k], thr)
+    for deg in range(0, 360, 30):
+        T = T0.copy()
+        T[:3, :3] = T0[:3, :3] @ Rotation.from_euler("z", deg, degrees=True).as_matrix()
+        assert res.contains(T), deg
+    monkeypatch.setattr(ms, "_MAX_SAMPLE_ANGLE", ms._SAMPLE_ANGLE)  # regions sized within 30 deg
+    narrow = certify_mode_set(problem, T0, params=params)
+    assert narrow.success and len(narrow.regions) > 2 * len(res.regions)
+    assert res.boxes_explored < 0.8 * narrow.boxes_explored

@@ -602,6 +602,8 @@ def _internal(T: NDArray[np.float64], tab: _Tables) -> NDArray[np.float64]:
 
 _SAMPLES = 4096  # poses sampled about each seed to size its region
 _SAMPLE_ANGLE = math.radians(30.0)
+_MAX_SAMPLE_ANGLE = math.radians(120.0)
+_REACH_FULL = 0.8  # a farthest near-optimal sample this far out widens the sampling
 _SIZE_MARGINS = 8.0
 _MAX_REGIONS = 64
 _SEED_MARGINS = 1.0  # a box centre this many margins above the threshold seeds a region
@@ -623,16 +625,23 @@ def _seed_regions(problem: WeightedTLSProblem, tab: _Tables, seeds: NDArray[np.f
         if any(_angle(R, T[:3, :3]) <= r and np.abs(u0 - u).max() <= h
                for R, u, r, h in zip(Rs, us, rr, hh, strict=True)):
             continue
-        axis = gen.normal(size=(_SAMPLES, 3))
-        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-        ang = _SAMPLE_ANGLE * gen.random(_SAMPLES) ** 2  # denser near the seed
-        du = gen.uniform(-3 * beta, 3 * beta, size=(_SAMPLES, 3)) * gen.random((_SAMPLES, 1)) ** 2
-        R = Rotation.from_rotvec(axis * ang[:, None]).as_matrix() @ T[:3, :3]
-        moved = np.einsum("nij,kj->nki", R, tab.src) + (u0 + du)[:, None, :] - tab.dst
-        f = np.minimum(tab.a * np.einsum("nki,nki->nk", moved, moved), tab.wc).sum(axis=1)
-        ok = f <= best + _SIZE_MARGINS * (threshold - best)
-        r_rot = float(ang[ok].max()) if ok.any() else 0.0
-        r_tr = float(np.abs(du[ok]).max()) if ok.any() else 0.0
+        reach = _SAMPLE_ANGLE
+        while True:
+            axis = gen.normal(size=(_SAMPLES, 3))
+            axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+            ang = reach * gen.random(_SAMPLES) ** 2  # denser near the seed
+            du = gen.uniform(-3 * beta, 3 * beta, size=(_SAMPLES, 3)) * gen.random((_SAMPLES, 1)) ** 2
+            R = Rotation.from_rotvec(axis * ang[:, None]).as_matrix() @ T[:3, :3]
+            moved = np.einsum("nij,kj->nki", R, tab.src) + (u0 + du)[:, None, :] - tab.dst
+            f = np.minimum(tab.a * np.einsum("nki,nki->nk", moved, moved), tab.wc).sum(axis=1)
+            ok = f <= best + _SIZE_MARGINS * (threshold - best)
+            r_rot = float(ang[ok].max()) if ok.any() else 0.0
+            r_tr = float(np.abs(du[ok]).max()) if ok.any() else 0.0
+            # Near-optimal poses up to the sampled reach: a ridge (e.g. a symmetry's ring) that
+            # one wide region covers with less border to prune than many narrow ones.
+            if r_rot < _REACH_FULL * reach or reach >= _MAX_SAMPLE_ANGLE:
+                break
+            reach = min(2.0 * reach, _MAX_SAMPLE_ANGLE)
         Rs.append(T[:3, :3].copy())
         us.append(u0)
         rr.append(1.1 * r_rot + math.radians(0.5))
