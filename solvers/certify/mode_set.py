@@ -39,7 +39,7 @@ least value over the set. The upper bound is the cost at the box centre.
 Regions are seeded about the candidates within the margin and sized on poses sampled about them
 (the farthest within a few margins: the border then lies where boxes of moderate size can be
 pruned), sampled within 30 deg and again within 60 and 120 deg while the farthest reaches the
-sampled edge: a ridge of near-optimal poses such as a body of revolution's ring then lies in one
+sampled edge and, sampled wider, lies beyond it: a ridge of near-optimal poses such as a body of revolution's ring then lies in one
 or two wide regions instead of a chain of narrow ones, whose borders cost most of the boxes (the
 large marker of YCB-Video: 7-24 s instead of 33 s to more than 60 s); a box that lies inside a region is dropped, one outside is pruned when its lower bound
 exceeds ``U + m``, kept (undecided) when no source point moves more than ``resolution`` noise
@@ -628,7 +628,7 @@ def _seed_regions(problem: WeightedTLSProblem, tab: _Tables, seeds: NDArray[np.f
         if any(_angle(R, T[:3, :3]) <= r and np.abs(u0 - u).max() <= h
                for R, u, r, h in zip(Rs, us, rr, hh, strict=True)):
             continue
-        reach = _SAMPLE_ANGLE
+        reach, sized = _SAMPLE_ANGLE, None
         while True:
             axis = gen.normal(size=(_SAMPLES, 3))
             axis /= np.linalg.norm(axis, axis=1, keepdims=True)
@@ -640,11 +640,15 @@ def _seed_regions(problem: WeightedTLSProblem, tab: _Tables, seeds: NDArray[np.f
             ok = f <= best + _SIZE_MARGINS * (threshold - best)
             r_rot = float(ang[ok].max()) if ok.any() else 0.0
             r_tr = float(np.abs(du[ok]).max()) if ok.any() else 0.0
-            # Near-optimal poses up to the sampled reach: a ridge (e.g. a symmetry's ring) that
-            # one wide region covers with less border to prune than many narrow ones.
+            if sized is not None and r_rot <= reach / 2:
+                r_rot, r_tr = sized  # nothing near-optimal past the narrower sampling's edge
+                break
+            # Near-optimal poses up to the sampled reach and, sampled wider, beyond it: a ridge
+            # (e.g. a symmetry's ring) that one wide region covers with less border to prune
+            # than a chain of narrow ones.
             if r_rot < _REACH_FULL * reach or reach >= _MAX_SAMPLE_ANGLE:
                 break
-            reach = min(2.0 * reach, _MAX_SAMPLE_ANGLE)
+            sized, reach = (r_rot, r_tr), min(2.0 * reach, _MAX_SAMPLE_ANGLE)
         Rs.append(T[:3, :3].copy())
         us.append(u0)
         rr.append(1.1 * r_rot + math.radians(0.5))
