@@ -253,6 +253,11 @@ class AppearanceBackbone:
     def dim(self) -> int:
         return _FPFH_DIM + int(self.hue_bins) + 2
 
+    @property
+    def color_columns(self) -> slice:
+        """The colour block's columns of a descriptor (after the shape block's)."""
+        return slice(_FPFH_DIM, self.dim)
+
     def describe(
         self,
         points: ArrayLike,

@@ -85,7 +85,7 @@ if TYPE_CHECKING:
     from certpose.geometry.objects import ObjectModel
     from certpose.model.classifier import ObjectClassification
 
-__all__ = ["LikelihoodParams", "PoseLikelihood", "blurred_descriptors", "blurred_terms", "free_space_depths",
+__all__ = ["LikelihoodParams", "PoseLikelihood", "palette_similarity", "blurred_descriptors", "blurred_terms", "free_space_depths",
            "free_space_values", "log_likelihood", "resolve_free_space"]
 
 log = logging.getLogger(__name__)
@@ -242,6 +242,19 @@ class LikelihoodParams:
     visibility_grazing : float
         In ``(0, 1]``, default 0.25: ``n . d`` (unit normal and direction to the camera) at which
         a point counts in full; faces seen closer to edge-on count in proportion.
+    unseen_color : {"best", "none"}
+        The colour part of the similarity of an object point that carries no colour (the colour
+        block of its descriptor is zero: no view of the model saw it), for scenes described by a
+        backbone with a colour block (``scene.backbone.color_columns``, e.g.
+        :class:`~certpose.geometry.appearance.AppearanceBackbone`) and models with some coloured
+        points. ``"best"`` (default): the largest colour similarity that any coloured point of
+        the model (the one the likelihood was built with) has with the scene at that voxel
+        (:func:`best_color_similarity`): a surface nobody saw may look like any part of the
+        object that was seen, so eq. (1) credits it with the best of them, and a pose
+        earns colour evidence only where the colours it shows tell it from the poses that
+        show unseen surface instead. ``"none"``: zero, the shape block's similarity alone (the
+        paper's ``z_null`` for the colour block). See the module docstring for the measured
+        reason.
     descriptor_blur : float
         Metres (>= 0, default 0: off). Standard deviation of a Gaussian that spreads the fused
         scene descriptors ``f_v`` of the occupied voxels over their neighbours before the
@@ -305,6 +318,7 @@ class LikelihoodParams:
     descriptor_blur: float = 0.0
     visibility: bool = True
     visibility_grazing: float = 0.25
+    unseen_color: str = "marginal"
 
     def __post_init__(self) -> None:
         for name in ("beta", "c_empty", "log_p_unobserved", "free_space_tolerance",
@@ -339,6 +353,9 @@ class LikelihoodParams:
                 "grade the voxel grid's free space; with free_space='pixels' use `depth_tolerance` "
                 "and `depth_ramp`."
             )
+        if self.unseen_color not in ("marginal", "best", "none"):
+            raise ValueError(f"`unseen_color` must be 'marginal', 'best' or 'none', got "
+                             f"{self.unseen_color!r}.")
         if not isinstance(self.visibility, (bool, np.bool_)):
             raise TypeError(f"`visibility` must be a bool, got {type(self.visibility).__name__}.")
         g = float(self.visibility_grazing)
@@ -846,8 +863,13 @@ class PoseLikelihood:
         self._index, self._background, self._logp = blurred_terms(
             self._raw_index, self._background, self._raw_logp, self.grid.voxel_size, self.params)
         self._raw_desc = self._desc
+        self._dim = d
         self._index, self._desc, self._logp = blurred_descriptors(
             self._index, self._background, self._raw_desc, self._logp, self.grid.voxel_size, self.params)
+        # The model's seen colours, for the colour of its unseen points (unseen_color="best").
+        self._color_columns = getattr(getattr(scene, "backbone", None), "color_columns", None)
+        self._palette = _palette(object_model.descriptors, self._color_columns)
+        self._desc = self._with_unseen_color(self._desc)
         self._state = state
         self._scene = scene
         self._set_depth(resolve_free_space(self.params, scene))
@@ -860,12 +882,14 @@ class PoseLikelihood:
         """Eq. (1) of the same scene and classifier for another object model (e.g. a subsample
         of this one) and optionally other ``params``, sharing this one's scene arrays instead of
         gathering and checking them again (only the free-space values are recomputed for new
-        ``params``)."""
+        ``params``). The colour credited to unseen points (``unseen_color="best"``) stays this
+        likelihood's: the best match among the coloured points of the model it was built with,
+        so that a subsample or a part of that model scores on the same scale."""
         import copy
 
-        if object_model.descriptors.shape[1] != self._desc.shape[1]:
+        if object_model.descriptors.shape[1] != self._dim:
             raise ValueError(f"Descriptor dimensions differ: object "
-                             f"{object_model.descriptors.shape[1]}, scene {self._desc.shape[1]}.")
+                             f"{object_model.descriptors.shape[1]}, scene {self._dim}.")
         other = copy.copy(self)
         if params is not None and params != self.params:
             other.params = params
@@ -876,6 +900,7 @@ class PoseLikelihood:
                 self._raw_logp, self.grid.voxel_size, params)
             other._index, other._desc, other._logp = blurred_descriptors(
                 other._index, other._background, self._raw_desc, other._logp, self.grid.voxel_size, params)
+            other._desc = other._with_unseen_color(other._desc)
             other._set_depth(resolve_free_space(params, self._scene))
             other._cells = _cell_codes(other._index, other._background, params.c_empty,
                                        other._depth_codes())
@@ -903,7 +928,14 @@ class PoseLikelihood:
         self._order = _morton_order(object_model.points, self.grid.voxel_size)
         self._inverse = np.argsort(self._order)
         self._points = np.ascontiguousarray(object_model.points[self._order], dtype=np.float64)
-        self._z = np.ascontiguousarray(object_model.descriptors[self._order], dtype=np.float32)
+        z = object_model.descriptors[self._order]
+        if self._imputes:
+            # The extra column: 1 for the points without colour, which then read their
+            # similarity with the model's seen palette from the scene's extra column.
+            cols = self._color_columns
+            blank = ~np.any(z[:, cols] != 0, axis=1)
+            z = np.hstack([z, blank[:, None].astype(z.dtype)])
+        self._z = np.ascontiguousarray(z, dtype=np.float32)
         # Area-weighted models count one unit per voxel face of surface (ObjectModel.areas).
         areas = getattr(object_model, "areas", None)
         weights = (np.ones(len(self._order)) if areas is None
@@ -934,26 +966,57 @@ class PoseLikelihood:
         self.visibility_table = table
 
     @property
+    def _imputes(self) -> bool:
+        """Whether eq. (1) credits the model's unseen points with a colour similarity."""
+        return self.params.unseen_color != "none" and self._palette is not None
+
+    def _with_unseen_color(self, desc: NDArray[np.float32]) -> NDArray[np.float32]:
+        """The scene's descriptor rows, with a last column holding each row's similarity with
+        the model's seen palette (``unseen_color``) when unseen points are credited with it."""
+        if not self._imputes:
+            return desc
+        beta = None if self.params.unseen_color == "best" else self.params.beta
+        col = palette_similarity(desc, self._palette, self._color_columns, beta=beta)
+        return np.ascontiguousarray(np.hstack([desc, col[:, None]]), dtype=np.float32)
+
+    @property
     def visible(self) -> bool:
         """Whether eq. (1) weighs the points by their visibility (``LikelihoodParams.visibility``
         with cameras and normals)."""
         return self._vis is not None
 
-    def visible_weight(self, T: ArrayLike) -> float:
-        """Sum of the point weights times their visibility at the pose ``T`` (4, 4): the weight
-        of the points eq. (1) scores by what the scene shows at that pose (``total_weight`` when
-        visibility is off)."""
+    @property
+    def point_weights(self) -> NDArray[np.float64]:
+        """The points' weights in eq. (1) (N,), in the model's order (ones unless the model
+        has :attr:`~certpose.geometry.objects.ObjectModel.areas`)."""
+        return self._weights[self._inverse]
+
+    def visibility(self, T: ArrayLike) -> NDArray[np.float64]:
+        """Visibility ``v_i`` in ``[0, 1]`` (N,) of the model points (the model's order) at the
+        pose ``T`` (4, 4): the largest over the scene's cameras, what eq. (1) weighs each
+        point's terms by (ones when visibility is off; :mod:`certpose.model.visibility`)."""
         poses, single = _as_poses(T)
         if not single:
             raise ValueError(f"Expected `T` to have shape (4, 4), got {poses.shape}.")
         if self._vis is None:
-            return self.total_weight
-        v = np.zeros(self.num_points)
+            return np.ones(self.num_points)
         R, t = poses[0][:3, :3], poses[0][:3, 3]
-        inv = np.argsort(self._order)
+        points = self._points[self._inverse]
+        v = np.zeros(self.num_points)
         for c in self._vis[3]:
-            v = np.maximum(v, self.visibility_table.visibility(self._points[inv], R.T @ (c - t))[self._order])
-        return float(np.sum(self._weights * v))
+            v = np.maximum(v, self.visibility_table.visibility(points, R.T @ (c - t)))
+        return v
+
+    def visible_weight(self, T: ArrayLike) -> float:
+        """Sum of the point weights times their visibility at the pose ``T`` (4, 4): the weight
+        of the points eq. (1) scores by what the scene shows at that pose (``total_weight`` when
+        visibility is off)."""
+        if self._vis is None:
+            poses, single = _as_poses(T)
+            if not single:
+                raise ValueError(f"Expected `T` to have shape (4, 4), got {poses.shape}.")
+            return self.total_weight
+        return float(np.sum(self.point_weights * self.visibility(T)))
 
     def _args(self) -> tuple[Any, ...]:
         p = self.params
@@ -1023,6 +1086,65 @@ class PoseLikelihood:
     def _free_charge(self) -> float:
         """What a point fully in per-pixel free space pays on top of its voxel term."""
         return self.params.c_empty - self.params.log_p_unobserved
+
+
+def _palette(descriptors: NDArray[np.float64], columns: slice | None) -> NDArray[np.float32] | None:
+    """The colour blocks (P, c) of the model points that carry colour, or None (no colour block
+    in the backbone, or no coloured point)."""
+    if columns is None:
+        return None
+    blocks = np.asarray(descriptors)[:, columns]
+    seen = np.any(blocks != 0, axis=1)
+    if not seen.any() or seen.all():
+        return None
+    return np.ascontiguousarray(blocks[seen], dtype=np.float32)
+
+
+def palette_similarity(descriptors: ArrayLike, palette: ArrayLike, columns: slice, *,
+                       beta: float | None = None, chunk: int = 4096) -> NDArray[np.float32]:
+    """For each scene descriptor row, the colour similarity of a point whose colour is one of a
+    palette's, unknown which: the log-mean-exp ``log mean_j exp(beta s_j) / beta`` of its
+    similarities ``s_j = f_v[columns] . palette[j]`` (the marginal of eq. (1)'s term under a
+    uniform prior on the palette), or their largest (``beta=None``).
+
+    Parameters
+    ----------
+    descriptors : (M, d) array_like
+        Scene descriptor rows.
+    palette : (P, c) array_like
+        Colour blocks of the model points that some view saw (``c`` columns).
+    columns : slice
+        The colour block's columns of ``descriptors`` (``c`` of them).
+    beta : float or None, optional
+        Nats per unit of similarity (>= 0; 0 gives the mean); None: the largest similarity.
+    chunk : int, optional
+        Rows per matrix product (bounds the memory at ``chunk * P`` floats).
+
+    Returns
+    -------
+    (M,) ndarray of float32
+    """
+    desc = np.asarray(descriptors, dtype=np.float32)
+    pal = np.asarray(palette, dtype=np.float32)
+    if pal.ndim != 2 or pal.shape[0] == 0:
+        raise ValueError(f"Expected `palette` to have shape (P, c) with P >= 1, got {pal.shape}.")
+    block = desc[:, columns]
+    if block.shape[1] != pal.shape[1]:
+        raise ValueError(f"The colour block has {block.shape[1]} columns, the palette {pal.shape[1]}.")
+    if beta is not None and not (math.isfinite(beta) and beta >= 0):
+        raise ValueError(f"`beta` must be finite and >= 0, got {beta}.")
+    out = np.empty(desc.shape[0], dtype=np.float32)
+    for s in range(0, desc.shape[0], int(chunk)):
+        sim = (block[s:s + int(chunk)] @ pal.T).astype(np.float64)
+        top = sim.max(axis=1)
+        if beta is None:
+            out[s:s + int(chunk)] = top
+        elif beta == 0:
+            out[s:s + int(chunk)] = sim.mean(axis=1)
+        else:
+            out[s:s + int(chunk)] = top + np.log(np.mean(np.exp(beta * (sim - top[:, None])),
+                                                         axis=1)) / beta
+    return out
 
 
 def resolve_free_space(params: LikelihoodParams, scene: Any) -> LikelihoodParams:
