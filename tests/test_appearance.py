@@ -74,8 +74,8 @@ def test_unseen_points_carry_no_appearance(gelatin):
     # Their colour block is zero: no guessed colour, so no colour similarity either way.
     assert np.all(colour_block[~seen] == 0.0)
     assert np.all(m.colors[~seen] == 0.0)
-    # The model says how much of its surface was seen.
-    assert gelatin.seen_fraction == pytest.approx(seen.mean())
+    # The model says how much of its surface was seen (by area: it is sampled over its surface).
+    assert gelatin.seen_fraction == pytest.approx(m.areas[seen].sum() / m.areas.sum())
     assert 0.0 < gelatin.seen_fraction < 1.0
     assert np.all(np.linalg.norm(colour_block[seen], axis=1) > 0)
     # Their shape part is kept: it is known from the model points.
@@ -98,7 +98,7 @@ def test_save_load_round_trip(gelatin, tmp_path):
     assert back.backbone == gelatin.backbone
     assert back.views == ("0000/000001", "0000/000002") and back.scenes == ("0000",)
     assert back.model.name == OBJ and back.voxel_size == gelatin.voxel_size
-    assert back.model.areas is None
+    np.testing.assert_array_equal(back.model.areas, gelatin.model.areas)
 
 
 def test_surface_sampled_appearance_model(root, tmp_path):
@@ -112,6 +112,9 @@ def test_surface_sampled_appearance_model(root, tmp_path):
     path = tmp_path / "gelatin_surface.npz"
     built.save(path)
     np.testing.assert_array_equal(BuiltObjectModel.load(path).model.areas, m.areas)
+    # The default; voxel averages on request carry no areas.
+    assert np.array_equal(build_ycbv_object_model(root, ["0000/000001"], OBJ).model.areas, m.areas)
+    assert build_ycbv_object_model(root, ["0000/000001"], OBJ, sampling="voxel").model.areas is None
     with pytest.raises(ValueError, match="sampling"):
         build_ycbv_object_model(root, ["0000/000001"], OBJ, sampling="mesh")
 
