@@ -8,15 +8,13 @@ histogram of the coloured points within ``color_radius``), which see print and t
 
 Visibility (:func:`project_model_colors`): a model point takes colour from a view only where it
 projects inside the image and the object's mask, its depth agrees with the measured depth
-(within ``depth_tolerance``) and its normal faces the camera. Points that no view saw carry "no
-information" about their own print: by default (``unseen="prior"``) their colour block is the mean
-colour block of the seen points (the object's palette, a shorter vector: the expected match of an
-unknown surface of this object) and their shape block is kept, since shape is known from the model
-points. A zero colour block (``unseen="shape"``) or a zero descriptor (``unseen="zero"``, the
-``z_null`` of eq. (1)) rewards poses that turn the seen side towards the camera (measured: the
-mustard bottle, model from scene 0002 whose camera sees its other side, evaluated in scene 0050:
-truth ahead of the flip by 4-10 nats with ``"shape"``, by about 55 with ``"prior"``, 57-65 with
-geometry only; ``"zero"`` returned the flip; all with the former weights, colour weight 0.5 and similarity scale 1).
+(within ``depth_tolerance``) and its normal faces the camera. Points that no view saw carry no
+information about their own print: by default (``unseen="shape"``) their colour block is zero
+and their shape block is kept (shape is known from the model points); the model records which
+points were seen (:attr:`BuiltObjectModel.observed`, :attr:`BuiltObjectModel.seen_fraction`).
+Eq. (1) credits such a point with the marginal of the seen colours at the voxel it lands on
+(:class:`~certpose.model.likelihood.LikelihoodParams`' ``unseen_color``), not with a guessed
+colour of its own.
 
 The scene must be described with the *same* backbone (:attr:`BuiltObjectModel.backbone`), so
 that object and scene descriptors are comparable; ``certpose pose --object-model`` does that.
@@ -183,6 +181,10 @@ class AppearanceBackbone:
     ================  ==========================================  ===========================
 
     Shape keeps weight ``(1 - w) * scale = 0.4`` and colour gets 3.6 per unit of similarity.
+    (The rest of this paragraph predates eq. (1)'s marginal colour for unseen points,
+    ``LikelihoodParams.unseen_color``, and surface-sampled models: with both, the mustard bottle
+    comes back right in the three frames of 0002 and turned in those of 0050, with the truth
+    inside the pose distribution's 90% credible region; docs/benchmarks/pose.md.)
     Every mask-classifier pair was within 1 cm ADD-S in every row but the first (17/18). What is
     left: the mustard bottle in scene 0050 built from 0002, whose camera saw only its other side
     (2-3% of the points 0050 sees were seen), turns in 1-2 of 3 frames and eq. (1) prefers the
