@@ -13,9 +13,20 @@ the diameter), rotation error and flips (more than 150 degrees off, non-symmetri
 ground truth refined locally on the same eq. (1) (as ``bench_basins.py``): a gap below -1 nat
 is a missed basin (the search's fault); a refined truth below a wrong returned pose means the
 likelihood prefers the wrong pose (the model's fault); the gap is split into its parts (they sum
-to it): classifier and free space, the shape block of the similarity, and the colour block on
-the model points some view saw and on those none saw (``gap_terms``). The raw eq. (2) pose (item 2) is scored
-too, and whether the eq. (2) hypothesis won.
+to it): classifier and free space, the shape block of the similarity, the colour block on the
+model points some view saw, and the colour eq. (1) credits to those none saw (``gap_terms``;
+``LikelihoodParams.unseen_color``). The raw eq. (2) pose (item 2) is scored too, and whether the
+eq. (2) hypothesis won.
+
+Each pair reports the share of what the test frame shows that the model's views saw
+(``seen_share``: at the true pose, the model points weighted by their visibility from the
+camera, :meth:`~certpose.model.likelihood.PoseLikelihood.visibility`, as eq. (1) weighs them,
+and of that weight the part on points some view saw, ``BuiltObjectModel.observed``; 1 for
+geometry-only models). With ``--samples N`` (default 2000; 0: off) the pose distribution is
+sampled as ``certpose pose --samples N`` samples it and each pair reports the truth's credible
+level (``PoseDistribution.credible_level``: inside the 90% region iff <= 0.9) and the mass within
+20 degrees of the truth's rotation. Appearance models' summary splits the non-symmetric pairs
+into those whose views saw at least a third of what the frame shows and the rest.
 
 Object models (``--models``):
 
@@ -34,6 +45,7 @@ Usage::
         [--seed S] [--scenes 0000,0002,0049,0050]
         [--frames 000001 ...] [--objects NAME ...] [--scene-neighbors K] [--min-similarity S]
         [--box-margin PX] [--log-p-box L] [--num-seeds S] [--gnc-seeds G] [--json OUT]
+        [--samples N] [--sampling voxel|surface] [--unseen-color marginal|best|none]
 """
 
 from __future__ import annotations
@@ -150,10 +162,15 @@ def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: i
     res = run_ycbv(root, frame, name, params=params, rng=seed, object_model=object_model,
                    classifier=classifier)
     wall = time.perf_counter() - t0
-    level = math.nan
+    level = mass = math.nan
     if res.distribution is not None:
+        from solvers.lie import rotation_error_deg
+
         G = res.T_camera_object_gt
-        level = float(res.distribution.credible_level(G[:3, :3], G[:3, 3]))
+        d = res.distribution
+        level = float(d.credible_level(G[:3, :3], G[:3, 3]))
+        near = np.array([rotation_error_deg(R, G[:3, :3]) <= 20.0 for R in d.rotations])
+        mass = float(np.sum(d.weights[near]) / np.sum(d.weights))
     pts = load_model_points(root / "models" / name / "points.xyz")
     diameter = float(np.linalg.norm(pts.max(0) - pts.min(0)))
     e = res.errors
@@ -210,6 +227,7 @@ def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: i
         "log_likelihood": float(res.log_likelihood),
         "eq1_returned": ll_ret, "eq1_truth_refined": float(ll_ref), "gap": ll_ret - float(ll_ref),
         "gap_terms": gap_terms, "seen_share": share, "truth_level": level,
+        "mass_near_truth": mass,
         "refined_truth_adds_cm": 100 * e_ref.add_s, "refined_truth_rot_deg": e_ref.rotation_deg,
         "eq2_raw_adds_cm": math.nan if e_eq2 is None else 100 * e_eq2.add_s,
         "eq2_raw_rot_deg": math.nan if e_eq2 is None else e_eq2.rotation_deg,
@@ -237,7 +255,9 @@ def share_summary(label: str, group: list[dict]) -> str:
         levels = ", ".join(f"{r['truth_level']:.2f}" for r in sampled)
         line += (f" | truth inside the 90% region {sum(r['truth_level'] <= 0.9 for r in sampled)}"
                  f"/{len(sampled)}, inside the 50% region "
-                 f"{sum(r['truth_level'] <= 0.5 for r in sampled)}/{len(sampled)} (levels {levels})")
+                 f"{sum(r['truth_level'] <= 0.5 for r in sampled)}/{len(sampled)} (levels {levels}; "
+                 f"mass within 20 deg of the truth "
+                 f"{', '.join(format(r['mass_near_truth'], '.2f') for r in sampled)})")
     return line
 
 
@@ -332,7 +352,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         g = row["gap_terms"]
         print(f"{row['case']:34s} seen {row['seen_share']:.2f} truth level "
-              f"{row['truth_level']:.3f} | ADD-S {row['adds_cm']:6.2f} cm  ADD {row['add_cm']:6.2f} cm  "
+              f"{row['truth_level']:.3f}, mass within 20 deg {row['mass_near_truth']:.2f} | ADD-S {row['adds_cm']:6.2f} cm  ADD {row['add_cm']:6.2f} cm  "
               f"rot {row['rot_deg']:6.1f} deg{' (sym)' if row['symmetric'] else '      '} | "
               f"p_O: {row['positives']:4d} buddies, precision {row['precision']:.2f} | "
               f"gap {row['gap']:+7.1f} nats (truth ref. rot {row['refined_truth_rot_deg']:5.1f}; "
