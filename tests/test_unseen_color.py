@@ -74,6 +74,12 @@ def test_palette_similarity_is_the_log_mean_exp_or_the_best():
     m = palette_similarity(desc, pal, COLS, beta=beta)
     assert np.all(m >= s.mean(axis=1) - 1e-6) and np.all(m <= s.max(axis=1) + 1e-6)
     np.testing.assert_allclose(palette_similarity(desc, pal, COLS, beta=beta, chunk=2), m)
+    # A scene row without colour has similarity 0 with every colour.
+    blank = desc.copy()
+    blank[2, COLS] = 0.0
+    got = palette_similarity(blank, pal, COLS, beta=beta)
+    assert got[2] == 0.0
+    np.testing.assert_allclose(np.delete(got, 2), np.delete(m, 2))
     with pytest.raises(ValueError, match="palette"):
         palette_similarity(desc, pal[:0], COLS)
     with pytest.raises(ValueError, match="beta"):

@@ -1158,17 +1158,24 @@ def palette_similarity(descriptors: ArrayLike, palette: ArrayLike, columns: slic
         raise ValueError(f"The colour block has {block.shape[1]} columns, the palette {pal.shape[1]}.")
     if beta is not None and not (math.isfinite(beta) and beta >= 0):
         raise ValueError(f"`beta` must be finite and >= 0, got {beta}.")
-    out = np.empty(desc.shape[0], dtype=np.float32)
-    for s in range(0, desc.shape[0], int(chunk)):
-        sim = (block[s:s + int(chunk)] @ pal.T).astype(np.float64)
+    block = np.ascontiguousarray(block)
+    out = np.zeros(desc.shape[0], dtype=np.float32)
+    # Rows without colour (a scene point nobody coloured) have similarity 0 with every colour.
+    rows = np.flatnonzero(np.any(block != 0, axis=1))
+    step = int(chunk)
+    for s in range(0, rows.size, step):
+        r = rows[s:s + step]
+        sim = block[r] @ pal.T  # float32: the likelihood stores descriptors so
         top = sim.max(axis=1)
         if beta is None:
-            out[s:s + int(chunk)] = top
+            out[r] = top
         elif beta == 0:
-            out[s:s + int(chunk)] = sim.mean(axis=1)
+            out[r] = sim.mean(axis=1)
         else:
-            out[s:s + int(chunk)] = top + np.log(np.mean(np.exp(beta * (sim - top[:, None])),
-                                                         axis=1)) / beta
+            sim -= top[:, None]
+            sim *= np.float32(beta)
+            np.exp(sim, out=sim)
+            out[r] = top + (np.log(sim.mean(axis=1, dtype=np.float64)) / beta).astype(np.float32)
     return out
 
 
