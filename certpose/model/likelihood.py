@@ -83,7 +83,7 @@ With appearance models that sample the surface
 bottle, potted-meat can, banana; models never built from the scene scored): where the views saw
 at least a third of what the frame shows (12 pairs) rotation <= 10 deg in 12 as before; where
 they saw less (the 6 mustard pairs, 2-5%) 3 against 0, and the truth inside the sampled
-distribution's 90% credible region in 5 against 0 (levels 0.55-0.90 against 1.00). Crediting
+distribution's 90% credible region in 6 against 0 (levels 0.55-0.83 against 1.00). Crediting
 unseen points with the largest similarity instead (``"best"``, voxel-averaged models) turned the
 cans and bananas, whose flips show unseen surface: rotation <= 10 deg 4 of those 12.
 """
