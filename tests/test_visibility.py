@@ -230,6 +230,10 @@ def test_kernels_agree_with_point_terms_and_the_numpy_visibility() -> None:
         want = v * (blind_terms - free) + (1 - v) * lik.params.log_p_unobserved + free
         np.testing.assert_allclose(terms, want, atol=1e-5)
         assert lik.visible_weight(poses[k]) == pytest.approx(v.sum(), rel=1e-9)
+        # The per-point visibility in the model's order, and the weights it multiplies.
+        np.testing.assert_allclose(lik.visibility(poses[k]), v, atol=1e-12)
+        np.testing.assert_array_equal(lik.point_weights, np.ones(len(p)))
+        np.testing.assert_array_equal(blind.visibility(poses[k]), np.ones(len(p)))
 
 
 def test_real_frame_cracker_box_truth_beats_its_flips() -> None:

@@ -65,9 +65,9 @@ def add_parser(subparsers: Any) -> None:
                    help="share of colour in the descriptor similarity, in [0, 1] (default: 0.9)")
     b.add_argument("--similarity-scale", type=float, default=None, metavar="S",
                    help="eq. (1)'s beta is multiplied by S for scenes and this model (default: 4)")
-    b.add_argument("--sampling", choices=("voxel", "surface"), default="voxel",
-                   help="model points averaged per voxel (default), or spread evenly over a surface "
-                        "reconstructed from them, weighted by area in eq. (1)")
+    b.add_argument("--sampling", choices=("voxel", "surface"), default="surface",
+                   help="model points spread evenly over a surface reconstructed from them, "
+                        "weighted by area in eq. (1) (default), or averaged per voxel")
     b.add_argument("-o", "--output", metavar="OUT.npz", default=None,
                    help="where to save the model (required but with --bop)")
     from certpose.cli import add_common

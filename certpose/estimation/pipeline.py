@@ -991,7 +991,7 @@ def build_ycbv_object_model(
     backbone: Any = None,
     voxel_size: float = 0.005,
     unseen: str = "shape",
-    sampling: str = "voxel",
+    sampling: str = "surface",
 ) -> BuiltObjectModel:
     """An object model with appearance from YCB-Video frames (their ground-truth poses and labels).
 

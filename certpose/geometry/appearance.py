@@ -8,15 +8,13 @@ histogram of the coloured points within ``color_radius``), which see print and t
 
 Visibility (:func:`project_model_colors`): a model point takes colour from a view only where it
 projects inside the image and the object's mask, its depth agrees with the measured depth
-(within ``depth_tolerance``) and its normal faces the camera. Points that no view saw carry "no
-information" about their own print: by default (``unseen="prior"``) their colour block is the mean
-colour block of the seen points (the object's palette, a shorter vector: the expected match of an
-unknown surface of this object) and their shape block is kept, since shape is known from the model
-points. A zero colour block (``unseen="shape"``) or a zero descriptor (``unseen="zero"``, the
-``z_null`` of eq. (1)) rewards poses that turn the seen side towards the camera (measured: the
-mustard bottle, model from scene 0002 whose camera sees its other side, evaluated in scene 0050:
-truth ahead of the flip by 4-10 nats with ``"shape"``, by about 55 with ``"prior"``, 57-65 with
-geometry only; ``"zero"`` returned the flip; all with the former weights, colour weight 0.5 and similarity scale 1).
+(within ``depth_tolerance``) and its normal faces the camera. Points that no view saw carry no
+information about their own print: by default (``unseen="shape"``) their colour block is zero
+and their shape block is kept (shape is known from the model points); the model records which
+points were seen (:attr:`BuiltObjectModel.observed`, :attr:`BuiltObjectModel.seen_fraction`).
+Eq. (1) credits such a point with the marginal of the seen colours at the voxel it lands on
+(:class:`~certpose.model.likelihood.LikelihoodParams`' ``unseen_color``), not with a guessed
+colour of its own.
 
 The scene must be described with the *same* backbone (:attr:`BuiltObjectModel.backbone`), so
 that object and scene descriptors are comparable; ``certpose pose --object-model`` does that.
@@ -183,6 +181,10 @@ class AppearanceBackbone:
     ================  ==========================================  ===========================
 
     Shape keeps weight ``(1 - w) * scale = 0.4`` and colour gets 3.6 per unit of similarity.
+    (The rest of this paragraph predates eq. (1)'s marginal colour for unseen points,
+    ``LikelihoodParams.unseen_color``, and surface-sampled models: with both, the mustard bottle
+    comes back right in the three frames of 0002 and turned in those of 0050, with the truth
+    inside the pose distribution's 90% credible region; docs/benchmarks/pose.md.)
     Every mask-classifier pair was within 1 cm ADD-S in every row but the first (17/18). What is
     left: the mustard bottle in scene 0050 built from 0002, whose camera saw only its other side
     (2-3% of the points 0050 sees were seen), turns in 1-2 of 3 frames and eq. (1) prefers the
@@ -252,6 +254,11 @@ class AppearanceBackbone:
     @property
     def dim(self) -> int:
         return _FPFH_DIM + int(self.hue_bins) + 2
+
+    @property
+    def color_columns(self) -> slice:
+        """The colour block's columns of a descriptor (after the shape block's)."""
+        return slice(_FPFH_DIM, self.dim)
 
     def describe(
         self,
@@ -507,15 +514,16 @@ def object_from_posed_views(
     name: str = "",
     depth_tolerance: float = 0.01,
     unseen: str = "shape",
-    sampling: str = "voxel",
+    sampling: str = "surface",
 ) -> BuiltObjectModel:
     """Colour and describe model points from posed RGB-D views.
 
-    The points are averaged per voxel of ``voxel_size`` (as the scene is) and given outward
-    normals (``sampling="voxel"``, the default), or spread evenly over a surface reconstructed
-    from them, with their areas (``"surface"``, see
-    :func:`~certpose.geometry.objects.sample_surface`); each view colours the points it sees (see :func:`project_model_colors`), views
-    weighted by how squarely they see a point; then ``backbone`` describes the coloured points.
+    The points are spread evenly over a surface reconstructed from them, with their areas
+    (``sampling="surface"``, the default, see :func:`~certpose.geometry.objects.sample_surface`),
+    or averaged per voxel of ``voxel_size`` (as the scene is) and given outward normals
+    (``"voxel"``); each view colours the points it sees (see :func:`project_model_colors`),
+    views weighted by how squarely they see a point; then ``backbone`` describes the coloured
+    points.
 
     Parameters
     ----------
@@ -540,11 +548,17 @@ def object_from_posed_views(
         136 nats above the truth for the descriptor term alone.
     sampling : {"voxel", "surface"}, optional
         How the model points are sampled (see
-        :func:`~certpose.geometry.objects.object_from_points`). ``"voxel"`` stays the default
-        here: with ``"surface"`` the potted-meat can built from scene 0002's views came back
-        flipped on all three 0049 frames (rotation 177-178 deg, ADD 7.2 cm; 4.0-5.5 deg and
-        0.4 cm with ``"voxel"``); the mustard bottle built from 0050 was unchanged on 0002
-        (10.6-13.7 deg against 10.5-13.1).
+        :func:`~certpose.geometry.objects.object_from_points`). Voxel averages cover a surface
+        unevenly (one point per voxel whatever the surface's slant), and the sides a pose
+        shows then weigh differently from the object's: eq. (1) without colour (the colour
+        blocks zeroed), at the refined truth against the best of its refined half turns,
+        preferred the turn of the mustard bottle in 0050/000020 (model from 0002's views) by
+        13 nats with voxel averages and the truth by 15 with the surface; the potted-meat can in
+        0002/000001 (model from 0049) preferred its turn by 56 and 11 nats, in 0049/000001
+        (model from 0002) by 12 and 28 (``examples/benchmarks/bench_box.py --models appearance
+        --classifier mask``, 18 cross-scene pairs, seed 0, with eq. (1)'s default
+        ``unseen_color``: rotation <= 10 deg in 15/18 with ``"surface"``, 14/18 with
+        ``"voxel"``; see docs/benchmarks/pose.md).
 
     Returns
     -------

@@ -13,9 +13,20 @@ the diameter), rotation error and flips (more than 150 degrees off, non-symmetri
 ground truth refined locally on the same eq. (1) (as ``bench_basins.py``): a gap below -1 nat
 is a missed basin (the search's fault); a refined truth below a wrong returned pose means the
 likelihood prefers the wrong pose (the model's fault); the gap is split into its parts (they sum
-to it): classifier and free space, the shape block of the similarity, and the colour block on
-the model points some view saw and on those none saw (``gap_terms``). The raw eq. (2) pose (item 2) is scored
-too, and whether the eq. (2) hypothesis won.
+to it): classifier and free space, the shape block of the similarity, the colour block on the
+model points some view saw, and the colour eq. (1) credits to those none saw (``gap_terms``;
+``LikelihoodParams.unseen_color``). The raw eq. (2) pose (item 2) is scored too, and whether the
+eq. (2) hypothesis won.
+
+Each pair reports the share of what the test frame shows that the model's views saw
+(``seen_share``: at the true pose, the model points weighted by their visibility from the
+camera, :meth:`~certpose.model.likelihood.PoseLikelihood.visibility`, as eq. (1) weighs them,
+and of that weight the part on points some view saw, ``BuiltObjectModel.observed``; 1 for
+geometry-only models). With ``--samples N`` (default 2000; 0: off) the pose distribution is
+sampled as ``certpose pose --samples N`` samples it and each pair reports the truth's credible
+level (``PoseDistribution.credible_level``: inside the 90% region iff <= 0.9) and the mass within
+20 degrees of the truth's rotation. Appearance models' summary splits the non-symmetric pairs
+into those whose views saw at least a third of what the frame shows and the rest.
 
 Object models (``--models``):
 
@@ -34,6 +45,7 @@ Usage::
         [--seed S] [--scenes 0000,0002,0049,0050]
         [--frames 000001 ...] [--objects NAME ...] [--scene-neighbors K] [--min-similarity S]
         [--box-margin PX] [--log-p-box L] [--num-seeds S] [--gnc-seeds G] [--json OUT]
+        [--samples N] [--sampling voxel|surface] [--unseen-color marginal|best|none]
 """
 
 from __future__ import annotations
@@ -73,7 +85,8 @@ def scenes_of(root: Path) -> dict[str, list[str]]:
 
 
 def appearance_model(root: Path, scene: str, name: str, holders: dict[str, list[str]],
-                     cache: dict, voxel_size: float, backbone=None, unseen: str | None = None):
+                     cache: dict, voxel_size: float, backbone=None, unseen: str | None = None,
+                     sampling: str | None = None):
     """The appearance model of ``name`` from every frame of the other scenes holding it."""
     from certpose.estimation.pipeline import build_ycbv_object_model
 
@@ -83,7 +96,7 @@ def appearance_model(root: Path, scene: str, name: str, holders: dict[str, list[
     key = (name, tuple(others))
     if key not in cache:
         views = [f"{s}/{m.name[:6]}" for s in others for m in sorted((root / s).glob("*-meta.mat"))]
-        kw = {} if unseen is None else {"unseen": unseen}
+        kw = {k: v for k, v in (("unseen", unseen), ("sampling", sampling)) if v is not None}
         cache[key] = build_ycbv_object_model(root, views, name, voxel_size=voxel_size,
                                              backbone=backbone, **kw)
     return cache[key]
@@ -91,29 +104,42 @@ def appearance_model(root: Path, scene: str, name: str, holders: dict[str, list[
 
 def eq1_terms(lik, obj, observed, shape_dim: int, T: np.ndarray) -> dict[str, float]:
     """Eq. (1) at pose ``T`` split into its parts (they sum to it): the classifier and free-space
-    terms (``beta = 0``), the shape block of the similarity, and the colour block on the model
-    points some view saw and on those no view saw (the builder's ``unseen`` descriptor)."""
+    terms (``beta = 0``), the shape block of the similarity, the colour block on the model
+    points some view saw, and the colour credited to those no view saw
+    (``LikelihoodParams.unseen_color``; with the builder's ``unseen`` descriptors that guess a
+    colour, their colour block)."""
     from certpose.geometry.objects import ObjectModel
 
-    base = lik.with_object(obj, params=replace(lik.params, beta=0.0)).point_terms(T)
+    plain = lik.with_object(obj, params=replace(lik.params, unseen_color="none"))
+    base = plain.with_object(obj, params=replace(plain.params, beta=0.0)).point_terms(T)
 
     def sim(cols: slice, rows: np.ndarray) -> float:
         z = np.zeros_like(obj.descriptors)
         z[np.ix_(rows, np.arange(z.shape[1])[cols])] = obj.descriptors[np.ix_(
             rows, np.arange(z.shape[1])[cols])]
         part = ObjectModel(obj.points, z, obj.colors, obj.normals, obj.name, obj.areas)
-        return float((lik.with_object(part).point_terms(T) - base).sum())
+        return float((plain.with_object(part).point_terms(T) - base).sum())
 
     everyone = np.ones(len(observed), dtype=bool)
-    return {"classifier_free_space": float(base.sum()),
-            "shape": sim(slice(0, shape_dim), everyone),
-            "colour_seen": sim(slice(shape_dim, None), observed),
-            "colour_unseen": sim(slice(shape_dim, None), ~observed)}
+    shape = sim(slice(0, shape_dim), everyone)
+    seen = sim(slice(shape_dim, None), observed)
+    total = float(lik.point_terms(T).sum())
+    return {"classifier_free_space": float(base.sum()), "shape": shape, "colour_seen": seen,
+            "colour_unseen": total - float(base.sum()) - shape - seen}
+
+
+def seen_share(lik, observed: np.ndarray, T: np.ndarray) -> float:
+    """Share of what the camera shows of the model at pose ``T`` (its points weighted by their
+    visibility from the scene's cameras, as eq. (1) weighs them) that some model view saw."""
+    w = lik.point_weights * lik.visibility(T)
+    return float(np.sum(w[observed]) / max(float(np.sum(w)), 1e-12))
 
 
 def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: int,
-             classifier: str = "best_buddies") -> dict:
-    """One pair; errors against the ground truth, eq. (1) gap, the classifier against the label."""
+             classifier: str = "best_buddies", samples: int = 0) -> dict:
+    """One pair; errors against the ground truth, eq. (1) gap, the classifier against the label,
+    the share of the truth's visible surface the model's views saw and (``samples > 0``) the
+    truth's credible level in the pose distribution."""
     from certpose.estimation.mle import refine_pose
     from certpose.estimation.pipeline import (
         YCBV_SYMMETRY_AXES,
@@ -127,10 +153,24 @@ def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: i
     from certpose.model.classifier import classify_from_mask
     from certpose.model.likelihood import PoseLikelihood
 
+    if samples:
+        from certpose.sampling.sampler import ISParams
+
+        # As ``certpose pose --samples N`` does.
+        params = replace(params, sampler=ISParams(draws=max(10_000, samples), resample=samples))
     t0 = time.perf_counter()
     res = run_ycbv(root, frame, name, params=params, rng=seed, object_model=object_model,
                    classifier=classifier)
     wall = time.perf_counter() - t0
+    level = mass = math.nan
+    if res.distribution is not None:
+        from solvers.lie import rotation_error_deg
+
+        G = res.T_camera_object_gt
+        d = res.distribution
+        level = float(d.credible_level(G[:3, :3], G[:3, 3]))
+        near = np.array([rotation_error_deg(R, G[:3, :3]) <= 20.0 for R in d.rotations])
+        mass = float(np.sum(d.weights[near]) / np.sum(d.weights))
     pts = load_model_points(root / "models" / name / "points.xyz")
     diameter = float(np.linalg.norm(pts.max(0) - pts.min(0)))
     e = res.errors
@@ -147,6 +187,7 @@ def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: i
                 else np.ones(len(obj.points), dtype=bool))
     bb = res.scene.backbone
     shape_dim = obj.descriptors.shape[1] - (int(bb.hue_bins) + 2 if hasattr(bb, "hue_bins") else 0)
+    share = seen_share(lik, observed, T_wc @ res.T_camera_object_gt)
     t_ret = eq1_terms(lik, obj, observed, shape_dim, T_wc @ res.T_camera_object)
     t_ref = eq1_terms(lik, obj, observed, shape_dim, T_ref)
     gap_terms = {k: t_ret[k] - t_ref[k] for k in t_ret}
@@ -185,7 +226,8 @@ def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: i
         "flip": name not in SYMMETRIC and e.rotation_deg > 150.0,
         "log_likelihood": float(res.log_likelihood),
         "eq1_returned": ll_ret, "eq1_truth_refined": float(ll_ref), "gap": ll_ret - float(ll_ref),
-        "gap_terms": gap_terms,
+        "gap_terms": gap_terms, "seen_share": share, "truth_level": level,
+        "mass_near_truth": mass,
         "refined_truth_adds_cm": 100 * e_ref.add_s, "refined_truth_rot_deg": e_ref.rotation_deg,
         "eq2_raw_adds_cm": math.nan if e_eq2 is None else 100 * e_eq2.add_s,
         "eq2_raw_rot_deg": math.nan if e_eq2 is None else e_eq2.rotation_deg,
@@ -197,6 +239,26 @@ def run_pair(root: Path, frame: str, name: str, params, object_model, *, seed: i
                               and res.mle.certificate.certified),
         "classifier": classifier, "seed": seed, "success": bool(res.success),
     }
+
+
+def share_summary(label: str, group: list[dict]) -> str:
+    """One line of figures for the non-symmetric pairs of one seen-share group."""
+    n = len(group)
+    if n == 0:
+        return f"{label}: no pairs"
+    sampled = [r for r in group if math.isfinite(r["truth_level"])]
+    line = (f"{label} (n={n}, seen share {min(r['seen_share'] for r in group):.2f}-"
+            f"{max(r['seen_share'] for r in group):.2f}): rotation <= 10 deg "
+            f"{sum(r['rot_deg'] <= 10 for r in group)}/{n}, flips {sum(r['flip'] for r in group)}, "
+            f"ADD-S <= 1 cm {sum(r['adds_cm'] <= 1.0 for r in group)}/{n}")
+    if sampled:
+        levels = ", ".join(f"{r['truth_level']:.2f}" for r in sampled)
+        line += (f" | truth inside the 90% region {sum(r['truth_level'] <= 0.9 for r in sampled)}"
+                 f"/{len(sampled)}, inside the 50% region "
+                 f"{sum(r['truth_level'] <= 0.5 for r in sampled)}/{len(sampled)} (levels {levels}; "
+                 f"mass within 20 deg of the truth "
+                 f"{', '.join(format(r['mass_near_truth'], '.2f') for r in sampled)})")
+    return line
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -230,6 +292,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="further eq. (2) seed poses solved with GNC alone (default Eq2Params')")
     ap.add_argument("--unseen", choices=("palette", "prior", "shape", "zero"), default=None,
                     help="descriptor of model points no view saw (default: the builder's)")
+    ap.add_argument("--sampling", choices=("voxel", "surface"), default=None,
+                    help="how the appearance models sample the model points (default: the builder's)")
+    ap.add_argument("--unseen-color", choices=("marginal", "best", "none"), default=None,
+                    help="LikelihoodParams.unseen_color (default: the library's)")
+    ap.add_argument("--samples", type=int, default=2000, metavar="N",
+                    help="sample the pose distribution as `certpose pose --samples N` and report "
+                         "the truth's credible level (0: no sampling)")
     args = ap.parse_args(argv)
     if not args.ycbv.is_dir():
         ap.error(f"--ycbv {args.ycbv} is not a directory")
@@ -244,6 +313,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.beta is not None:
         params = replace(params, likelihood=replace(params.likelihood or LikelihoodParams(),
                                                     beta=args.beta))
+    if args.unseen_color is not None:
+        params = replace(params, likelihood=replace(params.likelihood or LikelihoodParams(),
+                                                    unseen_color=args.unseen_color))
     if args.field_blur is not None:
         params = replace(params, likelihood=replace(params.likelihood or LikelihoodParams(),
                                                     field_blur=args.field_blur))
@@ -260,7 +332,9 @@ def main(argv: list[str] | None = None) -> int:
           f"{args.classifier} classifier, seed {args.seed}, beta "
           f"{(params.likelihood or LikelihoodParams()).beta:g}"
           + (f" x similarity scale {backbone.similarity_scale:g}, colour weight "
-             f"{backbone.color_weight:g}, unseen {args.unseen or 'default'}"
+             f"{backbone.color_weight:g}, unseen {args.unseen or 'default'}, sampling "
+             f"{args.sampling or 'default'}, unseen colour "
+             f"{(params.likelihood or LikelihoodParams()).unseen_color}"
              if args.models == "appearance" else "") + ", "
           f"k={c.scene_neighbors}, min similarity {c.min_similarity:g}, box margin "
           f"{c.box_margin:g} px, log p_O in the box {c.log_p_box}, eq. (2) seeds "
@@ -270,14 +344,15 @@ def main(argv: list[str] | None = None) -> int:
         model = None
         if args.models == "appearance":
             model = appearance_model(args.ycbv, frame.split("/")[0], name, holders, cache,
-                                     params.voxel_size, backbone, args.unseen)
+                                     params.voxel_size, backbone, args.unseen, args.sampling)
             if model is None:
                 continue  # seen in one scene only: no independent appearance model
         row = run_pair(args.ycbv, frame, name, params, model, seed=args.seed,
-                       classifier=args.classifier.replace("-", "_"))
+                       classifier=args.classifier.replace("-", "_"), samples=args.samples)
         rows.append(row)
         g = row["gap_terms"]
-        print(f"{row['case']:34s} ADD-S {row['adds_cm']:6.2f} cm  ADD {row['add_cm']:6.2f} cm  "
+        print(f"{row['case']:34s} seen {row['seen_share']:.2f} truth level "
+              f"{row['truth_level']:.3f}, mass within 20 deg {row['mass_near_truth']:.2f} | ADD-S {row['adds_cm']:6.2f} cm  ADD {row['add_cm']:6.2f} cm  "
               f"rot {row['rot_deg']:6.1f} deg{' (sym)' if row['symmetric'] else '      '} | "
               f"p_O: {row['positives']:4d} buddies, precision {row['precision']:.2f} | "
               f"gap {row['gap']:+7.1f} nats (truth ref. rot {row['refined_truth_rot_deg']:5.1f}; "
@@ -316,6 +391,10 @@ def main(argv: list[str] | None = None) -> int:
               f"median ADD-S {float(np.median([r['adds_cm'] for r in rows])):.2f} cm | median MLE "
               f"{float(np.median([r['mle_s'] for r in rows])):.2f} s | load average "
               f"{os.getloadavg()[0]:.2f}")
+        if args.models == "appearance":
+            for label, group in (("seen >= 1/3", [r for r in ns if r["seen_share"] >= 1 / 3]),
+                                 ("seen < 1/3", [r for r in ns if r["seen_share"] < 1 / 3])):
+                print(share_summary(label, group))
     return 0 if all(r["success"] and math.isfinite(r["adds_cm"]) for r in rows) else 1
 
 
