@@ -130,7 +130,7 @@ def test_batch_equals_slow_reference_loop():
     params = LikelihoodParams(beta=1.7, c_empty=-8.0, log_p_unobserved=math.log(0.2))
     lik = PoseLikelihood(scene, cls, obj, params=params)
     centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
-    # 40 poses: enough for the threaded kernel (>= 16) and partly outside the grid.
+    # 40 poses, partly outside the grid.
     poses = _random_poses(rng, 40, centre, 0.06)
     fast = lik(poses)
     slow = np.array([_reference(scene, cls, obj, T, params) for T in poses])
@@ -138,6 +138,21 @@ def test_batch_equals_slow_reference_loop():
     # The single-thread path and the single-pose call agree too.
     np.testing.assert_allclose(lik(poses[:3]), slow[:3], rtol=1e-5, atol=1e-4)
     assert lik(poses[5]) == pytest.approx(slow[5], rel=1e-5, abs=1e-4)
+
+
+def test_a_batch_split_among_threads_gives_each_pose_its_own_value():
+    from certpose.model.likelihood import _PARALLEL_MIN_TERMS, _pool
+
+    rng, scene, cls, obj = _world(0)
+    lik = PoseLikelihood(scene, cls, obj)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    # Enough point terms for every thread of the pool (split in order, joined in order).
+    n = 2 * max(_pool()[1], 2) * _PARALLEL_MIN_TERMS // lik.num_points + 7
+    poses = _random_poses(rng, n, centre, 0.06)
+    batch = lik(poses)
+    np.testing.assert_array_equal(batch, [lik(T) for T in poses])
+    np.testing.assert_array_equal(lik(poses[::-1]), batch[::-1])
+    assert np.unique(batch).size > n // 2
 
 
 def test_batch_of_close_poses_equals_slow_reference_loop():

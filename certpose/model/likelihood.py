@@ -90,8 +90,11 @@ __all__ = ["LikelihoodParams", "PoseLikelihood", "blurred_descriptors", "blurred
 
 log = logging.getLogger(__name__)
 
-# Below this batch size one thread beats waking the pool.
-_PARALLEL_MIN_BATCH = 16
+#: Point terms (poses times object points) a thread must get for a batch to be split among the
+#: pool's threads: below it, handing a chunk to a thread costs about what it saves. A count of
+#: poses alone misjudged both eq. (1)s of the MLE: 16 poses of a 128-point coarse model (2,000
+#: terms, a tenth of a millisecond) went to two threads, 8 poses of a 2,300-point model did not.
+_PARALLEL_MIN_TERMS = 8192
 
 
 @functools.lru_cache(maxsize=1)
@@ -994,10 +997,12 @@ class PoseLikelihood:
         poses, single = _as_poses(T)
         args = self._args()
         pool, n_threads = _pool()
-        if poses.shape[0] < _PARALLEL_MIN_BATCH or n_threads == 1:
+        n_chunks = min(n_threads, poses.shape[0],
+                       poses.shape[0] * max(self.num_points, 1) // _PARALLEL_MIN_TERMS)
+        if n_chunks <= 1:
             out = eq1_batch(poses, *args)
         else:
-            chunks = np.array_split(poses, min(n_threads, poses.shape[0] // 4))
+            chunks = np.array_split(poses, n_chunks)
             # The calling thread takes the first chunk itself: one hand-off fewer per call.
             futures = [pool.submit(eq1_batch, c, *args) for c in chunks[1:]]
             first = eq1_batch(chunks[0], *args)
