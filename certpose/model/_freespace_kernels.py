@@ -1,7 +1,7 @@
 """Numba kernel of the per-pixel free-space test; imported lazily by :mod:`certpose.model.freespace`.
 
-For each pose and object point: transform the point into every view's camera, project it to the
-nearest pixel and compare its depth ``z`` with that pixel's (min-filtered) measured depth ``d``.
+For each pose and object point: transform the point into every view's camera (the pose and the
+view's camera-from-world composed first), project it to the nearest pixel and compare its depth ``z`` with that pixel's (min-filtered) measured depth ``d``.
 The point's free-space fraction is ``clip((d - z - tolerance) / ramp, 0, 1)`` (a step at
 ``tolerance`` when ``ramp`` is 0), 0 where the pixel has no depth (``d == 0``), outside the image or
 behind the camera. Each view holds ``L`` depth images (min-filtered over growing windows), stored
@@ -32,15 +32,30 @@ _POSE_BLOCK = 32
 
 
 @njit(inline="always")
-def _fraction(qx, qy, qz, depth, T_cw, K, widths, heights, tol, ramp):  # pragma: no cover
+def _object_to_cameras(T, T_cw, M, j):  # pragma: no cover
+    """``M[j, f]`` = the 3x4 rows of ``T_cw[f] @ T``: object points straight into view ``f``'s
+    camera, one transform per point instead of two (scene, then camera)."""
+    for f in range(T_cw.shape[0]):
+        for r in range(3):
+            for c in range(4):
+                acc = T_cw[f, r, 3] if c == 3 else 0.0
+                for k in range(3):
+                    acc += T_cw[f, r, k] * T[k, c]
+                M[j, f, 4 * r + c] = acc
+
+
+@njit(inline="always")
+def _fraction(px, py, pz, M, j, depth, K, widths, heights, tol, ramp):  # pragma: no cover
+    """Free-space fraction of the object point ``(px, py, pz)`` under the camera transforms
+    ``M[j]`` (:func:`_object_to_cameras`)."""
     levels = depth.shape[3]
     best = 0.0
-    for f in range(T_cw.shape[0]):
-        z = T_cw[f, 2, 0] * qx + T_cw[f, 2, 1] * qy + T_cw[f, 2, 2] * qz + T_cw[f, 2, 3]
+    for f in range(M.shape[1]):
+        z = M[j, f, 8] * px + M[j, f, 9] * py + M[j, f, 10] * pz + M[j, f, 11]
         if z <= 1e-9:
             continue
-        x = T_cw[f, 0, 0] * qx + T_cw[f, 0, 1] * qy + T_cw[f, 0, 2] * qz + T_cw[f, 0, 3]
-        y = T_cw[f, 1, 0] * qx + T_cw[f, 1, 1] * qy + T_cw[f, 1, 2] * qz + T_cw[f, 1, 3]
+        x = M[j, f, 0] * px + M[j, f, 1] * py + M[j, f, 2] * pz + M[j, f, 3]
+        y = M[j, f, 4] * px + M[j, f, 5] * py + M[j, f, 6] * pz + M[j, f, 7]
         u = np.floor(K[f, 0] * x / z + K[f, 2] + 0.5)
         v = np.floor(K[f, 1] * y / z + K[f, 3] + 0.5)
         if u < 0.0 or v < 0.0 or u >= widths[f] or v >= heights[f]:
@@ -71,21 +86,16 @@ def free_batch(T, points, weights, depth, T_cw, K, widths, heights, tol, ramp): 
     still summed in point order, so the values are those of a pose-by-pose loop."""
     B = T.shape[0]
     out = np.zeros(B)
-    R = np.empty((_POSE_BLOCK, 12))
+    M = np.empty((_POSE_BLOCK, T_cw.shape[0], 12))
     for b0 in range(0, B, _POSE_BLOCK):
         nb = min(_POSE_BLOCK, B - b0)
         for j in range(nb):
-            for r in range(3):
-                for c in range(4):
-                    R[j, 4 * r + c] = T[b0 + j, r, c]
+            _object_to_cameras(T[b0 + j], T_cw, M, j)
         for i in range(points.shape[0]):
             px, py, pz = points[i, 0], points[i, 1], points[i, 2]
             wi = weights[i]
             for j in range(nb):
-                qx = R[j, 0] * px + R[j, 1] * py + R[j, 2] * pz + R[j, 3]
-                qy = R[j, 4] * px + R[j, 5] * py + R[j, 6] * pz + R[j, 7]
-                qz = R[j, 8] * px + R[j, 9] * py + R[j, 10] * pz + R[j, 11]
-                frac = _fraction(qx, qy, qz, depth, T_cw, K, widths, heights, tol, ramp)
+                frac = _fraction(px, py, pz, M, j, depth, K, widths, heights, tol, ramp)
                 if frac > 0.0:
                     out[b0 + j] += wi * frac
     return out
@@ -95,10 +105,9 @@ def free_batch(T, points, weights, depth, T_cw, K, widths, heights, tol, ramp): 
 def free_points(T, points, depth, T_cw, K, widths, heights, tol, ramp):  # pragma: no cover
     """Free-space fraction of each point ``(N,)`` at one pose ``T`` (4, 4)."""
     out = np.empty(points.shape[0])
+    M = np.empty((1, T_cw.shape[0], 12))
+    _object_to_cameras(T, T_cw, M, 0)
     for i in range(points.shape[0]):
-        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-        qx = T[0, 0] * px + T[0, 1] * py + T[0, 2] * pz + T[0, 3]
-        qy = T[1, 0] * px + T[1, 1] * py + T[1, 2] * pz + T[1, 3]
-        qz = T[2, 0] * px + T[2, 1] * py + T[2, 2] * pz + T[2, 3]
-        out[i] = _fraction(qx, qy, qz, depth, T_cw, K, widths, heights, tol, ramp)
+        out[i] = _fraction(points[i, 0], points[i, 1], points[i, 2], M, 0, depth, K, widths,
+                           heights, tol, ramp)
     return out
