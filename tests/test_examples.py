@@ -371,6 +371,26 @@ def test_bench_pose_calls_times_both_ways_and_checks_the_poses_agree() -> None:
 
 
 @pytest.mark.slow
+def test_bench_mle_times_each_pair_warm_and_by_stage(tmp_path: Path) -> None:
+    require_data("ycbv", "0000")
+    out = tmp_path / "mle.json"
+    proc = _run("benchmarks/bench_mle.py", "--scenes", "0000", "--objects", "009_gelatin_box",
+                "--rounds", "2", "--json", str(out))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "1 pairs built" in proc.stdout
+    row = next(x for x in proc.stdout.splitlines() if x.startswith("0000/000001 009_gelatin_box"))
+    wall, *stages, other, cpu = (float(v) for v in row.split()[2:])
+    assert wall > 0 and cpu > 0 and len(stages) == 7 and sum(stages) <= wall + 1e-6, row
+    records = json.loads(out.read_text())
+    assert [r["round"] for r in records] == [0, 1]  # the warm-up, then the timed round
+    # The same seed, the same pose both rounds; the returned pose is the first mode.
+    np.testing.assert_array_equal(records[0]["T_scene_object"], records[1]["T_scene_object"])
+    assert records[1]["modes"][0]["T_scene_object"] == records[1]["T_scene_object"]
+    assert records[1]["timings"]["total"] <= records[1]["seconds"]
+    assert "median" in proc.stdout and "load average" in proc.stdout
+
+
+@pytest.mark.slow
 def test_object_model_from_views_builds_from_a_manifest_and_poses(tmp_path: Path) -> None:
     """Posed renders written as a manifest, the model built from it, the mug posed with it."""
     proc = _run("object_model_from_views.py")

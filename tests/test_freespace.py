@@ -63,6 +63,25 @@ def test_fractions_are_the_ramp_of_the_depth(tolerance: float, ramp: float) -> N
     np.testing.assert_allclose(fs.depth(obj + T[:3, 3]), np.maximum(gaps, 0), atol=1e-12)
 
 
+def test_batches_of_poses_over_several_windows_match_each_window_on_its_own() -> None:
+    # More poses than one block of the kernel, two windows: the sum per pose is the mean over
+    # the windows of what each window's own test charges (numpy, one window at a time).
+    rng = np.random.default_rng(3)
+    d = 0.8 + 0.4 * rng.random((20, 20))
+    d[rng.random((20, 20)) < 0.1] = 0.0
+    frame = RGBDFrame(None, d, K)
+    fs = PixelFreeSpace([frame], tolerance=0.02, window=(0, 2))
+    singles = [PixelFreeSpace([frame], window=w) for w in (0, 2)]
+    pts = np.column_stack([rng.uniform(-0.08, 0.08, (200, 2)), rng.uniform(-0.3, 0.3, 200)])
+    w = rng.uniform(0.5, 2.0, 200)
+    T = np.tile(np.eye(4), (70, 1, 1))
+    T[:, :3, 3] = np.column_stack([rng.normal(scale=0.02, size=(70, 2)), rng.uniform(0.6, 1.0, 70)])
+    got = fs.weighted_sum(T, pts, w)
+    want = [w @ np.mean([s.depth(pts + t[:3, 3]) > 0.02 for s in singles], axis=0) for t in T]
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert np.ptp(got) > 1.0  # the poses differ in what they charge
+
+
 def test_the_min_filter_keeps_a_silhouettes_mixed_pixels_from_counting_as_free() -> None:
     # A foreground block at 0.5 m over columns >= 10, the background at 1 m. A point at 0.8 m
     # just beside the edge (column 8) is in front of the background pixel it projects onto, but

@@ -130,7 +130,7 @@ def test_batch_equals_slow_reference_loop():
     params = LikelihoodParams(beta=1.7, c_empty=-8.0, log_p_unobserved=math.log(0.2))
     lik = PoseLikelihood(scene, cls, obj, params=params)
     centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
-    # 40 poses: enough for the threaded kernel (>= 16) and partly outside the grid.
+    # 40 poses, partly outside the grid.
     poses = _random_poses(rng, 40, centre, 0.06)
     fast = lik(poses)
     slow = np.array([_reference(scene, cls, obj, T, params) for T in poses])
@@ -138,6 +138,21 @@ def test_batch_equals_slow_reference_loop():
     # The single-thread path and the single-pose call agree too.
     np.testing.assert_allclose(lik(poses[:3]), slow[:3], rtol=1e-5, atol=1e-4)
     assert lik(poses[5]) == pytest.approx(slow[5], rel=1e-5, abs=1e-4)
+
+
+def test_a_batch_split_among_threads_gives_each_pose_its_own_value():
+    from certpose.model.likelihood import _PARALLEL_MIN_TERMS, _pool
+
+    rng, scene, cls, obj = _world(0)
+    lik = PoseLikelihood(scene, cls, obj)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    # Enough point terms for every thread of the pool (split in order, joined in order).
+    n = 2 * max(_pool()[1], 2) * _PARALLEL_MIN_TERMS // lik.num_points + 7
+    poses = _random_poses(rng, n, centre, 0.06)
+    batch = lik(poses)
+    np.testing.assert_array_equal(batch, [lik(T) for T in poses])
+    np.testing.assert_array_equal(lik(poses[::-1]), batch[::-1])
+    assert np.unique(batch).size > n // 2
 
 
 def test_batch_of_close_poses_equals_slow_reference_loop():
@@ -586,3 +601,51 @@ def test_free_space_at_validation():
 
     assert resolve_free_space(LikelihoodParams(free_space="auto", free_space_at="point"),
                               WithFrames()).free_space == "voxels"
+
+
+@pytest.mark.parametrize("graded", [False, True])
+def test_cell_codes_follow_their_definition_cell_by_cell(graded):
+    from certpose.model._kernels import (
+        EMPTY_CODE,
+        MIXED,
+        UNIFORM,
+        UNIFORM_EMPTY,
+        UNIFORM_UNOBSERVED,
+        UNOBSERVED_CODE,
+    )
+    from certpose.model.likelihood import _cell_codes
+
+    rng = np.random.default_rng(4)
+    shape = (7, 6, 5)
+    # Mostly free space in blocks (so that uniform cells of every kind occur), a few occupied.
+    index = np.where(rng.random(shape) < 0.5, EMPTY_CODE, UNOBSERVED_CODE).astype(np.int32)
+    index[:3, :3] = UNOBSERVED_CODE
+    index[3:, 3:] = EMPTY_CODE
+    index[rng.random(shape) < 0.08] = 1
+    background = np.where(index == UNOBSERVED_CODE, -1.5, np.where(rng.random(shape) < 0.6, -8.0, -3.0))
+    background[3:, 3:] = -8.0
+    background[5:, :2] = np.nan  # NaN equals nothing: never uniform
+    depth = None
+    if graded:  # free space charged at the point: EMPTY voxels hold c_unobs, and depths
+        background[3:, 3:] = -1.5
+        g = np.where(index == EMPTY_CODE, rng.choice([0.0, 0.02, 0.05], size=shape), 0.0)
+        g[3:5, 3:] = 0.0
+        g[5:, 3:] = 0.05
+        depth = (g, 0.01, 0.0, -1.5)
+    got = _cell_codes(index, background, -8.0, depth)
+    assert got.shape == (6, 5, 4)
+    for x, y, z in np.ndindex(got.shape):
+        ci = index[x:x + 2, y:y + 2, z:z + 2].ravel()
+        cb = background[x:x + 2, y:y + 2, z:z + 2].ravel()
+        want = MIXED
+        if np.all(ci < 0) and np.all(cb == cb[0]):
+            if depth is None:
+                want = UNIFORM_EMPTY if cb[0] == -8.0 else UNIFORM
+            else:
+                cg = depth[0][x:x + 2, y:y + 2, z:z + 2].ravel()
+                want = (UNIFORM if np.all(cg <= 0.01) else
+                        UNIFORM_EMPTY if np.all(cg > 0.01) and cb[0] == -1.5 else MIXED)
+        if np.all(ci == UNOBSERVED_CODE):
+            want = UNIFORM_UNOBSERVED
+        assert got[x, y, z] == want, (x, y, z)
+    assert len(np.unique(got)) >= 3

@@ -462,6 +462,27 @@ def test_evidence_centres_ignore_far_outliers_and_merge_fragments():
         evidence_centres(pos, grid, radius=0.08, max_centres=0)
 
 
+def test_polishing_several_poses_together_gives_each_its_own_climb():
+    """The MLE polishes the modes just outside its window in one batch (``mle._polish_all``):
+    each pose must end where its own compass search, run alone, ends, to the bit."""
+    from certpose.estimation.batch import polish_poses
+    from certpose.estimation.mle import Hypothesis, MLEParams, _polish_all, _Search
+
+    obj, T, scene, cls, lik = _box_case([0.4, -0.3, 0.2], [0.0, 0.01, 0.5])
+    starts = np.stack([T @ make_transform(Rotation.from_rotvec(np.radians(d) * np.asarray(a)).as_matrix(), t)
+                       for d, a, t in ((3, [1.0, 0, 0], [0.003, 0, 0]), (5, [0, 0, 1.0], [0, -0.002, 0.002]),
+                                       (0, [1.0, 0, 0], [0, 0, 0]), (8, [0, 1.0, 0], [0.004, 0.0, -0.003]))])
+    search = _Search(lik, lik, lik, obj, 0.03, MLEParams())
+    hyps = [Hypothesis(P, float(lik(P)), f"turn:{k}") for k, P in enumerate(starts)]
+    together = _polish_all(search, hyps)
+    for h, got in zip(hyps, together, strict=True):
+        (P1,), (v1,), _ = polish_poses(lik, h.pose, scale=0.03)
+        np.testing.assert_array_equal(got.pose, P1)
+        assert got.score == v1 and got.source == h.source and got.score >= h.score
+    assert len({round(h.score, 6) for h in together}) > 1
+    assert search.n_eval > 4 and search.timings["polish"] > 0
+
+
 def test_compass_polish_climbs_to_the_top_and_never_worsens():
     from certpose.estimation.batch import polish_poses
 

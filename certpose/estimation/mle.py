@@ -1044,6 +1044,21 @@ def _polish(search: _Search, best: Hypothesis) -> Hypothesis:
     return Hypothesis(T, v, best.source)
 
 
+def _polish_all(search: _Search, hyps: list[Hypothesis]) -> list[Hypothesis]:
+    """:func:`_polish` of each of ``hyps``; the compass searches run together (one batched
+    eq. (1) call per iteration for all of them: each pose's search is the one it would run
+    alone)."""
+    if search.params.polish != "compass" or len(hyps) <= 1:
+        return [_polish(search, h) for h in hyps]
+    from certpose.estimation.batch import polish_poses
+
+    t = time.perf_counter()
+    Ts, vs, n = polish_poses(search.exact, np.stack([h.pose for h in hyps]), scale=search.scale)
+    search.n_eval += n
+    search.timings["polish"] = search.timings.get("polish", 0.0) + time.perf_counter() - t
+    return [Hypothesis(T, float(v), h.source) for T, v, h in zip(Ts, vs, hyps, strict=True)]
+
+
 def _finish(search: _Search, best: Hypothesis,
             modes: tuple[PoseMode, ...]) -> tuple[Hypothesis, tuple[PoseMode, ...]]:
     """Step 7: the winner and the competing modes refined on the exact eq. (1) (all together,
@@ -1093,10 +1108,12 @@ def _finish(search: _Search, best: Hypothesis,
     for kind in ("ring:", "ring-flip:"):
         ring_band = sorted((h for h in band if h.source.startswith(kind)), key=lambda h: -h.score)
         polish |= {id(h) for h in ring_band[:RING_POLISH]}
+    chosen = [h for h in others_h if id(h) in polish]
+    polished = dict(zip(map(id, chosen), _polish_all(search, chosen), strict=True))
     near, gain = [], {"ring:": 0.0, "ring-flip:": 0.0}
     for h in others_h:
-        if id(h) in polish:
-            p = _polish(search, h)
+        if id(h) in polished:
+            p = polished[id(h)]
             for kind in gain:
                 if h.source.startswith(kind):
                     gain[kind] = max(gain[kind], p.score - h.score)

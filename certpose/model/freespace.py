@@ -120,7 +120,7 @@ class PixelFreeSpace:
         L = len(self.windows)
         H = max(f.depth.shape[0] for f in frames)
         W = max(f.depth.shape[1] for f in frames)
-        self._depth = np.zeros((len(frames) * L, H, W))
+        self._depth = np.zeros((len(frames), H, W, L))  # a pixel's levels side by side
         for k, f in enumerate(frames):
             d0 = np.asarray(f.depth, dtype=np.float64)
             valid = d0 > 0
@@ -129,7 +129,7 @@ class PixelFreeSpace:
                 if w > 0:
                     low = minimum_filter(np.where(valid, d0, np.inf), size=2 * w + 1, mode="nearest")
                     d = np.where(valid, low, 0.0)
-                self._depth[k * L + lv, : d.shape[0], : d.shape[1]] = d
+                self._depth[k, : d.shape[0], : d.shape[1], lv] = d
         self._T_cw = np.ascontiguousarray(np.stack([np.linalg.inv(f.T_world_camera) for f in frames]))
         self._K = np.array([[f.intrinsics.fx, f.intrinsics.fy, f.intrinsics.cx, f.intrinsics.cy]
                             for f in frames], dtype=np.float64)
@@ -143,7 +143,7 @@ class PixelFreeSpace:
 
     def _views(self) -> tuple[Any, ...]:
         return (self._depth, self._T_cw, self._K, self._widths, self._heights, self.tolerance,
-                self.ramp, np.int64(len(self.windows)))
+                self.ramp)
 
     def weighted_sum(self, T: NDArray[np.float64], points: NDArray[np.float64],
                      weights: NDArray[np.float64], *, kernel: Any = None) -> NDArray[np.float64]:
@@ -189,7 +189,7 @@ class PixelFreeSpace:
                 v = np.floor(fy * c[:, 1] / z + cy + 0.5)
             ok &= (u >= 0) & (v >= 0) & (u < self._widths[k]) & (v < self._heights[k])
             d = np.zeros(q.shape[0])
-            d[ok] = self._depth[k * len(self.windows), v[ok].astype(np.int64), u[ok].astype(np.int64)]
+            d[ok] = self._depth[k, v[ok].astype(np.int64), u[ok].astype(np.int64), 0]
             seen = ok & (d > 0)
             out[seen] = np.maximum(out[seen], d[seen] - z[seen])
         return out

@@ -114,8 +114,11 @@ __all__ = ["LikelihoodParams", "PoseLikelihood", "palette_similarity", "blurred_
 
 log = logging.getLogger(__name__)
 
-# Below this batch size one thread beats waking the pool.
-_PARALLEL_MIN_BATCH = 16
+#: Point terms (poses times object points) a thread must get for a batch to be split among the
+#: pool's threads: below it, handing a chunk to a thread costs about what it saves. A count of
+#: poses alone misjudged both eq. (1)s of the MLE: 16 poses of a 128-point coarse model (2,000
+#: terms, a tenth of a millisecond) went to two threads, 8 poses of a 2,300-point model did not.
+_PARALLEL_MIN_TERMS = 8192
 
 
 @functools.lru_cache(maxsize=1)
@@ -448,25 +451,39 @@ def _cell_codes(index: NDArray[np.int32], background: NDArray[np.float64], c_emp
         UNOBSERVED_CODE,
     )
 
-    def corners(a: NDArray[Any]) -> list[NDArray[Any]]:
-        return [a[dx:a.shape[0] - 1 + dx, dy:a.shape[1] - 1 + dy, dz:a.shape[2] - 1 + dz]
-                for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
-
-    ci, cb = corners(index), corners(background)
-    free = np.logical_and.reduce([c < 0 for c in ci])
-    same = free & np.logical_and.reduce([b == cb[0] for b in cb[1:]])
+    free = _all_corners(index < 0)
+    same = free & _equal_corners(background)
+    first = background[:-1, :-1, :-1]
     cells = np.full(free.shape, MIXED, dtype=np.int8)
     if depth is None:
         cells[same] = UNIFORM
-        cells[same & (cb[0] == c_empty)] = UNIFORM_EMPTY
+        cells[same & (first == c_empty)] = UNIFORM_EMPTY
     else:
         g, start, ramp, c_unobs = depth
-        cg = corners(g)
-        cells[same & np.logical_and.reduce([c <= start for c in cg])] = UNIFORM
-        full = np.logical_and.reduce([(c > start) if ramp == 0 else (c >= start + ramp) for c in cg])
-        cells[same & full & (cb[0] == c_unobs)] = UNIFORM_EMPTY
-    cells[np.logical_and.reduce([c == UNOBSERVED_CODE for c in ci])] = UNIFORM_UNOBSERVED
+        cells[same & _all_corners(g <= start)] = UNIFORM
+        full = _all_corners((g > start) if ramp == 0 else (g >= start + ramp))
+        cells[same & full & (first == c_unobs)] = UNIFORM_EMPTY
+    cells[_all_corners(index == UNOBSERVED_CODE)] = UNIFORM_UNOBSERVED
     return cells
+
+
+def _all_corners(a: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Per cell of the grid ``a`` (X, Y, Z): whether all 8 corners are true, (X-1, Y-1, Z-1);
+    one axis at a time (3 passes over the grid instead of 15)."""
+    a = a[:-1] & a[1:]
+    a = a[:, :-1] & a[:, 1:]
+    return a[:, :, :-1] & a[:, :, 1:]
+
+
+def _equal_corners(b: NDArray[Any]) -> NDArray[np.bool_]:
+    """Per cell of the grid ``b`` (X, Y, Z): whether its 8 corners hold one value (NaN equals
+    nothing), (X-1, Y-1, Z-1); one axis at a time: the two halves of a cell along an axis are each
+    uniform and hold the same value."""
+    same = b[:-1] == b[1:]
+    b = b[:-1]
+    same = same[:, :-1] & same[:, 1:] & (b[:, :-1] == b[:, 1:])
+    b = b[:, :-1]
+    return same[:, :, :-1] & same[:, :, 1:] & (b[:, :, :-1] == b[:, :, 1:])
 
 
 def free_space_values(state: ArrayLike, voxel_size: float, params: LikelihoodParams) -> NDArray[np.float64]:
@@ -1082,10 +1099,12 @@ class PoseLikelihood:
         poses, single = _as_poses(T)
         args = self._args()
         pool, n_threads = _pool()
-        if poses.shape[0] < _PARALLEL_MIN_BATCH or n_threads == 1:
+        n_chunks = min(n_threads, poses.shape[0],
+                       poses.shape[0] * max(self.num_points, 1) // _PARALLEL_MIN_TERMS)
+        if n_chunks <= 1:
             out = eq1_batch(poses, *args)
         else:
-            chunks = np.array_split(poses, min(n_threads, poses.shape[0] // 4))
+            chunks = np.array_split(poses, n_chunks)
             # The calling thread takes the first chunk itself: one hand-off fewer per call.
             futures = [pool.submit(eq1_batch, c, *args) for c in chunks[1:]]
             first = eq1_batch(chunks[0], *args)
