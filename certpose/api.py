@@ -145,7 +145,8 @@ def register(
 
             result = certify_result(unit, result, scope=scope, tol=tol, time_limit=time_limit,
                                     rotation_fallback=scope == "auto",
-                                    prefer_certified=prefer == "certificate")
+                                    prefer_certified=prefer == "certificate",
+                                    pose_search=scope in ("auto", "full"))
     if check_significance:
         result = _judge_significance(unit, result)
     return from_unit_scale(result, scale)
