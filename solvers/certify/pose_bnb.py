@@ -50,9 +50,9 @@ STAGE_GAPS = (0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01, 0.005, 0.002)
 """Gaps (:func:`solvers.certificate.undiluted_gap`) the search proves in turn, loosest first,
 before the certificate's own tolerance; each completed stage is a proved bound."""
 
-LEAF_TERMS = 40
+LEAF_TERMS = 20
 """Cells with at most this many undecided terms are solved exactly over their inlier sets."""
-LEAF_NODES = 2000
+LEAF_NODES = 500
 """Node budget of one cell's exact solve (beyond it the cell is split instead)."""
 RECOLOUR_MAX = 1000
 """Cells with at most this many possible inliers are recoloured with their own rotations."""
