@@ -205,7 +205,7 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
         bound = out
         n_new = 0
         n_unc = 0
-        amax = 0.0
+        asum = 0.0
         inherited = np.inf
         for x in range(18):
             s[x] = 0.0
@@ -253,8 +253,7 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
                     hi_in[i] = False
                     n_unc += 1
                     bound += c_low
-                if anorm[i] > amax:
-                    amax = anorm[i]
+                asum += anorm[i]
             if bound - allowance >= thr:
                 pruned = True
                 break
@@ -348,7 +347,7 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
         nf = frames[depth + 1]
         nf[_RC], nf[_RC + 1], nf[_RC + 2], nf[_RS] = rc0, rc1, rc2, rs
         nf[_TC], nf[_TC + 1], nf[_TC + 2], nf[_TS] = tc0, tc1, tc2, ts
-        nf[_KIND] = 0.0 if srot * amax > strans else 1.0
+        nf[_KIND] = 0.0 if srot * asum / max(n_new, 1) > strans else 1.0
         nf[_NEXT] = 0.0
         cnt[depth + 1] = n_new
         outc[depth + 1] = out

@@ -559,9 +559,9 @@ def _clique_bound(
     """Lower bound on the (normalised) full problem by clique decomposition (module docstring).
 
     ``pose_search``: when the listing gives up, bound the problem by the branch and bound over
-    poses (:mod:`solvers.certify.pose_bnb`) in ``POSE_SHARE`` of the time limit (all of it
-    without ``skip_futile``, whose caller certifies a subproblem next); the tighter of its bound
-    and the others is kept.
+    poses (:mod:`solvers.certify.pose_bnb`) in ``POSE_SHARE`` of the time limit with
+    ``skip_futile`` (its caller may certify a subproblem next), else all of it; the tighter of
+    its bound and the others is kept.
 
     ``skip_futile``: when the listing gives up, the clique-number bound is not searched if it
     cannot certify whatever omega it finds (:func:`_clique_number_best_gap`); the bound is then
@@ -1219,9 +1219,12 @@ def certify_result(
         On the full problem, when the maximal cliques are too many to list (real-feature
         scans), bound it by a branch and bound over poses (:mod:`solvers.certify.pose_bnb`)
         rather than by the clique number alone: it proves gaps at a sequence of thresholds
-        (0.5, 0.3, ..., ``tol``) while time remains, in ``POSE_SHARE`` of ``time_limit`` when
-        ``rotation_fallback`` follows (``POSE_DEFAULT_TIME`` seconds without a limit). A
-        better pose it finds is returned as the certifier's.
+        (0.5, 0.3, ..., ``tol``) while time remains (``POSE_DEFAULT_TIME`` seconds without a
+        limit). With ``rotation_fallback`` it runs after the subproblem's certificate, in what
+        that leaves, for the returned pose: its certificate replaces the subproblem's when it
+        certifies, else it is recorded as ``info["full_problem_certificate"]`` (a better pose
+        it finds: its cost as ``info["full_problem_better_cost"]``). Without it, a better pose
+        it finds is returned as the certifier's.
     """
     t0 = time.perf_counter()
     tol = _check_tol(tol)
@@ -1237,7 +1240,8 @@ def certify_result(
                               pose_search=bool(pose_search))
     fallback = bool(rotation_fallback) and scope in ("auto", "full")
     if fallback:
-        kw["skip_futile"] = True
+        # The subproblem's certificate comes first; the pose search gets what it leaves.
+        kw.update(skip_futile=True, pose_search=False)
     out = _certify_once(problem, result, kw, scoped, t0)
     # Only when the full problem's bound gave up (not when it is tight and the pose is not
     # optimal: that statement is the stronger one).
@@ -1246,7 +1250,47 @@ def certify_result(
                                          CertificateStatus.SOLVER_ERROR)
     if not fallback or not gave_up:
         return out
-    return _rotation_fallback(problem, out, kw, t0, prefer_certified=bool(prefer_certified))
+    out = _rotation_fallback(problem, out, kw, t0, prefer_certified=bool(prefer_certified))
+    if pose_search and out.certificate.problem != BoundedProblem.FULL.value:
+        out = _full_after_fallback(problem, out, kw, t0)
+    return out
+
+
+def _full_after_fallback(problem: WeightedTLSProblem, out: RegistrationResult,
+                         kw: dict[str, Any], t0: float) -> RegistrationResult:
+    """The full problem bounded by the pose search for ``out``'s pose (certified on the
+    rotation subproblem) in what is left of the time limit: its certificate replaces the
+    subproblem's when it certifies, else it is recorded in ``info`` if it proves a smaller gap
+    than the one there."""
+    remaining = _remaining(kw, t0)
+    if remaining is not None and remaining <= 0:
+        return out
+    t1 = time.perf_counter()
+    R, t = np.array(out.rotation), np.array(out.translation)
+    scoped = _scope_problem(problem, "full", None)
+    pn, ws = _normalised(problem)
+    # The listing already gave up on this problem: straight to the pose search.
+    bound = _pose_search_bound(pn, R, t, tol=kw["tol"], t0=t1, share=1.0,
+                               time_limit=POSE_DEFAULT_TIME if remaining is None else remaining)
+    better = None
+    if bound.rotation is not None and bound.translation is not None:
+        better = problem.cost(bound.rotation, bound.translation)
+        better = better if better < problem.cost(R, t) else None
+    cert = _finish_certificate(problem.cost(R, t), bound, tol=kw["tol"], scoped=scoped, ws=ws,
+                               outlier_cost=_outlier_cost(problem, R, t), t0=t1, better=better)
+    info = dict(out.info)
+    if better is not None:
+        info["full_problem_better_cost"] = better
+    if cert.certified:
+        info["rotation_certificate"] = out.certificate.to_dict()
+        info.pop("full_problem_certificate", None)
+        return dataclasses.replace(out, certificate=dataclasses.replace(
+            cert, solve_time=time.perf_counter() - t0), info=info,
+            message=f"{out.message}; the full problem certified by the pose search")
+    old = info.get("full_problem_certificate")
+    if old is None or cert.relative_gap < (old.get("relative_gap") or np.inf):
+        info["full_problem_certificate"] = cert.to_dict()
+    return dataclasses.replace(out, info=info)
 
 
 def _remaining(kw: dict[str, Any], t0: float) -> float | None:
