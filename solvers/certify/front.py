@@ -1251,17 +1251,18 @@ def certify_result(
     if not fallback or not gave_up:
         return out
     out = _rotation_fallback(problem, out, kw, t0, prefer_certified=bool(prefer_certified))
-    if pose_search and out.certificate.problem != BoundedProblem.FULL.value:
+    if pose_search:
         out = _full_after_fallback(problem, out, kw, t0)
     return out
 
 
 def _full_after_fallback(problem: WeightedTLSProblem, out: RegistrationResult,
                          kw: dict[str, Any], t0: float) -> RegistrationResult:
-    """The full problem bounded by the pose search for ``out``'s pose (certified on the
-    rotation subproblem) in what is left of the time limit: its certificate replaces the
-    subproblem's when it certifies, else it is recorded in ``info`` if it proves a smaller gap
-    than the one there."""
+    """The full problem bounded by the pose search for ``out``'s pose in what is left of the
+    time limit. When ``out``'s certificate is the rotation subproblem's, the new one replaces
+    it if it certifies, else it is recorded in ``info`` if it proves a smaller gap than the one
+    there; when it is the full problem's (the subproblem certified nothing), the new one
+    replaces it if its gap is smaller."""
     remaining = _remaining(kw, t0)
     if remaining is not None and remaining <= 0:
         return out
@@ -1281,6 +1282,13 @@ def _full_after_fallback(problem: WeightedTLSProblem, out: RegistrationResult,
     info = dict(out.info)
     if better is not None:
         info["full_problem_better_cost"] = better
+    if out.certificate.problem == BoundedProblem.FULL.value:
+        if not (cert.certified or cert.relative_gap < out.certificate.relative_gap):
+            return dataclasses.replace(out, info=info)
+        return dataclasses.replace(out, certificate=dataclasses.replace(
+            cert, solve_time=time.perf_counter() - t0), info=info,
+            message=f"{out.message}; the full problem bounded by the pose search: "
+                    f"{cert.message}")
     if cert.certified:
         info["rotation_certificate"] = out.certificate.to_dict()
         info.pop("full_problem_certificate", None)
