@@ -116,7 +116,7 @@ LISTING_NODES_PER_SECOND = 400_000
 POSE_SHARE = 0.6
 """Share of the time limit the branch and bound over poses may take when a subproblem's
 certificate follows (``rotation_fallback``)."""
-POSE_DEFAULT_TIME = 20.0
+POSE_DEFAULT_TIME = 10.0
 """Seconds the branch and bound over poses may take when no ``time_limit`` is given."""
 CLIQUE_WORK_PER_SECOND = 100_000_000
 """Adjacency look-ups per second of the maximum-clique search (for its time limit)."""

@@ -40,7 +40,7 @@ from solvers.certificate import undiluted_gap
 from solvers.jit import compiled
 from solvers.problem import WeightedTLSProblem
 
-__all__ = ["PoseBound", "pose_lower_bound", "STAGE_GAPS"]
+__all__ = ["PoseBound", "pose_lower_bound", "stage_threshold", "STAGE_GAPS"]
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +59,7 @@ RECOLOUR_MAX = 1000
 CHUNK_NODES = 50_000
 """Cells per call of the compiled search (it returns to Python to read the clock)."""
 MAX_DEPTH = 200
+"""Deepest cell of the search (a search that would go deeper stops incomplete)."""
 
 
 @dataclass(frozen=True)
