@@ -58,6 +58,9 @@ RECOLOUR_MAX = 1000
 """Cells with at most this many possible inliers are recoloured with their own rotations."""
 CHUNK_NODES = 50_000
 """Cells per call of the compiled search (it returns to Python to read the clock)."""
+MAX_TERMS = 5000
+"""Largest core the search takes on (its per-depth arrays hold ``MAX_DEPTH x`` the core's terms);
+beyond it no stage is run."""
 MAX_DEPTH = 200
 """Deepest cell of the search (a search that would go deeper stops incomplete)."""
 
@@ -243,6 +246,9 @@ def _stage(problem: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.fl
         setup = _setup(problem, R, t, thr, u)
         if setup is None:  # no consistent set is heavy enough to go below thr
             return _StageResult(u, thr, True, 0, None, found)
+        if isinstance(setup, str):
+            log.info("pose branch and bound: core of more than %d terms, not searched", MAX_TERMS)
+            return _StageResult(u, -np.inf, False, 0, None, found)
         args, unit, cs, ct, allowance, st = setup
         code = 1
         while code == 1:
@@ -267,7 +273,8 @@ def _stage(problem: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.fl
 
 def _setup(problem: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.float64],
            thr: float, u: float):  # noqa: ANN202
-    """The compiled search's inputs for threshold ``thr``, or None when the core is empty."""
+    """The compiled search's inputs for threshold ``thr``; None when the core is empty,
+    ``"too_large"`` when it holds more than ``MAX_TERMS`` terms."""
     from solvers.certify.cliques import _core, consistency_edges
 
     core = _core(problem, thr)
@@ -279,6 +286,8 @@ def _setup(problem: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.fl
         edges = consistency_edges(problem, act)
     idx = act[keep]
     m = idx.size
+    if m > MAX_TERMS:
+        return "too_large"
     base = float(problem.cbar2 * (problem.weights.sum() - problem.weights[idx].sum()))
     unit = float(np.median(problem.noise_bound[idx])) if m else 1.0
     # About the candidate's inlier centroid and its image (see the module docstring).
