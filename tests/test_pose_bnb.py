@@ -258,3 +258,18 @@ def stage_floor(upper: float, p: WeightedTLSProblem, res) -> float:  # noqa: ANN
     """What a completed gap-0.5 stage proves for the candidate (less a rounding allowance)."""
     c_out = _outlier_cost(p, res.rotation, res.translation)
     return pose_bnb.stage_threshold(upper, c_out, 0.5) - 1e-6 * (1 + abs(upper))
+
+
+@pytest.mark.parametrize("m", [1, 2, 7, 60])
+def test_root_colouring_is_proper(m: int) -> None:
+    """No edge joins two terms of one colour (a class must hold at most one inlier of any
+    pose), including graphs with isolated vertices."""
+    rng = np.random.default_rng(m)
+    edges = np.array([(i, j) for i in range(m) for j in range(i + 1, m) if rng.random() < 0.4],
+                     dtype=np.int64).reshape(-1, 2)
+    col = pose_bnb._colouring(m, edges)
+    assert col.shape == (m,) and (col >= 0).all()
+    assert (col[edges[:, 0]] != col[edges[:, 1]]).all()
+    complete = np.array([(i, j) for i in range(m) for j in range(i + 1, m)],
+                        dtype=np.int64).reshape(-1, 2)
+    assert np.unique(pose_bnb._colouring(m, complete)).size == m

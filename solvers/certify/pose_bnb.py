@@ -100,14 +100,19 @@ class PoseBound:
 
 
 def _colouring(m: int, edges: NDArray[np.int64]) -> NDArray[np.int64]:
-    """A greedy colouring (networkx, largest degree first) of the graph on ``m`` vertices."""
-    import networkx as nx
-
-    G = nx.Graph()
-    G.add_nodes_from(range(m))
-    G.add_edges_from(map(tuple, edges.tolist()))
-    col = nx.greedy_color(G, strategy="largest_first")
-    return np.array([col[i] for i in range(m)], dtype=np.int64)
+    """A greedy colouring of the graph on ``m`` vertices, largest degree first: each vertex
+    takes the smallest colour none of its coloured neighbours has."""
+    both = np.concatenate([edges, edges[:, ::-1]]).reshape(-1, 2)
+    both = both[np.argsort(both[:, 0], kind="stable")]
+    start = np.searchsorted(both[:, 0], np.arange(m + 1))
+    deg = np.diff(start)
+    col = np.full(m, -1, dtype=np.int64)
+    for i in np.argsort(-deg, kind="stable"):
+        used = col[both[start[i]:start[i + 1], 1]]
+        taken = np.zeros(deg[i] + 1, dtype=bool)
+        taken[used[(used >= 0) & (used <= deg[i])]] = True
+        col[i] = int(np.argmin(taken))  # the first free colour (one exists: deg + 1 slots)
+    return col
 
 
 def _bitsets(m: int, edges: NDArray[np.int64]) -> NDArray[np.uint64]:
