@@ -731,7 +731,7 @@ def _pose_search_bound(pn: WeightedTLSProblem, R: NDArray[np.float64], t: NDArra
 
     budget = POSE_DEFAULT_TIME if time_limit is None else time_limit * share
     budget = max(budget - (time.perf_counter() - t0), 0.0)
-    res = pose_lower_bound(pn, R, t, tol=tol, time_limit=budget)
+    res = pose_lower_bound(pn, R, t, tol=tol, time_limit=budget, refine=refine_pose)
     stages = ", ".join(f"{g:g} {'proved' if ok else 'stopped'} ({n} cells, {s:.2f} s)"
                        for g, ok, n, s in res.stages)
     proved = [g for g, ok, _, _ in res.stages if ok]

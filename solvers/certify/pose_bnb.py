@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -45,6 +46,9 @@ __all__ = ["PoseBound", "pose_lower_bound", "stage_threshold", "STAGE_GAPS"]
 log = logging.getLogger(__name__)
 
 _EPS = float(np.finfo(np.float64).eps)
+
+Refine = Callable[[WeightedTLSProblem, NDArray[np.float64], NDArray[np.float64]],
+                  tuple[NDArray[np.float64], NDArray[np.float64]]]
 
 STAGE_GAPS = (0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01, 0.005, 0.002)
 """Gaps (:func:`solvers.certificate.undiluted_gap`) the search proves in turn, loosest first,
@@ -172,7 +176,7 @@ class _StageResult:
 
 def pose_lower_bound(
     problem: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.float64], *, tol: float,
-    time_limit: float,
+    time_limit: float, refine: Refine | None = None,
 ) -> PoseBound:
     """Prove ``min f >= lower`` for the full problem by branch and bound over poses.
 
@@ -188,6 +192,10 @@ def pose_lower_bound(
         stage's target.
     time_limit : float
         Seconds; the stages run while time remains, each with what is left.
+    refine : callable, optional
+        ``refine(problem, R, t) -> (R, t)``, a local refinement of a better pose the search
+        finds (e.g. :func:`solvers.certify.refine_pose`); default: the least-squares pose of the
+        inlier set it found, as is.
 
     Returns
     -------
@@ -206,7 +214,7 @@ def pose_lower_bound(
             break
         Rc, tc = found if found is not None else (R, t)
         started = time.perf_counter()
-        res = _stage(problem, Rc, tc, gap, remaining)
+        res = _stage(problem, Rc, tc, gap, remaining, refine)
         stages.append((gap, res.complete, res.cells, time.perf_counter() - started))
         u, profile = res.upper, res.profile
         found = res.found if res.found is not None else found
@@ -237,11 +245,9 @@ def stage_threshold(u: float, c_out: float, gap: float) -> float:
 
 
 def _stage(problem: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.float64],
-           gap: float, remaining: float) -> _StageResult:
+           gap: float, remaining: float, refine: Refine | None = None) -> _StageResult:
     """One threshold's search (for a gap of ``gap`` to ``(R, t)``); when it finds a better
     pose it starts again against that pose, in what is left of ``remaining`` seconds."""
-    from solvers.certify.front import refine_pose
-
     t0 = time.perf_counter()
     kern = compiled("solvers.certify._pose_kernels").pose_bnb
     found = None
@@ -270,7 +276,10 @@ def _stage(problem: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.fl
         # refined; the search starts again against it.
         Rb = st.best[2:11].reshape(3, 3).copy()
         tb = st.best[11:14] * unit + ct - Rb @ cs
-        Rb, tb = refine_pose(problem, Rb, tb)
+        if refine is not None:
+            Rr, tr = refine(problem, Rb, tb)
+            if problem.cost(Rr, tr) <= problem.cost(Rb, tb):
+                Rb, tb = Rr, tr
         if not problem.cost(Rb, tb) < u:
             return _StageResult(u, -np.inf, False, int(st.ints[1]), st.hist, found)
         R, t, u, found = Rb, tb, problem.cost(Rb, tb), (Rb, tb)
