@@ -88,7 +88,10 @@ def register(
         the full cost) even when its full cost is higher than the solver's pose (``info``
         records the solver's pose and cost); ``"cost"``: never return a pose of higher cost
         (the certificate may then certify nothing). ``certificate.problem`` names the problem
-        bounded; the other problem's certificate is in ``info``.
+        bounded; the other problem's certificate is in ``info``. In what time is left, the full
+        problem is then bounded for the returned pose by a branch and bound over poses
+        (:mod:`solvers.certify.pose_bnb`): its certificate replaces the subproblem's when it
+        certifies, else ``info["full_problem_certificate"]`` records the gap it proved.
     check_significance : bool
         Report a converged pose whose consensus is no larger than random correspondences with
         the same noise bound would give as ``status="not_significant"`` (not a success; see
@@ -145,7 +148,8 @@ def register(
 
             result = certify_result(unit, result, scope=scope, tol=tol, time_limit=time_limit,
                                     rotation_fallback=scope == "auto",
-                                    prefer_certified=prefer == "certificate")
+                                    prefer_certified=prefer == "certificate",
+                                    pose_search=scope in ("auto", "full"))
     if check_significance:
         result = _judge_significance(unit, result)
     return from_unit_scale(result, scale)

@@ -17,7 +17,8 @@ from solvers import jit
 ROOT = Path(__file__).resolve().parents[1]
 MODULES = ["solvers._linalg_kernels", "solvers.registration._kernels",
            "solvers.registration._clique_kernels", "solvers.certify._kernels",
-           "solvers.certify._mode_kernels", "certpose.model._kernels", "certpose.sampling._kernels",
+           "solvers.certify._mode_kernels", "solvers.certify._pose_kernels",
+           "certpose.model._kernels", "certpose.sampling._kernels",
            "certpose.geometry._fpfh_kernels"]
 
 

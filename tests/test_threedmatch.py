@@ -97,9 +97,13 @@ def test_default_solver_registers_the_pair(corr):
 
 
 def test_certify_on_the_dense_pair_bounds_by_the_clique_number(corr):
-    """Too many maximal cliques to bound one by one: a sound bound from the clique number, not
-    a certificate and not a missing bound."""
+    """Too many maximal cliques to bound one by one: a sound bound, not a certificate and not
+    a missing bound; the clique number's, or tighter, the branch and bound over poses' that
+    ``register`` runs (``pose_search``)."""
     from certpose.api import register
+    from solvers import solve_registration
+    from solvers.certify import certify_result
+    from solvers.registration.solve import unit_scale_problem
 
     # scope="full": the full problem's own bound (the default "auto" then certifies the
     # rotation subproblem, tests/test_certify_real_scans.py).
@@ -107,10 +111,15 @@ def test_certify_on_the_dense_pair_bounds_by_the_clique_number(corr):
                    scope="full")
     cert = res.certificate
     assert not cert.certified and cert.status.value == "iteration_limit"
-    assert cert.method == "clique_number" and "clique number" in cert.message
+    assert cert.method in ("clique_number", "pose_bnb")
     assert np.isfinite(cert.lower_bound) and cert.lower_bound <= cert.upper_bound
     # No pose keeps more inliers than the largest consistent set: about N - omega.
     assert cert.lower_bound >= corr.n - 2 * res.info["max_clique_size"]
+    # Without the pose search (certify_result's default): the clique number, as before.
+    unit, _ = unit_scale_problem(corr.source, corr.target, noise_bound=NOISE_BOUND)
+    plain = certify_result(unit, solve_registration(unit, method="auto"), time_limit=5)
+    assert plain.certificate.method == "clique_number"
+    assert "clique number" in plain.certificate.message
 
 
 def test_certify_skip_futile_does_not_search_a_clique_number_that_cannot_certify(corr):

@@ -22,6 +22,9 @@ Which problem is bounded (``scope``)
   branch and bound over its inlier sets (closed-form least squares per set); beyond the node
   budget (large cliques at low outlier rates) it is bounded by the joint relaxation's
   Douglas-Rachford dual search (:func:`solvers.certify.joint_dual.joint_dual_certificate`).
+  When the maximal cliques are too many to list (real-feature scans) and the caller asks for
+  it (``pose_search``), a branch and bound over poses bounds the problem instead
+  (:mod:`solvers.certify.pose_bnb`), proving gaps from loose to ``tol`` while time remains.
   Correspondences that share a source point also bound it, each source point's image placed
   freely and pairs of them at their distance (:mod:`solvers.certify.groups`); the larger of the
   two bounds is kept.
@@ -110,6 +113,11 @@ LISTING_SHARE = 0.25
 LISTING_NODES_PER_SECOND = 400_000
 """Branches per second of the maximal-clique listing (measured 340,000 on the 3DMatch pair's
 927-vertex core, load average 10 on 2 cores), for its time limit."""
+POSE_SHARE = 0.6
+"""Share of the time limit the branch and bound over poses may take when a subproblem's
+certificate follows (``rotation_fallback``)."""
+POSE_DEFAULT_TIME = 10.0
+"""Seconds the branch and bound over poses may take when no ``time_limit`` is given."""
 CLIQUE_WORK_PER_SECOND = 100_000_000
 """Adjacency look-ups per second of the maximum-clique search (for its time limit)."""
 
@@ -546,8 +554,14 @@ def _shared_source(pn: WeightedTLSProblem) -> tuple[Any, str]:
 def _clique_bound(
     pn: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.float64], *, tol: float,
     max_iter: int | None, time_limit: float | None, eps: float, skip_futile: bool = False,
+    pose_search: bool = False,
 ) -> _Bound:
     """Lower bound on the (normalised) full problem by clique decomposition (module docstring).
+
+    ``pose_search``: when the listing gives up, bound the problem by the branch and bound over
+    poses (:mod:`solvers.certify.pose_bnb`) in ``POSE_SHARE`` of the time limit with
+    ``skip_futile`` (its caller may certify a subproblem next), else all of it; the tighter of
+    its bound and the others is kept.
 
     ``skip_futile``: when the listing gives up, the clique-number bound is not searched if it
     cannot certify whatever omega it finds (:func:`_clique_number_best_gap`); the bound is then
@@ -572,6 +586,13 @@ def _clique_bound(
         # Dense graphs (real features): too many maximal cliques to bound one by one. The
         # clique number still bounds every pose's inlier count: a weak but sound bound.
         shared, shared_note = _shared_source(pn)
+        pose = None
+        if pose_search:
+            pose = _pose_search_bound(pn, R, t, tol=tol, time_limit=time_limit, t0=t0,
+                                      share=POSE_SHARE if skip_futile else 1.0)
+            if pose.status is CertificateStatus.GAP_TOO_LARGE or (
+                    pose.lower >= shared.lower and skip_futile):
+                return pose
         if skip_futile:
             best_gap, k = _clique_number_best_gap(pn, R, t)
             if best_gap > tol:
@@ -587,6 +608,8 @@ def _clique_bound(
                              + (shared_note or "; bounded by 0 (TLS costs are non-negative)")))
         remaining = max(budget - (time.perf_counter() - t0), 0.0)
         lower = clique_number_bound(pn, u, max_work=int(remaining / 2 * CLIQUE_WORK_PER_SECOND))
+        if pose is not None and pose.lower >= max(lower, shared.lower):
+            return pose
         return _Bound(lower=min(max(lower, shared.lower), u), accepted=True,
                       status=CertificateStatus.ITERATION_LIMIT,
                       backend_status="cliques:too_many", eigenvalue_ratio=np.nan,
@@ -698,6 +721,33 @@ def _clique_bound(
     )
 
 
+def _pose_search_bound(pn: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.float64],
+                       *, tol: float, time_limit: float | None, t0: float, share: float
+                       ) -> _Bound:
+    """The branch and bound over poses as a :class:`_Bound` (``GAP_TOO_LARGE`` when it
+    completed at ``tol``: the verdict then rests on the gap; else ``ITERATION_LIMIT`` with the
+    last gap it proved)."""
+    from solvers.certify.pose_bnb import pose_lower_bound
+
+    budget = POSE_DEFAULT_TIME if time_limit is None else time_limit * share
+    budget = max(budget - (time.perf_counter() - t0), 0.0)
+    res = pose_lower_bound(pn, R, t, tol=tol, time_limit=budget, refine=refine_pose)
+    stages = ", ".join(f"{g:g} {'proved' if ok else 'stopped'} ({n} cells, {s:.2f} s)"
+                       for g, ok, n, s in res.stages)
+    proved = [g for g, ok, _, _ in res.stages if ok]
+    return _Bound(
+        lower=res.lower, accepted=True,
+        status=CertificateStatus.GAP_TOO_LARGE if res.complete else CertificateStatus.ITERATION_LIMIT,
+        backend_status=f"pose_bnb: {stages or 'no stage run'}", eigenvalue_ratio=np.nan,
+        method="pose_bnb",
+        message=("too many maximal cliques to list; bounded by a branch and bound over poses "
+                 "(rotation x translation cells, per-term and colouring bounds, exact inlier "
+                 "sets in small cells)" + (f": gap {min(proved):g} proved" if proved else
+                                           ": no stage completed within the time limit")
+                 + ("" if res.complete else f", gap {tol:g} not reached within the time limit")),
+        rotation=res.rotation, translation=res.translation)
+
+
 # ----------------------------------------------------------------------------- certificates
 def _finish_certificate(
     upper: float, bound: _Bound, *, tol: float, scoped: _Scoped, ws: float, outlier_cost: float,
@@ -789,12 +839,14 @@ def _certify(
     extra: _Bound | None = None,
     skip_futile: bool = False,
     known: _Bound | None = None,
+    pose_search: bool = False,
 ) -> tuple[Certificate, tuple[NDArray[np.float64], NDArray[np.float64]] | None, _Bound]:
     """Certificate of ``(R, t)``, a better pose of the bounded problem if one was found, and
     the bound used.
 
     ``extra`` is an already computed bound on the *normalised* bounded problem (e.g. from the
-    relaxation ``solve_sdp`` rounded); ``skip_futile`` as in :func:`certify_result`. ``known``:
+    relaxation ``solve_sdp`` rounded); ``skip_futile`` and ``pose_search`` as in
+    :func:`certify_result`. ``known``:
     a bound of the same rotation subproblem computed for another candidate (it holds for
     every rotation), used instead of a new search.
     """
@@ -829,7 +881,7 @@ def _certify(
         dmax = dense_max or 4
         if scoped.label is BoundedProblem.FULL and method == "auto":
             bound = _clique_bound(pn, R, t, tol=tol, max_iter=max_iter, time_limit=time_limit,
-                                  eps=eps, skip_futile=skip_futile)
+                                  eps=eps, skip_futile=skip_futile, pose_search=pose_search)
         else:
             bound = _joint_bound(pn, R, t, method=method, tol=tol, max_iter=max_iter,
                                  time_limit=time_limit, dense_max=dmax, eps=eps,
@@ -1117,6 +1169,7 @@ def certify_result(
     skip_futile: bool = False,
     rotation_fallback: bool = False,
     prefer_certified: bool = False,
+    pose_search: bool = False,
 ) -> RegistrationResult:
     """Attach a certificate to ``result``'s pose, or to a better pose found while certifying.
 
@@ -1162,6 +1215,16 @@ def certify_result(
         ``candidate_T_target_source``). Measured on a real 3DMatch pair (940 FPFH
         correspondences): +0.97 and +1.96 on costs of 908 and 870 (noise bounds 0.05 and 0.1),
         about one correspondence's outlier cost.
+    pose_search : bool
+        On the full problem, when the maximal cliques are too many to list (real-feature
+        scans), bound it by a branch and bound over poses (:mod:`solvers.certify.pose_bnb`)
+        rather than by the clique number alone: it proves gaps at a sequence of thresholds
+        (0.5, 0.3, ..., ``tol``) while time remains (``POSE_DEFAULT_TIME`` seconds without a
+        limit). With ``rotation_fallback`` it runs after the subproblem's certificate, in what
+        that leaves, for the returned pose: its certificate replaces the subproblem's when it
+        certifies, else it is recorded as ``info["full_problem_certificate"]`` (a better pose
+        it finds: its cost as ``info["full_problem_better_cost"]``). Without it, a better pose
+        it finds is returned as the certifier's.
     """
     t0 = time.perf_counter()
     tol = _check_tol(tol)
@@ -1173,10 +1236,12 @@ def certify_result(
         return dataclasses.replace(result, certificate=_invalid(np.nan, why, tol, scoped.label, t0))
     kw: dict[str, Any] = dict(tol=tol, scope=scope, method=method, survivors=scoped.indices,
                               max_iter=max_iter, time_limit=time_limit, dense_max=dense_max,
-                              eps=eps, skip_futile=bool(skip_futile))
+                              eps=eps, skip_futile=bool(skip_futile),
+                              pose_search=bool(pose_search))
     fallback = bool(rotation_fallback) and scope in ("auto", "full")
     if fallback:
-        kw["skip_futile"] = True
+        # The subproblem's certificate comes first; the pose search gets what it leaves.
+        kw.update(skip_futile=True, pose_search=False)
     out = _certify_once(problem, result, kw, scoped, t0)
     # Only when the full problem's bound gave up (not when it is tight and the pose is not
     # optimal: that statement is the stronger one).
@@ -1185,7 +1250,55 @@ def certify_result(
                                          CertificateStatus.SOLVER_ERROR)
     if not fallback or not gave_up:
         return out
-    return _rotation_fallback(problem, out, kw, t0, prefer_certified=bool(prefer_certified))
+    out = _rotation_fallback(problem, out, kw, t0, prefer_certified=bool(prefer_certified))
+    if pose_search:
+        out = _full_after_fallback(problem, out, kw, t0)
+    return out
+
+
+def _full_after_fallback(problem: WeightedTLSProblem, out: RegistrationResult,
+                         kw: dict[str, Any], t0: float) -> RegistrationResult:
+    """The full problem bounded by the pose search for ``out``'s pose in what is left of the
+    time limit. When ``out``'s certificate is the rotation subproblem's, the new one replaces
+    it if it certifies, else it is recorded in ``info`` if it proves a smaller gap than the one
+    there; when it is the full problem's (the subproblem certified nothing), the new one
+    replaces it if its gap is smaller."""
+    remaining = _remaining(kw, t0)
+    if remaining is not None and remaining <= 0:
+        return out
+    t1 = time.perf_counter()
+    R, t = np.array(out.rotation), np.array(out.translation)
+    scoped = _scope_problem(problem, "full", None)
+    pn, ws = _normalised(problem)
+    # The listing already gave up on this problem: straight to the pose search.
+    bound = _pose_search_bound(pn, R, t, tol=kw["tol"], t0=t1, share=1.0,
+                               time_limit=POSE_DEFAULT_TIME if remaining is None else remaining)
+    better = None
+    if bound.rotation is not None and bound.translation is not None:
+        better = problem.cost(bound.rotation, bound.translation)
+        better = better if better < problem.cost(R, t) else None
+    cert = _finish_certificate(problem.cost(R, t), bound, tol=kw["tol"], scoped=scoped, ws=ws,
+                               outlier_cost=_outlier_cost(problem, R, t), t0=t1, better=better)
+    info = dict(out.info)
+    if better is not None:
+        info["full_problem_better_cost"] = better
+    if out.certificate.problem == BoundedProblem.FULL.value:
+        if not (cert.certified or cert.relative_gap < out.certificate.relative_gap):
+            return dataclasses.replace(out, info=info)
+        return dataclasses.replace(out, certificate=dataclasses.replace(
+            cert, solve_time=time.perf_counter() - t0), info=info,
+            message=f"{out.message}; the full problem bounded by the pose search: "
+                    f"{cert.message}")
+    if cert.certified:
+        info["rotation_certificate"] = out.certificate.to_dict()
+        info.pop("full_problem_certificate", None)
+        return dataclasses.replace(out, certificate=dataclasses.replace(
+            cert, solve_time=time.perf_counter() - t0), info=info,
+            message=f"{out.message}; the full problem certified by the pose search")
+    old = info.get("full_problem_certificate")
+    if old is None or cert.relative_gap < (old.get("relative_gap") or np.inf):
+        info["full_problem_certificate"] = cert.to_dict()
+    return dataclasses.replace(out, info=info)
 
 
 def _remaining(kw: dict[str, Any], t0: float) -> float | None:
