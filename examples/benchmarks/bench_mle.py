@@ -28,6 +28,7 @@ import argparse
 import json
 import os
 import statistics
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -35,25 +36,11 @@ from typing import Any
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_basins import pairs as ycbv_pairs  # noqa: E402  (the pairs of ycbv_eval)
 
 #: Stages printed per pair, in this order (the others are summed under "other").
 STAGES = ("coarse_search", "eq2_solve", "refine", "hop", "modes", "polish", "eq2_certify_wait")
-
-
-def pairs_of(root: Path, scenes: list[str], frame: str, min_px: int,
-             objects: list[str] | None) -> list[tuple[str, str]]:
-    """``(frame, object)`` for the objects whose ground-truth mask holds more than ``min_px``
-    pixels."""
-    from certpose.io.ycbv import load_ycbv_frame
-
-    out = []
-    for s in scenes:
-        name = f"{s}/{frame}"
-        yf = load_ycbv_frame(root, name)
-        for obj in yf.poses:
-            if (objects is None or obj in objects) and int(yf.object_mask(obj).sum()) > min_px:
-                out.append((name, obj))
-    return out
 
 
 def build(root: Path, frame: str, obj: str) -> dict[str, Any]:
@@ -115,7 +102,7 @@ def main() -> None:
         raise SystemExit(f"YCB-Video data not found at {args.ycbv}")
     if args.rounds < 1:
         raise SystemExit(f"--rounds must be >= 1, got {args.rounds}")
-    pairs = pairs_of(args.ycbv, args.scenes.split(","), args.frame, args.min_px, args.objects)
+    pairs = list(ycbv_pairs(args.ycbv, args.scenes.split(","), [args.frame], args.objects, args.min_px))
     if not pairs:
         raise SystemExit("no pair to pose")
     t = time.perf_counter()
