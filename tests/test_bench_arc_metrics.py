@@ -61,3 +61,25 @@ def test_conditional_coverage_ignores_mass_outside_the_arc():
     cov_in, _ = arc_metrics(d, T_REF, GRID, conditional=True)
     assert mass == pytest.approx(0.1, abs=2e-3)
     assert cov == 0.0 and cov_in == 1.0
+
+
+def test_depth_axis_recovers_the_mug_body_axis_from_a_tilted_start():
+    """bench_mug_arc.depth_axis fits the mug body's depth pixels: started from the annotated
+    pose or from it tilted by 3 deg (which also moves the pixels it keeps), it lands on the same
+    axis, near the annotated one."""
+    from bench_arc import body_axis_offset
+    from bench_mug_arc import depth_axis
+
+    from certpose.io.ycbv import load_model_points, load_ycbv_frame
+    from tests.conftest import require_data
+
+    root = require_data("ycbv")
+    G = load_ycbv_frame(root, "0000/000003").poses["025_mug"]
+    centre = body_axis_offset(load_model_points(root / "models" / "025_mug" / "points.xyz"))
+    tilted = G.copy()
+    tilted[:3, :3] = G[:3, :3] @ Rotation.from_rotvec(np.radians([3.0, 0.0, 0.0])).as_matrix()
+    a, b = (depth_axis(root, "0000/000003", T, centre) for T in (G, tilted))
+    angle = lambda u, v: np.degrees(np.arccos(min(abs(float(u @ v)), 1.0)))  # noqa: E731
+    assert angle(a, b) < 0.3
+    assert angle(a, G[:3, 2]) < 1.0
+    assert angle(b, tilted[:3, 2]) > 2.0
