@@ -178,6 +178,24 @@ def mesh_without_inside() -> Any:
     return obj.select(~inside)
 
 
+def views_with_mesh_inside() -> Any:
+    """The view-built model plus the exact mesh samples of the mug's inside (what it lacks)."""
+    from certpose.geometry.objects import ObjectModel
+
+    views, mesh = view_model(), mesh_model()
+    inside = mesh.select(~_outside(mesh.points))
+    cat = {k: np.concatenate([getattr(views, k), getattr(inside, k)])
+           for k in ("points", "descriptors", "normals", "areas")}
+    return ObjectModel(name="mug", **cat)
+
+
+def _outside(p: np.ndarray) -> np.ndarray:
+    from certpose.data.synthetic import MUG_INNER_RADIUS, MUG_RADIUS
+
+    r = np.hypot(p[:, 0], p[:, 1])
+    return ~((r < (MUG_RADIUS + MUG_INNER_RADIUS) / 2) & (p[:, 2] > -0.049) & (p[:, 2] < 0.049))
+
+
 #: Models by name: a callable returning an ObjectModel.
 VARIANTS: dict[str, Any] = {
     "views": lambda: view_model(),
@@ -190,6 +208,7 @@ VARIANTS: dict[str, Any] = {
     "mesh-view-desc": mesh_view_descriptors,
     "mesh-views-coverage": mesh_views_coverage,
     "mesh-no-inside": mesh_without_inside,
+    "views-mesh-inside": views_with_mesh_inside,
     "views-fuse2.5mm": lambda: views_fine_fusion(0.0025),
 }
 
@@ -273,7 +292,7 @@ def term_split(scene: Any, cls: Any, obj: Any, lp: Any, T: np.ndarray) -> dict[s
     # c_empty at the unobserved prior: no free-space charge (voxels or pixels).
     bare = full.with_object(obj, params=replace(lp, beta=0.0, c_empty=lp.log_p_unobserved))
     f, nd, b = float(full(T)), float(no_desc(T)), float(bare(T))
-    hidden = float(np.sum(bare.point_weights * (1.0 - bare.visibility(T)))) * lp.log_p_unobserved
+    hidden = (bare.total_weight - bare.visible_weight(T)) * lp.log_p_unobserved
     return {"total": f, "desc": f - nd, "free": nd - b, "logp": b - hidden, "unobs": hidden}
 
 
@@ -284,11 +303,11 @@ def tilt_of(T: np.ndarray, G: np.ndarray) -> tuple[float, np.ndarray]:
     return float(np.degrees(np.arccos(np.clip(a @ AXIS, -1.0, 1.0)))), a
 
 
-def run(seed: int, name: str, obj: Any) -> dict[str, Any]:
+def run(seed: int, name: str, obj: Any, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 
     sc, scene, cls, params = demo_problem(seed)
-    lp = params.likelihood or LikelihoodParams()
+    lp = replace(params.likelihood or LikelihoodParams(), **(overrides or {}))
     lik = PoseLikelihood(scene, cls, obj, params=lp)
     G = np.array(sc.T_camera_object, dtype=np.float64)
     T, v = refine(lik, G, obj.radius)
@@ -314,7 +333,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--variants", nargs="+", default=["views", "mesh"], choices=sorted(VARIANTS))
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="LikelihoodParams overrides (Python literals), e.g. visibility=False")
     args = ap.parse_args()
+    import ast
+
+    overrides = {k: ast.literal_eval(v) for k, v in (a.split("=", 1) for a in args.set)}
     for name in args.variants:
         t = time.perf_counter()
         obj = VARIANTS[name]()
@@ -324,7 +348,7 @@ def main() -> None:
               flush=True)
         tilts, gains = [], []
         for seed in args.seeds:
-            r = run(seed, name, obj)
+            r = run(seed, name, obj, overrides)
             d = r["diff"]
             tilts.append(r["tilt"])
             print(f"  seed {seed}: tilt {r['tilt']:.2f} deg (towards azimuth {r['azimuth']:+.0f} deg "
