@@ -210,6 +210,8 @@ VARIANTS: dict[str, Any] = {
     "mesh-no-inside": mesh_without_inside,
     "views-mesh-inside": views_with_mesh_inside,
     "views-fuse2.5mm": lambda: views_fine_fusion(0.0025),
+    "views-fuse1.5mm": lambda: views_fine_fusion(0.0015),
+    "views-fuse1mm": lambda: views_fine_fusion(0.001),
 }
 
 
@@ -282,6 +284,36 @@ def upright(T: np.ndarray, G: np.ndarray) -> np.ndarray:
     return out
 
 
+def tilted(T: np.ndarray, G: np.ndarray, direction: np.ndarray, deg: float) -> np.ndarray:
+    """``T`` straightened to ``G``'s axis, then tilted by ``deg`` towards ``direction`` (a unit
+    vector of ``G``'s object frame, normal to the axis), about the object's origin."""
+    from scipy.spatial.transform import Rotation
+
+    w = np.cross(AXIS, direction)
+    w /= np.linalg.norm(w)
+    U = upright(T, G)
+    R = G[:3, :3] @ Rotation.from_rotvec(np.radians(deg) * w).as_matrix() @ G[:3, :3].T
+    out = U.copy()
+    out[:3, :3] = R @ U[:3, :3]
+    return out
+
+
+#: Tilts (deg) of the profile ``--profile`` prints.
+PROFILE_TILTS = (0.0, 0.5, 1.0, 1.5, 2.0, 2.5)
+
+
+def tilt_profile(lik: Any, T: np.ndarray, G: np.ndarray, scale: float) -> np.ndarray:
+    """Eq. (1) maximised over the turn about the axis and the translation at each of
+    :data:`PROFILE_TILTS` towards the refined pose ``T``'s tilt (climbs from ``G`` and from
+    ``T``, both tilted so)."""
+    a = G[:3, :3].T @ (T[:3, :3] @ AXIS)
+    d = a - (a @ AXIS) * AXIS
+    d = d / np.linalg.norm(d) if np.linalg.norm(d) > 1e-9 else np.array([1.0, 0.0, 0.0])
+    starts = [tilted(S, G, d, t) for t in PROFILE_TILTS for S in (G, T)]
+    _, v = climb_at_tilt(lik, np.stack(starts), scale)
+    return v.reshape(len(PROFILE_TILTS), 2).max(axis=1)
+
+
 def term_split(scene: Any, cls: Any, obj: Any, lp: Any, T: np.ndarray) -> dict[str, float]:
     """Eq. (1) at ``T`` split into its terms (nats): descriptor, log p_O of visible points,
     free space, the unobserved prior of hidden points."""
@@ -303,7 +335,8 @@ def tilt_of(T: np.ndarray, G: np.ndarray) -> tuple[float, np.ndarray]:
     return float(np.degrees(np.arccos(np.clip(a @ AXIS, -1.0, 1.0)))), a
 
 
-def run(seed: int, name: str, obj: Any, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+def run(seed: int, name: str, obj: Any, overrides: dict[str, Any] | None = None,
+        profile: bool = False) -> dict[str, Any]:
     from certpose.model.likelihood import LikelihoodParams, PoseLikelihood
 
     sc, scene, cls, params = demo_problem(seed)
@@ -326,13 +359,16 @@ def run(seed: int, name: str, obj: Any, overrides: dict[str, Any] | None = None)
     # Direction of the tilt seen from the camera: the axis' move in the camera frame.
     move = T[:3, :3] @ AXIS - G[:3, :3] @ AXIS
     return {"seed": seed, "model": name, "tilt": tilt, "azimuth": az, "spin": spin, "move_cam": move,
-            "shift_mm": 1000 * float(np.linalg.norm(T[:3, 3] - G[:3, 3])), "diff": diff, "gain": gain, "over_upright": over_upright}
+            "shift_mm": 1000 * float(np.linalg.norm(T[:3, 3] - G[:3, 3])), "diff": diff, "gain": gain, "over_upright": over_upright,
+            "profile": tilt_profile(lik, T, G, obj.radius) if profile else None}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--variants", nargs="+", default=["views", "mesh"], choices=sorted(VARIANTS))
+    ap.add_argument("--profile", action="store_true",
+                    help="also eq. (1) at fixed tilts towards the refined one (turn and translation refined)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="LikelihoodParams overrides (Python literals), e.g. visibility=False")
     args = ap.parse_args()
@@ -348,7 +384,7 @@ def main() -> None:
               flush=True)
         tilts, gains = [], []
         for seed in args.seeds:
-            r = run(seed, name, obj, overrides)
+            r = run(seed, name, obj, overrides, args.profile)
             d = r["diff"]
             tilts.append(r["tilt"])
             print(f"  seed {seed}: tilt {r['tilt']:.2f} deg (towards azimuth {r['azimuth']:+.0f} deg "
@@ -360,6 +396,10 @@ def main() -> None:
                   f"+ log p_O {u['logp']:+.2f} + free {u['free']:+.2f} + unobserved {u['unobs']:+.2f}",
                   flush=True)
             gains.append(r["gain"])
+            if r["profile"] is not None:
+                p = r["profile"] - r["profile"][0]
+                print("          profile towards the refined tilt (deg: nats over upright): "
+                      + " ".join(f"{t:.1f}: {v:+.1f}" for t, v in zip(PROFILE_TILTS, p, strict=True)), flush=True)
         print(f"  {name}: tilt {min(tilts):.2f}-{max(tilts):.2f} deg (mean {np.mean(tilts):.2f}), "
               f"over upright {min(gains):.1f}-{max(gains):.1f} nats", flush=True)
 
