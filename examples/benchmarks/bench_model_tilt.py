@@ -1,23 +1,34 @@
 """The demo mug's axis tilt that eq. (1) prefers with the view-built model and with exact mesh samples.
 
 For each demo seed (``certpose pose --demo``'s scene: exact renders, no noise) eq. (1) is
-refined locally from the ground truth (:func:`certpose.estimation.mle.refine_pose`, then the
-MLE's compass polish :func:`certpose.estimation.batch.polish_poses`) with each object model:
+refined locally from the ground truth (the best of :func:`certpose.estimation.mle.refine_pose`
+from the truth and of the MLE's compass polish :func:`certpose.estimation.batch.polish_poses`
+from it and from 24 starts tilted by 1-3 deg) with each object model (``--variants``):
 
 * ``views``: the demo's model, :func:`certpose.sampling.target.demo_object_model` (four posed
   renders, the body sampled with its revolution symmetry);
 * ``mesh``: the exact mesh of the synthetic mug sampled (``object_from_points(mesh=...)``,
   the body sampled with its symmetry too);
-* further ablations of the view-built model with ``--variants`` (see ``VARIANTS``).
+* ablations: ``views-norev`` / ``mesh-norev`` (no revolution resampling), ``views-snapped``
+  (the view-built points moved onto the exact mesh), ``views-exact-normals``,
+  ``mesh-view-desc`` (mesh samples with the view-built model's descriptors),
+  ``mesh-no-inside`` (without the inner wall and inner bottom), ``views-mesh-inside`` (the
+  view-built model plus the mesh's inside), ``views-fuse*mm`` (the views fused at a finer voxel
+  than the scene's), ``mesh-views-coverage``.
 
-Printed per seed and model: the refined pose's tilt of the mug's axis from the truth (deg), its
-translation offset (mm), and eq. (1) at the refined pose minus at the truth (nats), split into
-its terms: descriptor similarity (``beta f^T z``), the classifier's ``log p_O`` on visible
-points, the free-space charge, and the unobserved prior of hidden points.
+Printed per seed and model: the model's area by region of the mug, the refined pose's tilt of the
+axis from the truth (deg), its turn about the axis and translation offset, and eq. (1) at the
+refined pose minus at the truth and minus at the best upright pose (the axis kept, the turn and
+translation refined), each split into its terms: descriptor similarity (``beta f^T z``), the
+classifier's ``log p_O`` of visible points, the free-space charge, and the unobserved prior of
+hidden points. ``--profile``: eq. (1) at fixed tilts towards the refined one. ``--set``:
+:class:`~certpose.model.likelihood.LikelihoodParams` overrides (e.g. ``visibility=False``, the
+paper's eq. (1) scoring every point). The figures are in ``docs/benchmarks/pose.md``.
 
 Usage::
 
     python examples/benchmarks/bench_model_tilt.py [--seeds 0 1 2 3 4] [--variants views mesh ...]
+        [--profile] [--set visibility=False]
 """
 
 from __future__ import annotations
