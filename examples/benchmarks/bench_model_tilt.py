@@ -189,12 +189,18 @@ def mesh_without_inside() -> Any:
     return obj.select(~inside)
 
 
-def views_with_mesh_inside() -> Any:
-    """The view-built model plus the exact mesh samples of the mug's inside (what it lacks)."""
+def views_with_mesh_inside(depth: float | None = None) -> Any:
+    """The view-built model plus the exact mesh samples of the mug's inside (what it lacks);
+    with ``depth`` (m) only the inner wall's band that deep below the rim (what views 30 deg
+    above the equator see of it, turned about the axis: 42 mm)."""
+    from certpose.data.synthetic import MUG_HEIGHT
     from certpose.geometry.objects import ObjectModel
 
     views, mesh = view_model(), mesh_model()
-    inside = mesh.select(~_outside(mesh.points))
+    keep = ~_outside(mesh.points)
+    if depth is not None:
+        keep &= mesh.points[:, 2] > MUG_HEIGHT / 2 - depth
+    inside = mesh.select(keep)
     cat = {k: np.concatenate([getattr(views, k), getattr(inside, k)])
            for k in ("points", "descriptors", "normals", "areas")}
     return ObjectModel(name="mug", **cat)
@@ -220,6 +226,7 @@ VARIANTS: dict[str, Any] = {
     "mesh-views-coverage": mesh_views_coverage,
     "mesh-no-inside": mesh_without_inside,
     "views-mesh-inside": views_with_mesh_inside,
+    "views-mesh-band": lambda: views_with_mesh_inside(0.042),
     "views-fuse2.5mm": lambda: views_fine_fusion(0.0025),
     "views-fuse1.5mm": lambda: views_fine_fusion(0.0015),
     "views-fuse1mm": lambda: views_fine_fusion(0.001),
