@@ -139,6 +139,16 @@ def _views() -> Any:
     return make_mug_scene(rng=0).render_object_views(4)
 
 
+def views_from_above() -> Any:
+    """The view-built model from four views 30 deg above the equator only (no bottom)."""
+    from certpose.data.synthetic import make_mug_scene
+    from certpose.geometry.features import FPFHBackbone
+    from certpose.geometry.objects import object_from_views
+
+    views = make_mug_scene(rng=0).render_object_views(4, elevation_deg=30.0)
+    return object_from_views(views, FPFHBackbone(), voxel_size=0.005, name="mug", revolution="auto")
+
+
 def mesh_view_descriptors() -> Any:
     """Exact mesh samples whose descriptors are the view-built model's nearest point's."""
     from scipy.spatial import cKDTree
@@ -227,6 +237,7 @@ VARIANTS: dict[str, Any] = {
     "mesh-no-inside": mesh_without_inside,
     "views-mesh-inside": views_with_mesh_inside,
     "views-mesh-band": lambda: views_with_mesh_inside(0.042),
+    "views-above": views_from_above,
     "views-fuse2.5mm": lambda: views_fine_fusion(0.0025),
     "views-fuse1.5mm": lambda: views_fine_fusion(0.0015),
     "views-fuse1mm": lambda: views_fine_fusion(0.001),
