@@ -310,3 +310,44 @@ def test_the_demos_upside_down_mug_scores_far_below_the_truth() -> None:
         _, v = refine_poses(lik, (G @ F)[None], scale=obj.radius)
         margins.append(truth - float(v[0]))
     assert margins[0] > 100.0 and margins[1] > 100.0, margins
+
+
+def _demo_refined_tilt(seed: int, params: LikelihoodParams) -> float:
+    """Tilt (deg) of the demo mug's axis at eq. (1)'s best local climb (the MLE's compass
+    polish) from the truth and from the truth tilted by 2 deg in 8 directions, with the
+    demo's view-built model."""
+    from certpose.data.synthetic import make_mug_scene
+    from certpose.estimation.batch import polish_poses
+    from certpose.estimation.pipeline import PoseParams
+    from certpose.sampling.target import demo_object_model
+
+    pp = PoseParams()
+    sc = make_mug_scene(rng=seed)
+    scene = build_scene_field(sc.frame, FPFHBackbone(), voxel_size=pp.voxel_size, roi_mask=sc.object_mask,
+                              margin=pp.roi_margin)
+    cls = classify_from_mask(scene, sc.frame.with_mask(sc.object_mask), params=pp.classifier)
+    obj = demo_object_model()
+    lik = PoseLikelihood(scene, cls, obj, params=params)
+    G = np.asarray(sc.T_camera_object, dtype=np.float64)
+    starts = [G]
+    for a in np.arange(8) * np.pi / 4:
+        T = G.copy()
+        w = np.radians(2.0) * np.array([np.cos(a), np.sin(a), 0.0])
+        T[:3, :3] = G[:3, :3] @ Rotation.from_rotvec(w).as_matrix()
+        starts.append(T)
+    Ts, vs, _ = polish_poses(lik, np.stack(starts), scale=obj.radius, step=0.02, min_step=2e-4, max_iter=400)
+    axis = Ts[int(np.argmax(vs))][:3, :3] @ np.array([0.0, 0.0, 1.0])
+    return float(np.degrees(np.arccos(np.clip(axis @ G[:3, 2], -1.0, 1.0))))
+
+
+@pytest.mark.slow
+def test_the_demos_view_built_mug_is_not_tilted() -> None:
+    # The demo's model from views has no inside: its 3.5-mm wall is averaged into one sheet at
+    # the 5-mm voxel. Scoring every model point (the paper's eq. (1), visibility off), the back
+    # of that sheet stands in for the inner wall the camera sees through the opening and eq.
+    # (1) tilts the mug by 1.7-2.8 deg on seeds 0-4 (15-31 nats over the best upright pose);
+    # exact mesh samples 0.1-2.3 deg (0-8 nats). Scoring only what the camera sees: 0.5-1.9
+    # deg (mesh 0.7-1.1; examples/benchmarks/bench_model_tilt.py). This climb on seed 0:
+    # 0.55 deg, and 2.50 with visibility off; the model from views above only (no bottom)
+    # tilted 1.49 deg with visibility.
+    assert _demo_refined_tilt(0, LikelihoodParams()) < 1.2
