@@ -104,6 +104,22 @@ def _interpolate(cv, ax, ay, az):  # pragma: no cover
 
 
 @njit(inline="always")
+def _cache_row(keys, x0, y0, z0):  # pragma: no cover
+    """The row of the batch kernels' corner-value cache (8, 8) for the cell ``(x0, y0, z0)`` of
+    one point, and whether it holds that cell's values already (``keys`` (8, 3): the cell of
+    each row, ``-1`` when empty; updated to this cell). A cell goes to the row of its
+    coordinates' parities, so the 8 cells around a voxel centre, between which the poses of a
+    batch send a point back and forth, never evict each other."""
+    e = (x0 & 1) + 2 * (y0 & 1) + 4 * (z0 & 1)
+    if keys[e, 0] == x0 and keys[e, 1] == y0 and keys[e, 2] == z0:
+        return e, True
+    keys[e, 0] = x0
+    keys[e, 1] = y0
+    keys[e, 2] = z0
+    return e, False
+
+
+@njit(inline="always")
 def _uniform_value(background, x0, y0, z0, cell, c_empty, c_unobs):  # pragma: no cover
     """The value of a cell whose 8 corners share one non-occupied value (no interpolation)."""
     if cell == UNIFORM_EMPTY:
@@ -156,7 +172,8 @@ def eq1_batch(T, points, weights, zdesc, index, cells, background, desc, logp, o
     B = T.shape[0]
     out = np.zeros(B)
     R = np.empty((_POSE_BLOCK, 12))
-    cv = np.empty(8)  # corner values of the point's cell (lx, ly, lz)
+    cache = np.empty((8, 8))  # corner values of up to 8 cells of the point (_cache_row)
+    keys = np.empty((8, 3), dtype=np.int64)
     for b0 in range(0, B, _POSE_BLOCK):
         nb = min(_POSE_BLOCK, B - b0)
         for j in range(nb):
@@ -167,9 +184,8 @@ def eq1_batch(T, points, weights, zdesc, index, cells, background, desc, logp, o
             px, py, pz = points[i, 0], points[i, 1], points[i, 2]
             zi = zdesc[i]
             wi = weights[i]
-            lx = -1
-            ly = -1
-            lz = -1
+            for e in range(8):
+                keys[e, 0] = -1
             for j in range(nb):
                 qx = R[j, 0] * px + R[j, 1] * py + R[j, 2] * pz + R[j, 3]
                 qy = R[j, 4] * px + R[j, 5] * py + R[j, 6] * pz + R[j, 7]
@@ -182,11 +198,10 @@ def eq1_batch(T, points, weights, zdesc, index, cells, background, desc, logp, o
                     out[b0 + j] += wi * _uniform_value(background, x0, y0, z0, cell, c_empty,
                                                        c_unobs)
                     continue
-                if x0 != lx or y0 != ly or z0 != lz:
+                e, held = _cache_row(keys, x0, y0, z0)
+                cv = cache[e]
+                if not held:
                     _corner_values(index, background, desc, logp, zi, x0, y0, z0, beta, c_unobs, cv)
-                    lx = x0
-                    ly = y0
-                    lz = z0
                 out[b0 + j] += wi * _interpolate(cv, ax, ay, az)
     return out
 
@@ -341,6 +356,8 @@ def _visibility(E, j, px, py, pz, nx, ny, nz, vtab, i, faces, grazing):  # pragm
         dx = E[j, c, 0] - px
         dy = E[j, c, 1] - py
         dz = E[j, c, 2] - pz
+        if nx * dx + ny * dy + nz * dz <= 0.0:
+            continue  # facing away (f <= 0 below): no square root, no division
         dn = np.sqrt(dx * dx + dy * dy + dz * dz)
         if dn <= 0.0:
             continue
@@ -379,7 +396,8 @@ def eq1_batch_visible(T, points, weights, zdesc, index, cells, background, desc,
     out = np.zeros(B)
     R = np.empty((_POSE_BLOCK, 12))
     E = np.empty((_POSE_BLOCK, cams.shape[0], 3))
-    cv = np.empty(8)
+    cache = np.empty((8, 8))
+    keys = np.empty((8, 3), dtype=np.int64)
     for b0 in range(0, B, _POSE_BLOCK):
         nb = min(_POSE_BLOCK, B - b0)
         for j in range(nb):
@@ -392,9 +410,8 @@ def eq1_batch_visible(T, points, weights, zdesc, index, cells, background, desc,
             nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
             zi = zdesc[i]
             wi = weights[i]
-            lx = -1
-            ly = -1
-            lz = -1
+            for e in range(8):
+                keys[e, 0] = -1
             for j in range(nb):
                 vis = _visibility(E, j, px, py, pz, nx, ny, nz, vtab, i, faces, grazing)
                 out[b0 + j] += wi * (1.0 - vis) * c_unobs
@@ -411,11 +428,10 @@ def eq1_batch_visible(T, points, weights, zdesc, index, cells, background, desc,
                     out[b0 + j] += wi * vis * _uniform_value(background, x0, y0, z0, cell, c_empty,
                                                              c_unobs)
                     continue
-                if x0 != lx or y0 != ly or z0 != lz:
+                e, held = _cache_row(keys, x0, y0, z0)
+                cv = cache[e]
+                if not held:
                     _corner_values(index, background, desc, logp, zi, x0, y0, z0, beta, c_unobs, cv)
-                    lx = x0
-                    ly = y0
-                    lz = z0
                 out[b0 + j] += wi * vis * _interpolate(cv, ax, ay, az)
     return out
 
