@@ -39,7 +39,9 @@ whose minimiser climbed highest is certified (coarse-to-fine):
    ``MLEParams.polish``), then its near-symmetric turns are tried
    (:mod:`certpose.estimation.modes`), and a better turn hops and is polished in turn; when
    the winner is not the eq. (2) minimiser being certified (a turn, or another hypothesis that
-   hopped past it), eq. (2) is solved again about the winner and that one is certified.
+   hopped past it), eq. (2) is solved again about the winner and that one is certified (about
+   a hypothesis that hopped past it right after the hops, so that the certificate runs beside
+   the turns; the certification it replaces is not waited for).
 
 Measured on 60 YCB-Video pairs (``examples/benchmarks/bench_basins.py``, geometry-only models, mask
 classifier): the returned eq. (1) is within 1 nat of the locally refined ground truth, or above
