@@ -82,6 +82,43 @@ def test_batches_of_poses_over_several_windows_match_each_window_on_its_own() ->
     assert np.ptp(got) > 1.0  # the poses differ in what they charge
 
 
+@pytest.mark.parametrize("ramp", [0.0, 0.03])
+def test_the_kernels_early_exits_charge_what_every_level_charges(ramp: float) -> None:
+    # The kernel skips a pixel when its first level, rounded up to float32, leaves no gap, and
+    # stops at the first level without a gap: the sums are those of testing every level
+    # (numpy, one window at a time), ramps included, over three levels and many poses.
+    rng = np.random.default_rng(5)
+    d = 0.8 + 0.4 * rng.random((20, 20))
+    d[rng.random((20, 20)) < 0.1] = 0.0
+    frame = RGBDFrame(None, d, K)
+    windows = (0, 1, 3)
+    fs = PixelFreeSpace([frame], tolerance=0.01, ramp=ramp, window=windows)
+    singles = [PixelFreeSpace([frame], window=w) for w in windows]
+    pts = np.column_stack([rng.uniform(-0.08, 0.08, (300, 2)), rng.uniform(-0.3, 0.3, 300)])
+    w = rng.uniform(0.5, 2.0, 300)
+    T = np.tile(np.eye(4), (40, 1, 1))
+    T[:, :3, 3] = np.column_stack([rng.normal(scale=0.02, size=(40, 2)), rng.uniform(0.6, 1.0, 40)])
+
+    def charged(gap: np.ndarray) -> np.ndarray:
+        return (gap > 0.01).astype(float) if ramp == 0 else np.clip((gap - 0.01) / ramp, 0, 1)
+
+    want = [w @ np.mean([charged(s.depth(pts + t[:3, 3])) for s in singles], axis=0) for t in T]
+    np.testing.assert_allclose(fs.weighted_sum(T, pts, w), want, rtol=1e-12, atol=1e-12)
+    assert np.count_nonzero(want) > 10
+
+
+def test_a_depth_float32_cannot_hold_still_charges_a_point_just_in_front_of_it() -> None:
+    # 1 + 1e-9 m rounds to 1.0 in float32: a point at 1.0 m stands 1e-9 m in front of the
+    # measured depth and is free (tolerance 0). A bound rounded to nearest would skip it.
+    d = 1.0 + 1e-9
+    assert float(np.float32(d)) < d
+    fs = PixelFreeSpace([wall(d)], tolerance=0.0, window=(0, 2))
+    p = np.array([at_pixel(10, 10, 1.0), at_pixel(4, 7, 1.0 + 2e-9)])
+    assert p[0, 2] == 1.0
+    np.testing.assert_array_equal(fs.fractions(np.eye(4), p), [1.0, 0.0])
+    np.testing.assert_array_equal(fs.weighted_sum(np.eye(4)[None], p, np.ones(2)), [1.0])
+
+
 def test_the_min_filter_keeps_a_silhouettes_mixed_pixels_from_counting_as_free() -> None:
     # A foreground block at 0.5 m over columns >= 10, the background at 1 m. A point at 0.8 m
     # just beside the edge (column 8) is in front of the background pixel it projects onto, but

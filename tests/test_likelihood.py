@@ -184,6 +184,42 @@ def test_batch_of_close_poses_equals_slow_reference_loop():
         assert lik.point_terms(poses[b]).sum() == pytest.approx(slow[b], rel=1e-5, abs=1e-4)
 
 
+def _stencils(rng, centre, hypotheses: int = 5, step: float = 0.004):
+    """Finite-difference stencils as the refinement batches them: for each of a few poses, the
+    12 poses one ``step`` (metres, or radians over 0.1 m) along each chart axis, both ways."""
+    out = []
+    for T0 in _random_poses(rng, hypotheses, centre, 0.01):
+        for sign in (1.0, -1.0):
+            for axis in range(6):
+                x = np.zeros(6)
+                x[axis] = sign * (step if axis < 3 else step / 0.1)
+                out.append(T0 @ make_transform(Rotation.from_rotvec(x[3:]).as_matrix(), x[:3]))
+    return np.stack(out)
+
+
+def test_a_batch_of_stencils_gives_each_pose_its_value_alone_bit_for_bit():
+    """Within a block of poses the kernel keeps the corner values of up to 8 cells per point
+    (one per parity of the cell's coordinates) and reuses them when a later pose puts the point
+    in one of those cells again: a stencil sends points back and forth between neighbouring
+    cells. Each pose's value is still the one it gets alone (no reuse), bit for bit."""
+    rng, scene, cls, obj = _world(4, p_states=(0.2, 0.3, 0.5))
+    lik = PoseLikelihood(scene, cls, obj)
+    centre = scene.origin + np.asarray(scene.shape) * scene.voxel_size / 2
+    poses = _stencils(rng, centre)
+    cell = np.floor((np.einsum("bij,nj->bni", poses[:, :3, :3], obj.points) + poses[:, None, :3, 3]
+                     - scene.origin) / scene.voxel_size - 0.5).astype(int)
+    # Points come back to a cell they left within a block (A, B, ..., A), the reuse exercised.
+    back = [(b, n) for n in range(len(obj)) for b in range(2, 32)
+            if np.any(np.all(cell[:b - 1, n] == cell[b, n], axis=1))
+            and np.any(cell[b - 1, n] != cell[b, n])]
+    assert len(back) > 50
+    alone = np.array([lik(T) for T in poses])
+    np.testing.assert_array_equal(lik(poses), alone)
+    np.testing.assert_array_equal(lik(poses[::-1]), alone[::-1])
+    slow = np.array([_reference(scene, cls, obj, T, lik.params) for T in poses[:24:5]])
+    np.testing.assert_allclose(alone[:24:5], slow, rtol=1e-5, atol=1e-4)
+
+
 def test_point_terms_sum_to_eq1_and_keep_model_order():
     rng, scene, cls, obj = _world(1)
     lik = PoseLikelihood(scene, cls, obj)

@@ -245,7 +245,8 @@ def test_an_exception_inside_estimate_mle_leaves_no_certifier_thread(monkeypatch
 
 def test_the_certifier_certifies_the_last_problem_submitted(monkeypatch):
     """The MLE submits eq. (2) again about its winner when that is not the minimiser certified
-    (a near-symmetric turn): the second problem replaces the first, whose thread is gone."""
+    (a near-symmetric turn): the second problem replaces the first without waiting for it (the
+    search goes on), its result is the second's, and leaving the block ends both threads."""
     import threading
     import time
 
@@ -268,15 +269,56 @@ def test_the_certifier_certifies_the_last_problem_submitted(monkeypatch):
                                 np.zeros(3))
     seeded = solve_eq2_about_seeds(scene, cls, obj, np.stack([turned, T]), rng=0,
                                    params=Eq2Params(seed_object_points=60))
+    def alive() -> list:
+        return [t for t in threading.enumerate()
+                if t.name.startswith(mle_mod._Certifier.THREAD_PREFIX)]
+
     with mle_mod._Certifier() as certifier:
         certifier.submit(seeded.problems[0], seeded.results[0], 5.0)
         certifier.submit(seeded.problems[1], seeded.results[1], 5.0)
-        alive = [t for t in threading.enumerate()
-                 if t.name.startswith(mle_mod._Certifier.THREAD_PREFIX)]
-        assert len(alive) <= 1
+        assert len(alive()) == 2  # the first (asleep for 0.3 s) still runs: not waited for
         res = certifier.result()
+    assert not alive()
     assert rotation_error_deg(res.rotation, T[:3, :3]) < 5.0
     assert rotation_error_deg(seeded.results[0].rotation, T[:3, :3]) > 45.0
+
+
+@pytest.mark.parametrize("moved", [False, True])
+def test_the_polish_beside_the_certifier_returns_what_the_polish_after_it_does(monkeypatch, moved):
+    """The winner is polished (step 7) while the certifier finishes, before waiting for it;
+    when the certifier returns another pose than it was given (``moved``: one more hypothesis,
+    which may win), that polish is undone and done again after it. Either way the result is
+    the reference order's (polish after the certificate) bit for bit: pose, values, modes,
+    hypotheses and evaluation count."""
+    import certpose.estimation.mle as mle_mod
+
+    real_certify = mle_mod.certify_eq2
+
+    def certify(*args, **kwargs):
+        out = real_certify(*args, **kwargs)
+        if not moved:
+            return out
+        turn = make_transform(Rotation.from_rotvec([0.0, 0.05, 0.0]).as_matrix(), [0.002, 0, 0])
+        return out._with_transform(out.T_target_source @ turn)
+
+    monkeypatch.setattr(mle_mod, "certify_eq2", certify)
+    rng = np.random.default_rng(3)
+    obj = _box_object(rng)
+    T = make_transform(Rotation.from_rotvec([1.0, -0.5, 2.0]).as_matrix(), [0.01, 0.02, 0.5])
+    scene, cls = _scene_with_object(obj, T)
+    runs = []
+    for beside in (True, False):
+        monkeypatch.setattr(mle_mod, "FINISH_BESIDE_CERTIFIER", beside)
+        runs.append(estimate_mle(scene, cls, obj, params=MLEParams(num_rotations=128), rng=0))
+    a, b = runs
+    assert a.certificate is not None
+    assert ("eq2_certified_pose" in a.timings) == moved == ("eq2_certified_pose" in b.timings)
+    np.testing.assert_array_equal(a.T_scene_object, b.T_scene_object)
+    assert (a.log_likelihood, a.hypothesis, a.num_evaluations) == (
+        b.log_likelihood, b.hypothesis, b.num_evaluations)
+    assert [m.to_dict() for m in a.modes] == [m.to_dict() for m in b.modes]
+    assert [(h.source, h.score) for h in a.hypotheses] == [(h.source, h.score) for h in b.hypotheses]
+    assert any(h.source == "eq2" for h in a.hypotheses) == moved
 
 
 def test_estimate_mle_records_its_hypotheses():

@@ -68,6 +68,29 @@ def test_a_group_minimum_is_the_tls_minimum_over_a_free_image(k: int) -> None:
         assert found <= value + 1e-6 * (1 + value)
 
 
+@pytest.mark.parametrize(("seed", "k"), [(0, 3), (1, 6), (2, 9), (3, 12)])
+def test_the_pair_kernel_is_the_numpy_minimum_over_all_subset_pairs_bit_for_bit(seed: int,
+                                                                                 k: int) -> None:
+    """The compiled pair minimum prunes the subset pairs (the cheapest first, then those whose
+    costs alone can still beat the least value): it returns the minimum of the numpy formula
+    over every pair of subsets, the same float. Groups of up to 12 correspondences (4,095
+    subsets), the empty subsets (weight 0) included, and distances of pairs kept near, beyond
+    and at the targets' spread."""
+    rng = np.random.default_rng(seed)
+    beta, cbar2 = 0.01, float(rng.uniform(0.5, 2.0))
+    for d in (0.0, 0.01, 0.05, 0.2):
+        b = [rng.normal(scale=0.01, size=(k, 3)), rng.normal(scale=0.01, size=(k, 3)) + [0.05, 0, 0]]
+        w = [rng.uniform(0.5, 2.0, k), rng.uniform(0.5, 2.0, k)]
+        (ci, wi, ki), (cj, wj, kj) = [
+            tuple(x[0] for x in _subset_tables(bg[None], (wg / beta**2)[None], wg[None], cbar2))
+            for bg, wg in zip(b, w, strict=True)]
+        Ai, Aj = wi[:, None], wj[None, :]
+        mu = np.where((Ai > 0) & (Aj > 0), Ai * Aj / np.maximum(Ai + Aj, 1e-300), 0.0)
+        D = np.linalg.norm(ci[:, None, :] - cj[None, :, :], axis=2)
+        want = float((ki[:, None] + kj[None, :] + mu * (D - d) ** 2).min())
+        assert _pair_minimum(ci, wi, ki, cj, wj, kj, d) == want
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_a_pair_minimum_is_the_minimum_with_the_images_d_apart(seed: int) -> None:
     """Two groups whose images must stay ``d`` apart (a rigid motion keeps the distance of two

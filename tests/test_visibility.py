@@ -236,6 +236,42 @@ def test_kernels_agree_with_point_terms_and_the_numpy_visibility() -> None:
         np.testing.assert_array_equal(blind.visibility(poses[k]), np.ones(len(p)))
 
 
+def test_stencil_batches_of_a_seen_object_score_each_pose_as_alone_bit_for_bit() -> None:
+    # The visibility kernel (and the per-pixel free space beside it) on a refinement's batches:
+    # finite-difference stencils around several poses near the truth, where the kernels reuse
+    # a point's corner values across the poses of a block and skip the pixels of points behind
+    # the measured depth. Each pose's value is the one it gets alone, bit for bit, with and
+    # without visibility.
+    frame, T, _ = _box_scene()
+    backbone = FPFHBackbone()
+    scene = build_scene_field([frame], backbone, voxel_size=0.005)
+    cls = classify_from_mask(scene, frame)
+    p, n = _mug_like(np.random.default_rng(5))
+    from certpose.geometry.objects import ObjectModel
+
+    obj = ObjectModel(p, backbone.describe(p, normals=n), None, n, "mug-like")
+    rng = np.random.default_rng(8)
+    poses = []
+    for _ in range(4):
+        T0 = T @ np.block([[Rotation.from_rotvec(rng.normal(scale=0.05, size=3)).as_matrix(),
+                            rng.normal(scale=0.005, size=(3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]])
+        for sign in (1.0, -1.0):
+            for axis in range(6):
+                x = np.zeros(6)
+                x[axis] = sign * 0.003 if axis < 3 else sign * 0.03
+                D = np.eye(4)
+                D[:3, :3] = Rotation.from_rotvec(x[3:]).as_matrix()
+                D[:3, 3] = x[:3]
+                poses.append(T0 @ D)
+    poses = np.stack(poses)
+    for params in (LikelihoodParams(), LikelihoodParams(visibility=False)):
+        lik = PoseLikelihood(scene, cls, obj, params=params)
+        assert lik.visible == params.visibility and lik._pixels is not None
+        alone = np.array([lik(P) for P in poses])
+        np.testing.assert_array_equal(lik(poses), alone)
+        assert np.ptp(alone) > 1.0
+
+
 def test_real_frame_cracker_box_truth_beats_its_flips() -> None:
     from certpose.estimation.pipeline import ycbv_setup
 

@@ -39,7 +39,9 @@ whose minimiser climbed highest is certified (coarse-to-fine):
    ``MLEParams.polish``), then its near-symmetric turns are tried
    (:mod:`certpose.estimation.modes`), and a better turn hops and is polished in turn; when
    the winner is not the eq. (2) minimiser being certified (a turn, or another hypothesis that
-   hopped past it), eq. (2) is solved again about the winner and that one is certified.
+   hopped past it), eq. (2) is solved again about the winner and that one is certified (about
+   a hypothesis that hopped past it right after the hops, so that the certificate runs beside
+   the turns; the certification it replaces is not waited for).
 
 Measured on 60 YCB-Video pairs (``examples/benchmarks/bench_basins.py``, geometry-only models, mask
 classifier): the returned eq. (1) is within 1 nat of the locally refined ground truth, or above
@@ -759,9 +761,11 @@ class _Certifier:
     """The eq. (2) certifier in a worker thread beside the eq. (1) search (a context manager).
 
     The certifier (cvxpy/clarabel, scipy) runs while eq. (1) is searched, which releases the GIL
-    in its numba kernels, so on 2 cores the two overlap. Leaving the ``with`` block, normally or
-    by an exception, shuts the pool down and waits for the thread (its time limit bounds the
-    wait), so no certifier outlives the call.
+    in its numba kernels, so on 2 cores the two overlap. A problem submitted replaces the one
+    before without waiting for it: a certification already running goes on in its thread (it
+    cannot be interrupted) while the search goes on, and its result is dropped. Leaving the
+    ``with`` block, normally or by an exception, shuts every pool down and waits for their
+    threads (the time limit bounds the wait), so no certifier outlives the call.
     """
 
     THREAD_PREFIX = "certpose-eq2-certify"
@@ -769,6 +773,7 @@ class _Certifier:
     def __init__(self) -> None:
         self._pool: Any = None
         self._future: Any = None
+        self._replaced: list[Any] = []
 
     def __enter__(self) -> _Certifier:
         return self
@@ -777,14 +782,18 @@ class _Certifier:
         if self._pool is not None:
             if self._future is not None:
                 self._future.cancel()
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._replaced.append(self._pool)
             self._pool = None
+        for pool in self._replaced:
+            pool.shutdown(wait=True, cancel_futures=True)
+        self._replaced = []
 
     def submit(self, eq2: Any, result: RegistrationResult, time_limit: float | None) -> None:
         from concurrent.futures import ThreadPoolExecutor
 
         if self._pool is not None:  # a new problem replaces the one submitted before
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._replaced.append(self._pool)
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix=self.THREAD_PREFIX)
         # Only a certificate is of use here, not a bound that cannot certify: the clique-number
         # bound of real frames' eq. (2) never could (best possible gap 0.99) and its search
@@ -1169,6 +1178,57 @@ def _modes(search: _Search, best: Hypothesis, object_model: ObjectModel) -> tupl
     return best, kept
 
 
+#: Whether :func:`estimate_mle` polishes its winner (step 7) while the certifier finishes, before
+#: waiting for it (the same result as after it; False: after, the reference order).
+FINISH_BESIDE_CERTIFIER = True
+
+
+def _certificate(search: _Search, certifier: _Certifier, best: Hypothesis,
+                 modes: tuple[PoseMode, ...], finals: list[Hypothesis], eq2_result: Any,
+                 eq2_ll: float, gen: np.random.Generator) -> tuple[Any, ...]:
+    """Step 4: the certificate, waited for only now (it ran beside the whole search); a better
+    eq. (2) pose from the certifier is one more hypothesis (appended to ``finals``), which hops
+    when it beats the winner and is a candidate mode when near it.
+
+    Step 7 (:func:`_finish`, the winner's polish) runs first, beside the certifier's last
+    moments, and is kept when the certifier returns the minimiser it was given (the case of
+    every pair of ``examples/benchmarks/bench_mle.py``: it saves the wait of a certificate begun
+    late, about a turn that won); otherwise the polish is undone (its evaluations and time
+    uncounted) and done after the new hypothesis, as without it. Returns ``best``, ``modes``,
+    the finished ``(best, modes)`` or None, the certified result and eq. (1) at its pose."""
+    from certpose.estimation.batch import refine_poses
+    from certpose.estimation.modes import PoseMode
+
+    timings = search.timings
+    n_eval, before = search.n_eval, dict(timings)
+    finished: tuple[Hypothesis, tuple[PoseMode, ...]] | None = (
+        _finish(search, best, modes) if FINISH_BESIDE_CERTIFIER else None)
+    t = time.perf_counter()
+    certified = certifier.result()
+    wait = time.perf_counter() - t
+    if not np.allclose(certified.T_target_source, eq2_result.T_target_source, atol=1e-9):
+        if finished is not None:
+            search.n_eval, finished = n_eval, None
+            timings.clear()
+            timings.update(before)
+        t = time.perf_counter()
+        eq2_ll = float(search.exact(certified.T_target_source))
+        T2, v2 = refine_poses(search.counted(search.full), certified.T_target_source[None],
+                              scale=search.scale, max_iter=search.params.refine_maxiter)
+        h = Hypothesis(T2[0], float(v2[0]), "eq2")
+        finals.append(h)
+        if h.score > best.score:
+            h = _hop(search, [h], gen)
+            if h.score > best.score:
+                best = h
+        if h.score >= best.score - 3 * _window(search, best.pose):
+            modes = (*modes, PoseMode(h.pose, h.score, h.source))
+        timings["eq2_certified_pose"] = time.perf_counter() - t
+    timings["eq2_certify_wait"] = wait
+    timings["eq2_certify"] = float(certified.info.get("certify_time", 0.0))
+    return best, modes, finished, certified, eq2_ll
+
+
 #: Positive voxels per object-model point below which :func:`estimate_mle` warns that the pose
 #: rests on little evidence. Measured with the mask classifier on the 60 shared YCB-Video pairs
 #: (geometry-only models): 0.136-0.351 (the tomato soup can least); best buddies inside
@@ -1311,10 +1371,23 @@ def estimate_mle(
             T2, v2 = search.refine(search.full, T0, maxiter=params.refine_maxiter)
             finals.append(Hypothesis(T2, v2, "centroid"))
         best = _hop(search, finals, gen)
+        early = None
+        if certified_from is not None and best.source != certified_from:
+            # Another hypothesis hopped past the minimiser certified: eq. (2) again about the
+            # winner now, so that its certificate runs beside the turns (step 6), which leave
+            # the winner as it is unless a turn wins (then once more about the turn, below).
+            t = time.perf_counter()
+            eq2, eq2_result, certified_from = _certify_seeded(search, seeded, finals, certifier,
+                                                              about=best)
+            early = best
+            timings["eq2_about_winner"] = time.perf_counter() - t
         best, modes = _modes(search, best, object_model)
         if best.source.startswith("turn:"):
             best = _hop(search, [best], gen)
-        if certified_from is not None and best.source != certified_from:
+        if early is not None and best is early:
+            search.n_eval += 1
+            eq2_ll = float(search.exact(eq2_result.T_target_source))
+        elif certified_from is not None and best.source != certified_from:
             # The winner is in another basin than the minimiser certified (a near-symmetric
             # turn, or another hypothesis that hopped past it): eq. (2) again about the winner,
             # so that the certified minimiser is the returned pose's (measured: the mustard
@@ -1324,34 +1397,13 @@ def estimate_mle(
                                                               about=best)
             search.n_eval += 1
             eq2_ll = float(search.exact(eq2_result.T_target_source))
-            timings["eq2_about_winner"] = time.perf_counter() - t
+            timings["eq2_about_winner"] = (timings.get("eq2_about_winner", 0.0)
+                                           + time.perf_counter() - t)
+        finished = None
         if certifier.running:
-            # Step 4: the certificate, waited for only now (it ran beside the whole search); a
-            # better eq. (2) pose from the certifier is one more hypothesis, which hops when it
-            # beats the winner and is a candidate mode when near it.
-            t = time.perf_counter()
-            certified = certifier.result()
-            timings["eq2_certify_wait"] = time.perf_counter() - t
-            timings["eq2_certify"] = float(certified.info.get("certify_time", 0.0))
-            if not np.allclose(certified.T_target_source, eq2_result.T_target_source, atol=1e-9):
-                from certpose.estimation.batch import refine_poses
-                from certpose.estimation.modes import PoseMode
-
-                t = time.perf_counter()
-                eq2_ll = float(search.exact(certified.T_target_source))
-                T2, v2 = refine_poses(search.counted(search.full), certified.T_target_source[None],
-                                      scale=search.scale, max_iter=params.refine_maxiter)
-                h = Hypothesis(T2[0], float(v2[0]), "eq2")
-                finals.append(h)
-                if h.score > best.score:
-                    h = _hop(search, [h], gen)
-                    if h.score > best.score:
-                        best = h
-                if h.score >= best.score - 3 * _window(search, best.pose):
-                    modes = (*modes, PoseMode(h.pose, h.score, h.source))
-                timings["eq2_certified_pose"] = time.perf_counter() - t
-            eq2_result = certified
-    best, modes = _finish(search, best, modes)
+            best, modes, finished, eq2_result, eq2_ll = _certificate(
+                search, certifier, best, modes, finals, eq2_result, eq2_ll, gen)
+    best, modes = finished if finished is not None else _finish(search, best, modes)
     # The hypotheses as they ended on the search's eq. (1), scored on the exact one.
     if search.full is not search.exact and finals:
         scores = np.atleast_1d(search.counted(search.exact)(np.stack([h.pose for h in finals])))

@@ -8,6 +8,16 @@ behind the camera. Each view holds ``L`` depth images (min-filtered over growing
 pixel by pixel (``depth[view, row, column, level]``: one cache line serves all of a pixel's levels,
 where an image after image layout read ``L`` lines scattered megabytes apart): a view's fraction is
 their mean, and the largest fraction over the views counts.
+
+Most points stand behind or on the measured surface (about 98% of the terms of the MLE's
+batches on YCB-Video frames): their fraction is 0, and the kernel tells so from ``bound``, the
+first level's depth rounded up to float32 (a quarter of the levels' bytes, so the look-ups
+mostly hit the cache): ``bound - z - tolerance <= 0`` implies the same of every level's depth,
+which is at most the first level's (the windows grow with the level, the min-filter only
+lowers the depth; rounding is monotone, so the float64 test on the bound implies the one on the
+depth). Likewise the levels stop at the first whose gap is not positive: the later ones add
+exactly 0. The values are the same as testing every level (measured on the recorded batches of
+three YCB-Video pairs' MLE: 12.5-14.7 -> 8.0-8.3 ns per term, one thread, bit for bit).
 """
 
 from __future__ import annotations
@@ -20,11 +30,13 @@ from solvers.jit import kernel
 
 F1, F2, F3 = nt.float64[::1], nt.float64[:, ::1], nt.float64[:, :, ::1]
 F4 = nt.float64[:, :, :, ::1]
+S3 = nt.float32[:, :, ::1]
 I1 = nt.int64[::1]
 f8 = nt.float64
-# After the poses and points: depth (V, H, W, L) per view, pixel and level, camera-from-world
-# (V, 4, 4), intrinsics (V, 4) = fx, fy, cx, cy, widths (V,), heights (V,), tolerance, ramp.
-_VIEWS = (F4, F3, F2, I1, I1, f8, f8)
+# After the poses and points: the first level's depth rounded up (V, H, W), depth (V, H, W, L)
+# per view, pixel and level (non-increasing over the levels), camera-from-world (V, 4, 4),
+# intrinsics (V, 4) = fx, fy, cx, cy, widths (V,), heights (V,), tolerance, ramp.
+_VIEWS = (S3, F4, F3, F2, I1, I1, f8, f8)
 
 # Poses per block of free_batch (as in certpose.model._kernels: the poses of a batch are often
 # close, so a point's pixels are read from memory once and reused from cache by the block).
@@ -45,7 +57,7 @@ def _object_to_cameras(T, T_cw, M, j):  # pragma: no cover
 
 
 @njit(inline="always")
-def _fraction(px, py, pz, M, j, depth, K, widths, heights, tol, ramp):  # pragma: no cover
+def _fraction(px, py, pz, M, j, bound, depth, K, widths, heights, tol, ramp):  # pragma: no cover
     """Free-space fraction of the object point ``(px, py, pz)`` under the camera transforms
     ``M[j]`` (:func:`_object_to_cameras`)."""
     levels = depth.shape[3]
@@ -60,17 +72,21 @@ def _fraction(px, py, pz, M, j, depth, K, widths, heights, tol, ramp):  # pragma
         v = np.floor(K[f, 1] * y / z + K[f, 3] + 0.5)
         if u < 0.0 or v < 0.0 or u >= widths[f] or v >= heights[f]:
             continue
-        frac = 0.0
         iv = int(v)
         iu = int(u)
+        if np.float64(bound[f, iv, iu]) - z - tol <= 0.0:
+            continue  # every level's gap is <= 0 (module docstring)
+        frac = 0.0
         for lv in range(levels):
             d = depth[f, iv, iu, lv]
             if d <= 0.0:
                 break
             gap = d - z - tol
+            if gap <= 0.0:
+                break  # so are the later levels'
             if ramp > 0.0:
-                frac += min(max(gap / ramp, 0.0), 1.0)
-            elif gap > 0.0:
+                frac += min(gap / ramp, 1.0)
+            else:
                 frac += 1.0
         frac /= levels
         if frac > best:
@@ -79,7 +95,7 @@ def _fraction(px, py, pz, M, j, depth, K, widths, heights, tol, ramp):  # pragma
 
 
 @kernel(F3, F2, F1, *_VIEWS, nogil=True)
-def free_batch(T, points, weights, depth, T_cw, K, widths, heights, tol, ramp):  # pragma: no cover
+def free_batch(T, points, weights, bound, depth, T_cw, K, widths, heights, tol, ramp):  # pragma: no cover
     """Weighted sum of the points' free-space fractions for each of the ``B`` poses ``T`` (B, 4, 4).
 
     Points are the outer loop within blocks of ``_POSE_BLOCK`` poses; each pose's fractions are
@@ -95,19 +111,19 @@ def free_batch(T, points, weights, depth, T_cw, K, widths, heights, tol, ramp): 
             px, py, pz = points[i, 0], points[i, 1], points[i, 2]
             wi = weights[i]
             for j in range(nb):
-                frac = _fraction(px, py, pz, M, j, depth, K, widths, heights, tol, ramp)
+                frac = _fraction(px, py, pz, M, j, bound, depth, K, widths, heights, tol, ramp)
                 if frac > 0.0:
                     out[b0 + j] += wi * frac
     return out
 
 
 @kernel(F2, F2, *_VIEWS, nogil=True)
-def free_points(T, points, depth, T_cw, K, widths, heights, tol, ramp):  # pragma: no cover
+def free_points(T, points, bound, depth, T_cw, K, widths, heights, tol, ramp):  # pragma: no cover
     """Free-space fraction of each point ``(N,)`` at one pose ``T`` (4, 4)."""
     out = np.empty(points.shape[0])
     M = np.empty((1, T_cw.shape[0], 12))
     _object_to_cameras(T, T_cw, M, 0)
     for i in range(points.shape[0]):
-        out[i] = _fraction(points[i, 0], points[i, 1], points[i, 2], M, 0, depth, K, widths,
-                           heights, tol, ramp)
+        out[i] = _fraction(points[i, 0], points[i, 1], points[i, 2], M, 0, bound, depth, K,
+                           widths, heights, tol, ramp)
     return out

@@ -81,6 +81,15 @@ def check_windows(window: Any) -> tuple[int, ...]:
     return tuple(sorted(out))
 
 
+def _rounded_up(depth: NDArray[np.float64]) -> NDArray[np.float32]:
+    """``depth`` as float32, each value rounded up where float32 cannot hold it: a bound the
+    free-space kernel tests first (``bound >= depth`` holds exactly)."""
+    bound = depth.astype(np.float32)
+    low = bound.astype(np.float64) < depth
+    bound[low] = np.nextafter(bound[low], np.float32(np.inf))
+    return np.ascontiguousarray(bound)
+
+
 class PixelFreeSpace:
     """The per-pixel free-space test of a set of depth views, vectorised over poses and points.
 
@@ -130,6 +139,7 @@ class PixelFreeSpace:
                     low = minimum_filter(np.where(valid, d0, np.inf), size=2 * w + 1, mode="nearest")
                     d = np.where(valid, low, 0.0)
                 self._depth[k, : d.shape[0], : d.shape[1], lv] = d
+        self._bound = _rounded_up(self._depth[..., 0])
         self._T_cw = np.ascontiguousarray(np.stack([np.linalg.inv(f.T_world_camera) for f in frames]))
         self._K = np.array([[f.intrinsics.fx, f.intrinsics.fy, f.intrinsics.cx, f.intrinsics.cy]
                             for f in frames], dtype=np.float64)
@@ -142,8 +152,8 @@ class PixelFreeSpace:
         return cls(scene_frames(scene), **kwargs)
 
     def _views(self) -> tuple[Any, ...]:
-        return (self._depth, self._T_cw, self._K, self._widths, self._heights, self.tolerance,
-                self.ramp)
+        return (self._bound, self._depth, self._T_cw, self._K, self._widths, self._heights,
+                self.tolerance, self.ramp)
 
     def weighted_sum(self, T: NDArray[np.float64], points: NDArray[np.float64],
                      weights: NDArray[np.float64], *, kernel: Any = None) -> NDArray[np.float64]:

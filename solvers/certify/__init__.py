@@ -25,11 +25,12 @@ from solvers.certify.front import (
 
 CERTIFY_KERNELS = ("solvers.certify._kernels:heavy_maximal_cliques",
                    "solvers.registration._kernels:consistency_edge_list",
-                   "solvers.certify._pose_kernels:pose_bnb")
+                   "solvers.certify._pose_kernels:pose_bnb",
+                   "solvers.certify._kernels:pair_minimum")
 """The compiled kernels a full-problem certificate calls on every graph that is not a clique (for
 :func:`solvers.jit.warm_up`; the branch and bound over poses on graphs with too many maximal
-cliques to list); the per-clique branch and bound and the rotation dual's projection compile on
-first use."""
+cliques to list, the pairs of the shared-source bound); the per-clique branch and bound and the
+rotation dual's projection compile on first use."""
 
 __all__ = [
     "CERTIFY_KERNELS",

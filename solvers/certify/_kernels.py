@@ -464,3 +464,47 @@ def heavy_maximal_cliques(adj, w, s_min, thr, limit, max_nodes):  # pragma: no c
         depth = d1
         ready = False
     return flat[: offsets[min(count, limit)]], offsets[: min(count, limit) + 1], count, complete, nodes
+
+
+@njit(inline="always")
+def _pair_value(ci, wi, ki, cj, wj, kj, d, i, j):  # pragma: no cover - compiled
+    """Subsets ``i`` and ``j`` of two groups with their images ``d`` apart: their costs plus
+    ``A_i A_j / (A_i + A_j) (||m_i - m_j|| - d)^2`` (:mod:`solvers.certify.groups`), in numpy's
+    order of operations (the distance's squares summed left to right)."""
+    Ai = wi[i]
+    Aj = wj[j]
+    mu = Ai * Aj / max(Ai + Aj, 1e-300) if (Ai > 0.0 and Aj > 0.0) else 0.0
+    x = ci[i, 0] - cj[j, 0]
+    y = ci[i, 1] - cj[j, 1]
+    z = ci[i, 2] - cj[j, 2]
+    e = np.sqrt(x * x + y * y + z * z) - d
+    return (ki[i] + kj[j]) + mu * (e * e)
+
+
+@kernel(F2, F1, F1, F2, F1, F1, f8, i8, nogil=True)
+def pair_minimum(ci, wi, ki, cj, wj, kj, d, few):  # pragma: no cover - compiled
+    """Exact minimum over all subset pairs of two groups' :func:`_pair_value` (centres (S, 3),
+    weights (S,) and costs (S,) of each group's subsets). The ``few`` cheapest subsets of each
+    are paired first; a pair is then skipped when its two costs alone reach the least value so
+    far (the distance term is >= 0 and the rounded sum does not fall below its first part), so
+    the result is the minimum over every pair."""
+    fi = np.argsort(ki)[:few]
+    fj = np.argsort(kj)[:few]
+    best = np.inf
+    for a in fi:
+        for b in fj:
+            v = _pair_value(ci, wi, ki, cj, wj, kj, d, a, b)
+            if v < best:
+                best = v
+    kbi = ki.min()
+    kbj = kj.min()
+    for i in range(ki.shape[0]):
+        if not ki[i] + kbj < best:
+            continue
+        for j in range(kj.shape[0]):
+            if not (kj[j] + kbi < best and ki[i] + kj[j] < best):
+                continue
+            v = _pair_value(ci, wi, ki, cj, wj, kj, d, i, j)
+            if v < best:
+                best = v
+    return best

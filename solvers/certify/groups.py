@@ -38,6 +38,7 @@ leaves out). One-to-one correspondences give the trivial 0.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -117,26 +118,22 @@ def _group_minima(b: NDArray[np.float64], a: NDArray[np.float64], w: NDArray[np.
 
 def _pair_minimum(ci: NDArray[np.float64], wi: NDArray[np.float64], ki: NDArray[np.float64],
                   cj: NDArray[np.float64], wj: NDArray[np.float64], kj: NDArray[np.float64],
-                  d: float) -> float:
+                  d: float, *, kernel: Any = None) -> float:
     """Exact minimum of two groups' costs with their images ``d`` apart (module docstring), from
-    their subset tables (centres, weights, costs). Only subsets that can beat the pair of the
-    two groups' own best subsets are tried."""
-    bi, bj = int(np.argmin(ki)), int(np.argmin(kj))
+    their subset tables (centres, weights, costs). Only subsets that can beat the least value
+    found so far are tried, the cheapest few of each group first. A numba kernel
+    (``kernel``: the compiled ``pair_minimum``, looked up once by a caller of many pairs): the
+    values of the numpy form, bit for bit, and about ten times faster on eq. (2)'s problems
+    (measured on 2,228 pairs of three YCB-Video pairs' certificates: 0.46 -> 0.05 s), where the
+    pairs were most of a certification's time, spent holding the GIL beside the MLE's search."""
+    if kernel is None:
+        from solvers.jit import compiled
 
-    def value(si: NDArray[np.int64], sj: NDArray[np.int64]) -> NDArray[np.float64]:
-        Ai, Aj = wi[si][:, None], wj[sj][None, :]
-        mu = np.where((Ai > 0) & (Aj > 0), Ai * Aj / np.maximum(Ai + Aj, 1e-300), 0.0)
-        D = np.linalg.norm(ci[si][:, None, :] - cj[sj][None, :, :], axis=2)
-        return ki[si][:, None] + kj[sj][None, :] + mu * (D - d) ** 2
-
-    # The cheapest few subsets of each first: a tight upper value prunes the rest.
-    few_i, few_j = np.argsort(ki)[:_FEW], np.argsort(kj)[:_FEW]
-    upper = float(value(few_i, few_j).min())
-    si = np.flatnonzero(ki + kj[bj] < upper)
-    sj = np.flatnonzero(kj + ki[bi] < upper)
-    if si.size == 0 or sj.size == 0:
-        return upper
-    return min(upper, float(value(si, sj).min()))
+        kernel = compiled("solvers.certify._kernels").pair_minimum
+    c = np.ascontiguousarray
+    return float(kernel(c(ci, dtype=np.float64), c(wi, dtype=np.float64), c(ki, dtype=np.float64),
+                        c(cj, dtype=np.float64), c(wj, dtype=np.float64), c(kj, dtype=np.float64),
+                        float(d), _FEW))
 
 
 _FEW = 12  # subsets per group tried first in a pair (see _pair_minimum)
@@ -156,6 +153,9 @@ def _greedy_pairs(tables: list[tuple[NDArray[np.float64], ...]], sources: NDArra
     their exact gains without computing most of them."""
     import heapq
 
+    from solvers.jit import compiled
+
+    kernel = compiled("solvers.certify._kernels").pair_minimum
     n = len(tables)
     best = [int(np.argmin(t[2])) for t in tables]
     centre = np.array([t[0][k] for t, k in zip(tables, best, strict=True)])
@@ -178,7 +178,8 @@ def _greedy_pairs(tables: list[tuple[NDArray[np.float64], ...]], sources: NDArra
             used[a] = used[b] = True
             added, count = added - key, count + 1
             continue
-        gain = (_pair_minimum(*tables[a], *tables[b], float(np.linalg.norm(sources[a] - sources[b])))
+        gain = (_pair_minimum(*tables[a], *tables[b], float(np.linalg.norm(sources[a] - sources[b])),
+                              kernel=kernel)
                 - singles[a] - singles[b])
         if gain > 0:
             heapq.heappush(heap, (-gain, a, b, True))
@@ -257,7 +258,8 @@ def shared_source_bound(problem: WeightedTLSProblem, *, pairs: bool = True) -> S
                        + problem.cbar2 * w[rows].sum())
         for r, idx in enumerate(group):
             if int(inv[idx[0]]) in whole:
-                tables.append((centre[r], weight[r], const[r]))
+                tables.append((np.ascontiguousarray(centre[r]), np.ascontiguousarray(weight[r]),
+                               np.ascontiguousarray(const[r])))
                 sources.append(a_src[idx[0]])
                 singles.append(float(best[r]))
     pairs = 0
