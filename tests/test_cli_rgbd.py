@@ -149,8 +149,11 @@ def test_run_rgbd_checks_image_sizes_and_the_mask(tmp_path: Path) -> None:
     (["--axis", "0", "0", "1"], "--axis needs --samples N"),
     (["--samples", "10", "--axis", "0", "0", "0"], "--axis must be a non-zero finite direction"),
     (["--model-error", "3", "3"], "--model-error needs --samples N"),
-    (["--samples", "10", "--model-error", "-1", "3"], "--model-error must be two non-negative"),
-    (["--samples", "10", "--model-error", "nan", "3"], "--model-error must be two non-negative"),
+    (["--samples", "10", "--model-error", "-1", "3"], "--model-error must be 'fit' or two non-negative"),
+    (["--samples", "10", "--model-error", "nan", "3"], "--model-error must be 'fit' or two non-negative"),
+    (["--samples", "10", "--model-error", "wide"], "--model-error must be 'fit' or two non-negative"),
+    (["--samples", "10", "--model-error", "fit", "3"], "--model-error must be 'fit' or two non-negative"),
+    (["--samples", "10", "--model-error", "2"], "--model-error must be 'fit' or two non-negative"),
 ])
 def test_axis_option_is_checked(argv: list[str], message: str, capsys) -> None:  # noqa: ANN001
     assert main(["pose", "--demo", *argv]) == 2
