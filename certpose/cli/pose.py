@@ -140,10 +140,10 @@ def add_parser(subparsers: Any) -> None:
                           "distribution (eq. (1)'s basins and flips, a model-error kernel; docs/concepts.md)")
     smp.add_argument("--model-error", nargs="+", metavar="DEG MM | fit", default=None,
                      help="the model-error kernel the distribution is convolved with (a Student t "
-                          "with 5 degrees of freedom): 'fit' (default) scales it by the measured "
-                          "misfit of the posed model against the depth; DEG MM fixes its rotation "
-                          "(degrees) and translation (millimetres) standard deviations per axis "
-                          "(0 0: the bare distribution)")
+                          "with 5 degrees of freedom): DEG MM fixes its rotation (degrees) and "
+                          "translation (millimetres) standard deviations per axis (default 2 2; "
+                          "0 0: the bare distribution); 'fit' scales it by the measured depth "
+                          "misfit of the posed model (PoseParams.model_error)")
     add_common(p, seed_help="random seed (default: 0)")
     p.set_defaults(func=run)
 

@@ -161,7 +161,7 @@ class PoseParams:
     roi_margin: float | None = 0.1
     sampler: Any = None
     sampling_method: str = "is"
-    model_error: tuple[float, float] | str | None = "fit"
+    model_error: tuple[float, float] | str | None = (math.radians(2.0), 0.002)
     model_error_gains: tuple[float, float] = (1.0, 1.0)
     model_error_dof: float = 5.0
     model_revolution: bool = False

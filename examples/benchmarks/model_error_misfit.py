@@ -37,16 +37,17 @@ GAINS_B = (0.5, 1.0, 2.0)
 DOFS = (3.0, 5.0)
 
 
-def misfits(root: Path, folder: Path) -> dict[str, dict]:
+def misfits(root: Path, folder: Path, known: dict[str, dict] | None = None) -> dict[str, dict]:
     """The misfit ``r`` (metres) and lever arm ``rho`` (metres) of each non-symmetric pair at the
-    pose its JSON returned (``T_camera_object``), the scene and model rebuilt as the CLI does."""
+    pose its JSON returned (``T_camera_object``), the scene and model rebuilt as the CLI does
+    (pairs in ``known`` are not measured again)."""
     from certpose.estimation.pipeline import ycbv_setup
     from certpose.model.misfit import depth_misfit, lever_arm
 
-    out = {}
+    out = dict(known or {})
     for f in sorted(folder.glob("*.npz")):
         scene, frame, name = f.stem.split("_", 2)
-        if name in SYMMETRIC:
+        if name in SYMMETRIC or f.stem in out:
             continue
         T = np.asarray(json.loads(f.with_suffix(".json").read_text())["T_camera_object"])
         st = ycbv_setup(root, f"{scene}/{frame}", name)
@@ -155,17 +156,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--demo", type=int, nargs="*", default=[], help="demo seeds to measure r on")
     ap.add_argument("--misfits", type=Path, help="read the per-pair misfits from / write them to this JSON")
+    ap.add_argument("--misfits-only", action="store_true", help="stop after measuring the misfits")
     ap.add_argument("--json", type=Path, help="write the per-pair levels here")
     a = ap.parse_args(argv)
     print(f"load {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     if a.demo:
         demo_misfits(a.demo)
-    if a.misfits is not None and a.misfits.is_file():
-        mis = json.loads(a.misfits.read_text())
-    else:
-        mis = misfits(a.root, a.particles)
-        if a.misfits is not None:
-            a.misfits.write_text(json.dumps(mis, indent=1))
+    known = json.loads(a.misfits.read_text()) if a.misfits is not None and a.misfits.is_file() else {}
+    mis = misfits(a.root, a.particles, known)
+    if a.misfits is not None:
+        a.misfits.write_text(json.dumps(mis, indent=1))
+    if a.misfits_only:
+        return 0
     if not mis:
         raise SystemExit(f"no particle files of non-symmetric objects in {a.particles}")
     rows = levels(a.root, a.particles, mis, a.seed)
