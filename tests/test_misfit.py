@@ -130,7 +130,7 @@ def test_fitted_kernel_follows_the_measured_misfit(mug: tuple) -> None:
     too large than for the exact one; a fixed tuple and None are passed through; a scene
     without depth images falls back to the fixed kernel and says why."""
     sc, scene, obj = mug
-    params = PoseParams(model_error_gains=(2.0, 1.5))
+    params = PoseParams(model_error="fit", model_error_gains=(2.0, 1.5))
     k = model_error_kernel(scene, obj, sc.T_camera_object, params)
     r = depth_misfit(scene, obj, sc.T_camera_object).misfit
     assert k["rule"] == "fit" and k["misfit"] == pytest.approx(r) and k["dof"] == params.model_error_dof
