@@ -149,8 +149,11 @@ def test_run_rgbd_checks_image_sizes_and_the_mask(tmp_path: Path) -> None:
     (["--axis", "0", "0", "1"], "--axis needs --samples N"),
     (["--samples", "10", "--axis", "0", "0", "0"], "--axis must be a non-zero finite direction"),
     (["--model-error", "3", "3"], "--model-error needs --samples N"),
-    (["--samples", "10", "--model-error", "-1", "3"], "--model-error must be two non-negative"),
-    (["--samples", "10", "--model-error", "nan", "3"], "--model-error must be two non-negative"),
+    (["--samples", "10", "--model-error", "-1", "3"], "--model-error must be 'fit' or two non-negative"),
+    (["--samples", "10", "--model-error", "nan", "3"], "--model-error must be 'fit' or two non-negative"),
+    (["--samples", "10", "--model-error", "wide"], "--model-error must be 'fit' or two non-negative"),
+    (["--samples", "10", "--model-error", "fit", "3"], "--model-error must be 'fit' or two non-negative"),
+    (["--samples", "10", "--model-error", "2"], "--model-error must be 'fit' or two non-negative"),
 ])
 def test_axis_option_is_checked(argv: list[str], message: str, capsys) -> None:  # noqa: ANN001
     assert main(["pose", "--demo", *argv]) == 2
@@ -191,3 +194,22 @@ def test_model_error_option_sets_the_kernel(tmp_path: Path) -> None:
         spread[deg] = float(np.sqrt(np.average(np.sum((d.translations - np.average(
             d.translations, axis=0, weights=d.weights)) ** 2, axis=1), weights=d.weights)))
     assert spread["10"] > spread["0"] + 0.005, spread
+
+
+@pytest.mark.slow
+def test_model_error_fit_records_the_measured_misfit_and_kernel(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    """`--model-error fit` scales the kernel by the depth misfit at the returned pose and writes
+    both to the JSON's sampling block; the demo's renders are exact, so the misfit is below a
+    millimetre and a half, and the kernel follows the rule's default gains (1, 1)."""
+    js = tmp_path / "p.json"
+    assert main(["pose", "--demo", "--samples", "300", "--model-error", "fit", "--json", str(js)]) == 0
+    k = json.loads(js.read_text())["sampling"]["model_error"]
+    assert k["rule"] == "fit" and k["dof"] == 5.0 and k["gains"] == [1.0, 1.0]
+    assert 0.0 < k["misfit"] < 0.0015 and k["misfit_points"] > 300
+    assert k["translation_sigma"] == pytest.approx(k["misfit"])
+    assert k["rotation_sigma"] == pytest.approx(k["misfit"] / k["lever_arm"])
+    assert f"model-error kernel (fit, depth misfit {1000 * k['misfit']:.2f} mm" in capsys.readouterr().out
+    fixed = tmp_path / "f.json"
+    assert main(["pose", "--demo", "--samples", "300", "--json", str(fixed)]) == 0
+    k = json.loads(fixed.read_text())["sampling"]["model_error"]
+    assert k["rule"] == "fixed" and k["rotation_sigma"] == pytest.approx(np.radians(2.0))

@@ -138,12 +138,30 @@ def add_parser(subparsers: Any) -> None:
                           "Metropolis on SE(3). The baselines get the same target and number of "
                           "eq. (1) evaluations. calibrated: exact draws of the calibrated "
                           "distribution (eq. (1)'s basins and flips, a model-error kernel; docs/concepts.md)")
-    smp.add_argument("--model-error", type=float, nargs=2, metavar=("DEG", "MM"), default=None,
-                     help="the model-error kernel the distribution is convolved with: rotation "
-                          "(degrees) and translation (millimetres) standard deviations per axis "
-                          "(default 2 2, a Student t with 5 degrees of freedom; 0 0: the bare distribution)")
+    smp.add_argument("--model-error", nargs="+", metavar="DEG MM | fit", default=None,
+                     help="the model-error kernel the distribution is convolved with (a Student t "
+                          "with 5 degrees of freedom): DEG MM fixes its rotation (degrees) and "
+                          "translation (millimetres) standard deviations per axis (default 2 2; "
+                          "0 0: the bare distribution); 'fit' scales it by the measured depth "
+                          "misfit of the posed model (PoseParams.model_error)")
     add_common(p, seed_help="random seed (default: 0)")
     p.set_defaults(func=run)
+
+
+def _model_error_arg(values: list[str]) -> str | tuple[float, float]:
+    """``--model-error``'s words as ``"fit"`` or ``(degrees, millimetres)``."""
+    from certpose.cli import CLIError
+
+    if values == ["fit"]:
+        return "fit"
+    try:
+        nums = tuple(float(v) for v in values)
+    except ValueError:
+        nums = ()
+    if len(nums) != 2 or not all(math.isfinite(v) and v >= 0 for v in nums):
+        raise CLIError("--model-error must be 'fit' or two non-negative numbers (degrees, millimetres), "
+                       f"got {' '.join(values)}")
+    return nums  # type: ignore[return-value]
 
 
 def _fmt(x: float | None, scale: float = 1.0, unit: str = "", digits: int = 2) -> str:
@@ -259,9 +277,7 @@ def run(args: argparse.Namespace) -> int:
     if args.model_error is not None:
         if args.samples == 0:
             raise CLIError("--model-error needs --samples N")
-        if not all(math.isfinite(v) and v >= 0 for v in args.model_error):
-            raise CLIError(f"--model-error must be two non-negative numbers (degrees, millimetres), "
-                           f"got {args.model_error}")
+        args.model_error = _model_error_arg(args.model_error)
     if args.axis is not None:
         if args.samples == 0:
             raise CLIError("--axis needs --samples N (it names the turn the modes and the plot show)")
@@ -304,7 +320,9 @@ def run(args: argparse.Namespace) -> int:
         params = replace(params, sampler=ISParams(draws=max(10_000, args.samples),
                                                   resample=args.samples),
                          sampling_method=args.method)
-        if args.model_error is not None:
+        if args.model_error == "fit":
+            params = replace(params, model_error="fit")
+        elif args.model_error is not None:
             deg, mm = args.model_error
             params = replace(params, model_error=None if deg == mm == 0 else (math.radians(deg), mm / 1000.0))
     if args.rgbd is not None:
@@ -610,6 +628,13 @@ def _print_distribution(result: object, args: argparse.Namespace) -> None:
           f"{info['ess']:.0f}, Pareto-k {_fmt(k, 1, '', 2)}, temperature {info['temperature']:.3g}, "
           + (f"{info['evaluations']} eq. (1) evaluations" if info.get("evaluations") is not None
              else "built") + f" in {info['seconds']:.2f} s; {info['message']}")
+    kern = info.get("model_error")
+    if kern:
+        say(args, f"  model-error kernel ({kern['rule']}"
+              + (f", depth misfit {1000 * kern['misfit']:.2f} mm over {kern['misfit_points']} points, "
+                 f"lever arm {100 * kern['lever_arm']:.1f} cm" if "misfit" in kern else "")
+              + f"): {math.degrees(kern['rotation_sigma']):.2f} deg, {1000 * kern['translation_sigma']:.2f} mm"
+              f" per axis, Student t {kern['dof']:g} dof")
     from certpose.estimation.pipeline import YCBV_SYMMETRY_AXES
 
     axis = (tuple(args.axis) if args.axis is not None else (0.0, 0.0, 1.0) if args.demo

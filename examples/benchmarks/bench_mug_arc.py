@@ -145,16 +145,26 @@ def main() -> int:
     ap.add_argument("--samples", type=int, default=2000)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--frames", nargs="+", default=["000001", "000002", "000003", "000004", "000005"])
-    ap.add_argument("--model-error", type=float, nargs=2, metavar=("DEG", "MM"), default=None,
-                    help="model-error kernel (degrees, millimetres per axis); 0 0: none")
+    ap.add_argument("--model-error", nargs="+", metavar="DEG MM | fit", default=None,
+                    help="model-error kernel: degrees, millimetres per axis (0 0: none) or fit "
+                         "(scaled by the depth misfit)")
     args = ap.parse_args()
     params = replace(PoseParams(), sampler=ISParams(draws=max(10_000, args.samples), resample=args.samples))
-    if args.model_error is not None:
-        deg, mm = args.model_error
+    if args.model_error == ["fit"]:
+        params = replace(params, model_error="fit")
+    elif args.model_error is not None:
+        deg, mm = (float(v) for v in args.model_error)
         params = replace(params, model_error=(math.radians(deg), mm / 1000.0) if deg or mm else None)
     print(f"model-error kernel: {params.model_error} (radians, metres), dof {params.model_error_dof}")
     print(f"load {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     rows = []
+
+    def kernel(res) -> str:  # noqa: ANN001
+        k = res.sampling.get("model_error") or {}
+        r = f"r {1000 * k['misfit']:.2f} mm: " if "misfit" in k else ""
+        return (f"kernel {k.get('rule')} {r}{math.degrees(k.get('rotation_sigma', 0.0)):.2f} deg, "
+                f"{1000 * k.get('translation_sigma', 0.0):.2f} mm")
+
     for seed in args.seeds:
         t = time.perf_counter()
         res = run_demo(params=params, rng=seed, cache_dir=default_cache_dir())
@@ -170,7 +180,7 @@ def main() -> int:
         rows.append(f)
         print(f"demo {seed}: pixel arc {f['arc']} in arc {f['in_arc']:.2f}, > 20 out {f['far_out']:.2f}, "
               f"bins {f['bins']:.2f}, axis ok {f['axis_ok']:.2f} | exact arc {fx['arc']}: in {fx['in_arc']:.2f}, "
-              f"bins {fx['bins']:.2f} ({time.perf_counter() - t:.0f} s)", flush=True)
+              f"bins {fx['bins']:.2f}; {kernel(res)} ({time.perf_counter() - t:.0f} s)", flush=True)
     if args.ycbv.is_dir():
         sys.path.insert(0, str(Path(__file__).resolve().parent))
         from bench_arc import body_axis_offset
@@ -196,7 +206,7 @@ def main() -> int:
                   f"{f['in_any']:.2f}), > 20 out {f['far_out']:.2f}, "
                   f"bins {f['bins']:.2f}, axis ok {f['axis_ok']:.2f}; to the table's normal: truth "
                   f"{gt_tilt:.1f} deg, median {tilt:.1f} deg; depth-fitted body axis to the truth's "
-                  f"{to_gt:.1f} deg ({time.perf_counter() - t:.0f} s)", flush=True)
+                  f"{to_gt:.1f} deg; {kernel(res)} ({time.perf_counter() - t:.0f} s)", flush=True)
     met = [r["in_arc"] >= 0.9 and r["far_out"] <= 0.05 and r["bins"] == 1.0 and r["axis_ok"] >= 0.9 for r in rows]
     print(f"all four targets met in {sum(met)} of {len(rows)} scenes; load "
           f"{' '.join(f'{v:.1f}' for v in os.getloadavg())}")
