@@ -59,9 +59,10 @@ def _rotvec_matrix(r0, r1, r2):  # pragma: no cover - compiled
 
 @njit(cache=True)
 def _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1, rc2, rs, tc0,
-            tc1, tc2, ts, bound):  # pragma: no cover - compiled
+            tc1, tc2, ts, bound, floor):  # pragma: no cover - compiled
     """Append a cell (a child of the frame at ``depth``) to ``rec``, its parent's terms and
-    their colour classes to ``pool`` (columns 0 and 1) once per parent."""
+    their colour classes to ``pool`` (columns 0 and 1) once per parent; its bound is at least
+    ``floor`` (a bound of a cell holding it)."""
     if poolid[depth] < 0:
         off = nrec[1]
         for q in range(cnt[depth]):
@@ -73,7 +74,7 @@ def _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc
     j = nrec[0]
     rec[j, 0], rec[j, 1], rec[j, 2], rec[j, 3] = rc0, rc1, rc2, rs
     rec[j, 4], rec[j, 5], rec[j, 6], rec[j, 7] = tc0, tc1, tc2, ts
-    rec[j, _BOUND], rec[j, _POFF], rec[j, _PLEN] = bound, poolid[depth], cnt[depth]
+    rec[j, _BOUND], rec[j, _POFF], rec[j, _PLEN] = max(bound, floor), poolid[depth], cnt[depth]
     rec[j, _POUT] = outc[depth]
     rec[j, _PCOL], rec[j, _PCOL + 1], rec[j, _PCOL + 2] = cinfo[depth, 0], cinfo[depth, 1], \
         cinfo[depth, 2]
@@ -178,7 +179,7 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
                    outc, ints, best, hist, outc[0], np.zeros((0, REC_COLS)),
                    np.zeros(2, dtype=np.int64), np.zeros((0, 2), dtype=np.int64),
                    np.zeros(frames.shape[0], dtype=np.int64), -np.inf, frames.shape[0] + 1,
-                   _scratch(a.shape[0], recolour_max))
+                   -np.inf, _scratch(a.shape[0], recolour_max))
 
 
 @njit(cache=True)
@@ -194,7 +195,7 @@ def _scratch(N, recolour_max):  # pragma: no cover - compiled
 @njit(cache=True)
 def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolour_max, thr,
             allowance, kleaf, leaf_nodes, stop_nodes, max_nodes, frames, act, cnt, outc, ints,
-            best, hist, base0, rec, nrec, pool, poolid, cap, split_depth,
+            best, hist, base0, rec, nrec, pool, poolid, cap, split_depth, floor,
             scratch):  # pragma: no cover - compiled
     """:func:`pose_bnb`'s search (``scratch``: :func:`_scratch`'s arrays); ``base0`` is the outlier cost of the terms outside the core
     (the colouring bound's constant). With ``rec`` of at least one row, every cell left with
@@ -372,7 +373,7 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
                 best[0] = bound - allowance
             if recording and bound - allowance < cap:
                 _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1, rc2, rs, tc0,
-                        tc1, tc2, ts, bound - allowance)
+                        tc1, tc2, ts, bound - allowance, floor)
             continue
         if n_unc <= kleaf:
             # Exact over the cell's inlier sets: sure terms in, impossible ones out.
@@ -413,7 +414,7 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
                         best[0] = bp[0] - allowance
                     if recording and bp[0] - allowance < cap:
                         _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1, rc2,
-                                rs, tc0, tc1, tc2, ts, bp[0] - allowance)
+                                rs, tc0, tc1, tc2, ts, bp[0] - allowance, floor)
                 else:
                     fr[_NEXT] = k  # not finished: visit the cell again
                 ints[0], ints[1], ints[2] = depth, nodes, code
@@ -424,14 +425,14 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
                     best[0] = thr - allowance
                 if recording and thr - allowance < cap:
                     _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1, rc2, rs,
-                            tc0, tc1, tc2, ts, thr - allowance)
+                            tc0, tc1, tc2, ts, thr - allowance, floor)
                 continue
         if depth + 1 >= split_depth:
             # Deep enough below the search's root: left for a later pass (the frontier's
             # cells are searched lowest bound first, in blocks shared by the workers).
             if bound - allowance < cap:
                 _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1,
-                        rc2, rs, tc0, tc1, tc2, ts, bound - allowance)
+                        rc2, rs, tc0, tc1, tc2, ts, bound - allowance, floor)
             continue
         # Split the child: the half with the larger uncertainty radius.
         nf = frames[depth + 1]
@@ -504,7 +505,7 @@ def pose_frontier(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, r
         code = _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits,
                        recolour_max, thr, allowance, kleaf, leaf_nodes, stop_nodes, max_nodes,
                        frames, act, cnt, outc, ints, best, hist, base0, rec, nrec, pool, poolid,
-                       cap, split_depth, scratch)
+                       cap, split_depth, roots[ints[3], _BOUND], scratch)
         if code != 0:
             return code
         ints[4] = 0

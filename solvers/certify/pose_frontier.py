@@ -151,6 +151,8 @@ class Frontier:
         self.cells = 0
         self.hist = np.zeros((MAX_DEPTH, 4), dtype=np.int64)
         self.failed = False
+        self.t0 = time.perf_counter()
+        self.curve: list[tuple[float, float]] = []
         self._lock = threading.Lock()
         setup = _setup(problem, R, t, self.cap, self.cap)
         self.empty = setup is None  # no consistent set can go below the cap
@@ -209,6 +211,7 @@ class Frontier:
                                                    and self.cells >= max_cells):
                 return False
             self._pass(gap, deadline, max_cells)
+            self.curve.append((time.perf_counter() - self.t0, self.lower))
         return not self.failed
 
     def _pass(self, gap: float, deadline: float, max_cells: int | None) -> None:
@@ -260,8 +263,10 @@ class Frontier:
                 cap = min(self.cap, max(self.u, thr))
                 self.cap_used = min(self.cap_used, cap)
             start = int(w.ints[1])
+            chunk = CHUNK_NODES if max_cells is None else max(min(CHUNK_NODES,
+                                                                  max_cells - self.cells), 1)
             code = kern(*a[:10], a[10], float(thr), float(self.allowance), _leaf_terms(),
-                        _leaf_nodes(), start + CHUNK_NODES, roots, rpool, self.base0, w.frames, w.act, w.cnt, w.outc, w.ints, w.best, w.hist,
+                        _leaf_nodes(), start + chunk, roots, rpool, self.base0, w.frames, w.act, w.cnt, w.outc, w.ints, w.best, w.hist,
                         w.rec, w.nrec, w.pool, w.poolid, float(cap), SPLIT_DEPTH)
             with self._lock:
                 self.cells += int(w.ints[1]) - start
@@ -272,7 +277,9 @@ class Frontier:
                 w.grow()
                 continue
             if code == 3:
-                if self._better(w.best):
+                # Not better when another worker found a better pose meanwhile: the threshold
+                # has come down, so the cell will not offer it again.
+                if self._better(w.best) or self.threshold(gap) < thr:
                     continue
                 code = 2
             if code == 2 or over or time.perf_counter() >= deadline:
