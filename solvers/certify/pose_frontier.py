@@ -265,7 +265,7 @@ class Frontier:
             start = int(w.ints[1])
             chunk = CHUNK_NODES if max_cells is None else max(min(CHUNK_NODES,
                                                                   max_cells - self.cells), 1)
-            code = kern(*a[:10], a[10], float(thr), float(self.allowance), _leaf_terms(),
+            code = kern(*a[:7], w.ccol, w.cinfo, a[9], a[10], float(thr), float(self.allowance), _leaf_terms(),
                         _leaf_nodes(), start + chunk, roots, rpool, self.base0, w.frames, w.act, w.cnt, w.outc, w.ints, w.best, w.hist,
                         w.rec, w.nrec, w.pool, w.poolid, float(cap), SPLIT_DEPTH)
             with self._lock:
