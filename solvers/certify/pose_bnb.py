@@ -64,9 +64,9 @@ FRONTIER_GAPS = (0.3, 0.1, 0.07, 0.05, 0.035, 0.025, 0.018, 0.012, 0.008, 0.005,
 loosest first, before the certificate's own tolerance, each stage going on from the cells the
 last one left."""
 
-LEAF_TERMS = 20
+LEAF_TERMS = 8
 """Cells with at most this many undecided terms are solved exactly over their inlier sets."""
-LEAF_NODES = 500
+LEAF_NODES = 100
 """Node budget of one cell's exact solve (beyond it the cell is split instead)."""
 RECOLOUR_MAX = 1000
 """Cells with at most this many possible inliers are recoloured with their own rotations."""
