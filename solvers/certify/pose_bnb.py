@@ -59,7 +59,8 @@ Refine = Callable[[WeightedTLSProblem, NDArray[np.float64], NDArray[np.float64]]
 STAGE_GAPS = (0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01, 0.005, 0.002)
 """Gaps of the depth-first stages, each a search from scratch (kept as the reference the tests
 compare :data:`FRONTIER_GAPS`' search with)."""
-FRONTIER_GAPS = (0.3, 0.1, 0.07, 0.05, 0.035, 0.025, 0.018, 0.012, 0.008, 0.005, 0.003, 0.002)
+FRONTIER_GAPS = (0.3, 0.2, 0.14, 0.1, 0.07, 0.05, 0.035, 0.025, 0.018, 0.012, 0.008, 0.005,
+                 0.003, 0.002)
 """Gaps (:func:`solvers.certificate.undiluted_gap`) :func:`pose_lower_bound` proves in turn,
 loosest first, before the certificate's own tolerance, each stage going on from the cells the
 last one left."""
