@@ -377,3 +377,29 @@ def test_frontier_stage_is_at_least_the_depth_first_one(seed: int) -> None:
         assert search.run(gap, time.perf_counter() + 60.0) and search.found is None
         assert search.lower >= st.lower - 1e-12 * (1 + abs(st.lower))
         assert search.lower <= search.u
+
+
+def test_frontier_search_with_its_pool_compacted_at_every_pass(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The term pool compacted after every pass (cells' lists moved): the interrupted and
+    finished searches still bound the enumerated optimum, and complete at the tolerance with
+    the exact optimum within it."""
+    from solvers.certify import pose_frontier
+
+    monkeypatch.setattr(pose_frontier, "COMPACT_ROWS", 0)
+    monkeypatch.setattr(pose_bnb, "LEAF_TERMS", 5)
+    bad = []
+    for family in ("uniform", "uneven", "beta", "grouped"):
+        bad += _interrupted(family, range(2))
+    assert not bad, "\n".join(bad)
+    calls = []
+    real = pose_frontier._Pool.compact
+
+    def counting(self, rec):  # noqa: ANN001, ANN202
+        calls.append(rec.shape[0])
+        return real(self, rec)
+
+    monkeypatch.setattr(pose_frontier._Pool, "compact", counting)
+    bad, complete, runs = _violations("uniform", range(2))
+    assert not bad, "\n".join(bad)
+    assert complete == runs and calls

@@ -36,6 +36,8 @@ CHUNK_NODES = 20_000
 SPLIT_DEPTH = 6
 """Levels a search goes below one of the frontier's cells before it leaves the cells there to
 a later pass (so that the workers share the deep searches near the optimum)."""
+COMPACT_ROWS = 1 << 25
+"""Rows of the term pool beyond which it is compacted (when most of it is dead)."""
 FIRST_ROWS = 1 << 15
 """Initial rows of a worker's record buffer (doubled when full)."""
 
@@ -81,6 +83,7 @@ class _Pool:
     def __init__(self, first: NDArray[np.int64]) -> None:
         self.buf = np.empty((max(2 * first.shape[0], 1024), 2), dtype=np.int64)
         self.n = 0
+        self.live = 0  # rows after the last compaction
         self.append(first)
 
     def append(self, rows: NDArray[np.int64]) -> int:
@@ -99,6 +102,22 @@ class _Pool:
     def rows(self) -> NDArray[np.int64]:
         return self.buf[:self.n]
 
+    def compact(self, rec: NDArray[np.float64]) -> None:
+        """Keep only the lists the cells ``rec`` refer to (each once); their offsets in
+        ``rec`` are updated in place."""
+        from solvers.certify._pose_kernels import _PLEN, _POFF
+
+        offs, lens = rec[:, _POFF].astype(np.int64), rec[:, _PLEN].astype(np.int64)
+        uo, first, inv = np.unique(offs, return_index=True, return_inverse=True)
+        ul = lens[first]
+        newoff = np.concatenate([[0], np.cumsum(ul)[:-1]]).astype(np.int64)
+        idx = np.repeat(uo - newoff, ul) + np.arange(int(ul.sum()), dtype=np.int64)
+        rows = self.buf[idx]
+        self.buf = np.empty((max(2 * rows.shape[0], 1024), 2), dtype=np.int64)
+        self.buf[:rows.shape[0]] = rows
+        self.n = self.live = rows.shape[0]
+        rec[:, _POFF] = newoff[inv]
+
 
 def _merge(kept: NDArray[np.float64], parts: list[tuple[NDArray[np.float64], NDArray[np.int64]]],
            pool: _Pool) -> NDArray[np.float64]:
@@ -114,7 +133,10 @@ def _merge(kept: NDArray[np.float64], parts: list[tuple[NDArray[np.float64], NDA
         r[:, _POFF] += pool.append(rows)
         recs.append(r)
     rec = np.concatenate(recs)
-    return np.ascontiguousarray(rec[np.argsort(rec[:, _BOUND], kind="stable")])
+    rec = np.ascontiguousarray(rec[np.argsort(rec[:, _BOUND], kind="stable")])
+    if pool.n > max(COMPACT_ROWS, 2 * pool.live):
+        pool.compact(rec)  # most lists are of cells searched since: dead
+    return rec
 
 
 class Frontier:
