@@ -310,8 +310,9 @@ def test_an_interrupted_frontier_search_bounds_the_enumerated_optimum(
         monkeypatch: pytest.MonkeyPatch, family: str) -> None:
     """13 families x 2 instances, the search stopped after 100, 1000, 3000 and 10000 cells from
     a candidate 20 degrees off, then to the end (cells solved exactly only from 5 undecided
-    terms down, so that it must split): every bound it reports is below the exact minimum and never falls (a cell
-    left behind unrecorded, or recorded above its bound, would break one)."""
+    terms down, so that it must split): every bound it reports is below the exact minimum and
+    never falls (a cell left behind unrecorded, or recorded above its bound, would break
+    one)."""
     monkeypatch.setattr(pose_bnb, "LEAF_TERMS", 5)
     bad = _interrupted(family, range(2))
     assert not bad, "\n".join(bad)

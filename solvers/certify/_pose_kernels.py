@@ -145,10 +145,11 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
     ``a``, ``b`` (N, 3) points, ``v`` (N,) least-squares weights, ``wout`` (N,) outlier costs,
     ``anorm`` (N,) ``|a_i|``, ``slack`` (N,) a rounding allowance per term's residual (added to
     every cell's uncertainty radius). A cell with rotation vectors within ``sr`` (half-side) of
-    ``rc`` and translations within ``st`` of ``tc`` moves ``a_i`` by at most
-    ``2 sin(min(sqrt(3) sr, pi) / 2) |a_i| + sqrt(3) st`` from ``R(rc) a_i + tc`` (Hartley and
-    Kahl: rotation vectors ``d`` apart give rotations at most ``d`` apart in angle), so each
-    term's residual lies in ``[e_i - rho_i, e_i + rho_i]`` around its centre's. Terms whose
+    ``rc`` and translations within ``st`` of ``tc`` (a box) moves ``R a_i`` by at most
+    ``rho_i = 2 sin(min(sqrt(3) sr, pi) / 2) |a_i|`` from ``R(rc) a_i`` (Hartley and Kahl:
+    rotation vectors ``d`` apart give rotations at most ``d`` apart in angle), so each term's
+    residual lies between the distances from ``b_i - R(rc) a_i`` to the nearest and the
+    farthest point of the translation box (per axis), less and plus ``rho_i``. Terms whose
     lower residual cannot be an inlier's are outliers throughout the cell ("impossible"); terms
     whose upper residual is an inlier's are inliers throughout ("sure"); the rest are
     "uncertain". A cell's bound is the larger of ``out + sum_uncertain v lo^2 + max(LS_sure,
@@ -197,7 +198,8 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
             allowance, kleaf, leaf_nodes, stop_nodes, max_nodes, frames, act, cnt, outc, ints,
             best, hist, base0, rec, nrec, pool, poolid, cap, split_depth, floor,
             scratch):  # pragma: no cover - compiled
-    """:func:`pose_bnb`'s search (``scratch``: :func:`_scratch`'s arrays); ``base0`` is the outlier cost of the terms outside the core
+    """:func:`pose_bnb`'s search (``scratch``: :func:`_scratch`'s arrays); ``base0`` is the
+    outlier cost of the terms outside the core
     (the colouring bound's constant). With ``rec`` of at least one row, every cell left with
     a bound below ``cap`` (pruned, or solved exactly against ``thr``) is recorded there for a
     later search (:func:`pose_frontier`): its cube, bound, and its parent's terms (stored once
@@ -372,8 +374,8 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
             if bound - allowance < best[0]:
                 best[0] = bound - allowance
             if recording and bound - allowance < cap:
-                _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1, rc2, rs, tc0,
-                        tc1, tc2, ts, bound - allowance, floor)
+                _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1, rc2,
+                        rs, tc0, tc1, tc2, ts, bound - allowance, floor)
             continue
         if n_unc <= kleaf:
             # Exact over the cell's inlier sets: sure terms in, impossible ones out.
@@ -413,8 +415,8 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
                     if bp[0] - allowance < best[0]:
                         best[0] = bp[0] - allowance
                     if recording and bp[0] - allowance < cap:
-                        _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1, rc2,
-                                rs, tc0, tc1, tc2, ts, bp[0] - allowance, floor)
+                        _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0,
+                                rc1, rc2, rs, tc0, tc1, tc2, ts, bp[0] - allowance, floor)
                 else:
                     fr[_NEXT] = k  # not finished: visit the cell again
                 ints[0], ints[1], ints[2] = depth, nodes, code
@@ -424,15 +426,15 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
                 if thr - allowance < best[0]:
                     best[0] = thr - allowance
                 if recording and thr - allowance < cap:
-                    _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1, rc2, rs,
-                            tc0, tc1, tc2, ts, thr - allowance, floor)
+                    _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1,
+                            rc2, rs, tc0, tc1, tc2, ts, thr - allowance, floor)
                 continue
         if depth + 1 >= split_depth:
             # Deep enough below the search's root: left for a later pass (the frontier's
             # cells are searched lowest bound first, in blocks shared by the workers).
             if bound - allowance < cap:
-                _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1,
-                        rc2, rs, tc0, tc1, tc2, ts, bound - allowance, floor)
+                _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1, rc2,
+                        rs, tc0, tc1, tc2, ts, bound - allowance, floor)
             continue
         # Split the child: the half with the larger uncertainty radius.
         nf = frames[depth + 1]

@@ -209,13 +209,16 @@ class Frontier:
 
         m = max(self.m, 1)
         ccol = np.zeros((MAX_DEPTH, m), dtype=np.int64)
-        return _Worker(np.zeros((MAX_DEPTH, FRAME_COLS)), np.zeros((MAX_DEPTH, m), dtype=np.int64),
+        return _Worker(np.zeros((MAX_DEPTH, FRAME_COLS)),
+                       np.zeros((MAX_DEPTH, m), dtype=np.int64),
                        np.zeros(MAX_DEPTH, dtype=np.int64), np.zeros(MAX_DEPTH), ccol,
                        np.zeros((MAX_DEPTH, 3)), np.zeros((MAX_DEPTH, 4), dtype=np.int64),
-                       np.empty((FIRST_ROWS, REC_COLS)), np.empty((FIRST_ROWS * 8, 2), dtype=np.int64),
+                       np.empty((FIRST_ROWS, REC_COLS)),
+                       np.empty((FIRST_ROWS * 8, 2), dtype=np.int64),
                        poolid=np.full(MAX_DEPTH, -1, dtype=np.int64))
 
     def threshold(self, gap: float) -> float:
+        """The threshold of ``gap`` against the best pose known."""
         from solvers.certify.pose_bnb import stage_threshold
 
         return stage_threshold(self.u, self.c_out, gap)
@@ -287,9 +290,10 @@ class Frontier:
             start = int(w.ints[1])
             chunk = CHUNK_NODES if max_cells is None else max(min(CHUNK_NODES,
                                                                   max_cells - self.cells), 1)
-            code = kern(*a[:7], w.ccol, w.cinfo, a[9], a[10], float(thr), float(self.allowance), _leaf_terms(),
-                        _leaf_nodes(), start + chunk, roots, rpool, self.base0, w.frames, w.act, w.cnt, w.outc, w.ints, w.best, w.hist,
-                        w.rec, w.nrec, w.pool, w.poolid, float(cap), SPLIT_DEPTH)
+            code = kern(*a[:7], w.ccol, w.cinfo, a[9], a[10], float(thr), float(self.allowance),
+                        _leaf_terms(), _leaf_nodes(), start + chunk, roots, rpool, self.base0,
+                        w.frames, w.act, w.cnt, w.outc, w.ints, w.best, w.hist, w.rec, w.nrec,
+                        w.pool, w.poolid, float(cap), SPLIT_DEPTH)
             with self._lock:
                 self.cells += int(w.ints[1]) - start
                 over = max_cells is not None and self.cells >= max_cells
