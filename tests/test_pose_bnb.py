@@ -282,8 +282,6 @@ def _interrupted(family: str, seeds: range, limits: tuple[int | None, ...] = (10
     """The frontier search stopped after a few cells (two workers), then run to the end
     (``None``): its anytime bound must be below the enumerated minimum, and rise with the cells
     searched."""
-    from solvers.certify.pose_frontier import Frontier
-
     bad = []
     for seed in seeds:
         rng = np.random.default_rng(13000 + 100 * FAMILIES.index(family) + seed)
@@ -291,7 +289,7 @@ def _interrupted(family: str, seeds: range, limits: tuple[int | None, ...] = (10
         res = solve_registration(p)
         exact = exact_optimum(p)
         R = _rotate(res.rotation, 20.0, rng)
-        search = Frontier(p, R, res.translation, workers=2)
+        search = pose_bnb.frontier(p, R, res.translation, workers=2)
         last = -np.inf
         for limit in limits:
             for gap in (0.3, 0.01, 1e-3):
@@ -347,7 +345,6 @@ def test_frontier_search_proves_nothing_above_a_feasible_cost(excess: float) -> 
     raise its bound above a known pose's cost (cells kept up to far above it), it never
     gets there, and its bound stays below that cost."""
     from solvers.certify.front import refine_pose
-    from solvers.certify.pose_frontier import Frontier
 
     bad = []
     for i, p0 in enumerate(_sensitivity_instances()):
@@ -355,7 +352,7 @@ def test_frontier_search_proves_nothing_above_a_feasible_cost(excess: float) -> 
         res = solve_registration(p)
         R, t = refine_pose(p, res.rotation, res.translation)
         u = p.cost(R, t)
-        search = Frontier(p, R, t, cap=u + 10.0 * (1 + abs(u)), workers=2)
+        search = pose_bnb.frontier(p, R, t, cap=u + 10.0 * (1 + abs(u)), workers=2)
         done = search.run(-excess, time.perf_counter() + 60.0)
         if done or search.lower > u + 1e-9 * (1 + abs(u)):
             bad.append(f"instance {i}: bound {search.lower!r} (done: {done}) above the "
@@ -367,11 +364,9 @@ def test_frontier_search_proves_nothing_above_a_feasible_cost(excess: float) -> 
 def test_frontier_stage_is_at_least_the_depth_first_one(seed: int) -> None:
     """At a completed stage the frontier search's bound is at least what the depth-first
     search from scratch proves at the same gap (its threshold, less the allowance)."""
-    from solvers.certify.pose_frontier import Frontier
-
     p, _ = _normalised(_dense_instance(300 + seed, inliers=12, rival=10))
     res = solve_registration(p)
-    search = Frontier(p, res.rotation, res.translation)
+    search = pose_bnb.frontier(p, res.rotation, res.translation)
     for gap in (0.3, 0.1, 0.02):
         st = pose_bnb._stage(p, res.rotation, res.translation, gap, 60.0)
         assert st.complete and st.found is None

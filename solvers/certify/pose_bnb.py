@@ -43,11 +43,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solvers.certificate import undiluted_gap
+from solvers.certify.pose_frontier import Frontier, _outlier_cost, stage_threshold
 from solvers.jit import compiled
 from solvers.problem import WeightedTLSProblem
 
-__all__ = ["PoseBound", "pose_lower_bound", "stage_threshold", "default_workers", "FRONTIER_GAPS",
-           "STAGE_GAPS"]
+__all__ = ["PoseBound", "pose_lower_bound", "frontier", "stage_threshold", "default_workers",
+           "FRONTIER_GAPS", "STAGE_GAPS"]
 
 log = logging.getLogger(__name__)
 
@@ -219,13 +220,11 @@ def pose_lower_bound(
     -------
     PoseBound
     """
-    from solvers.certify.pose_frontier import Frontier
-
     t0 = time.perf_counter()
     deadline = t0 + time_limit
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64).reshape(3)
-    search = Frontier(problem, R, t, refine=refine,
+    search = frontier(problem, R, t, refine=refine,
                       workers=default_workers() if workers is None else workers)
     if search.too_large:
         log.info("pose branch and bound: core of more than %d terms, not searched", MAX_TERMS)
@@ -251,6 +250,16 @@ def pose_lower_bound(
                      curve=[(s, min(lo, u)) for s, lo in search.curve])
 
 
+def frontier(problem: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.float64], *,
+             refine: Refine | None = None, workers: int = 2, cap: float | None = None
+             ) -> Frontier:
+    """The anytime search (:class:`solvers.certify.pose_frontier.Frontier`) for the candidate
+    ``(R, t)``, with this module's core, frame and leaf settings (``cap``: as there)."""
+    return Frontier(problem, R, t, lambda c: _setup(problem, R, t, c, c),
+                    leaf_terms=LEAF_TERMS, leaf_nodes=LEAF_NODES, max_depth=MAX_DEPTH,
+                    refine=refine, workers=workers, cap=cap)
+
+
 def default_workers() -> int:
     """Threads of the search: the cores this process may run on, at most 4."""
     try:
@@ -258,18 +267,6 @@ def default_workers() -> int:
     except AttributeError:  # not on Linux
         n = os.cpu_count() or 1
     return max(1, min(n, 4))
-
-
-def _outlier_cost(problem: WeightedTLSProblem, R: NDArray[np.float64],
-                  t: NDArray[np.float64]) -> float:
-    r2 = problem.residuals_sq(R, t)
-    return float(problem.cbar2 * problem.weights[r2 >= problem.cbar2].sum())
-
-
-def stage_threshold(u: float, c_out: float, gap: float) -> float:
-    """The threshold whose proof gives a gap of at most ``gap`` to a pose of cost ``u`` with
-    outlier cost ``c_out``: ``undiluted_gap(u, thr, c_out) <= gap`` for ``thr <= u``."""
-    return u - gap * (1.0 + abs(u - c_out))
 
 
 def _stage(problem: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.float64],

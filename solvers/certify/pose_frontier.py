@@ -22,6 +22,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,7 +30,7 @@ from numpy.typing import NDArray
 from solvers.jit import compiled
 from solvers.problem import WeightedTLSProblem
 
-__all__ = ["Frontier"]
+__all__ = ["Frontier", "stage_threshold"]
 
 CHUNK_NODES = 20_000
 """Cells per call of the compiled search (it returns to Python to read the clock)."""
@@ -149,6 +150,15 @@ class Frontier:
     R : (3, 3) ndarray
     t : (3,) ndarray
         The candidate pose: the upper bound, the frame's centre and the core's threshold.
+    setup : callable
+        ``setup(cap)``: the compiled search's inputs for the core against ``cap``, None when
+        no consistent set can go below it, a string when the core is too large (as
+        :func:`solvers.certify.pose_bnb.frontier` builds them).
+    leaf_terms, leaf_nodes : int
+        Cells with at most ``leaf_terms`` undecided terms are solved exactly, within
+        ``leaf_nodes`` nodes.
+    max_depth : int
+        Frames of a worker's depth-first search.
     refine : callable, optional
         ``refine(problem, R, t) -> (R, t)`` for a better pose the search finds.
     workers : int
@@ -160,23 +170,23 @@ class Frontier:
     """
 
     def __init__(self, problem: WeightedTLSProblem, R: NDArray[np.float64],
-                 t: NDArray[np.float64], *, refine: Refine | None = None, workers: int = 2,
-                 cap: float | None = None) -> None:
-        from solvers.certify.pose_bnb import MAX_DEPTH, _outlier_cost, _setup
-
+                 t: NDArray[np.float64], setup: Callable[[float], Any], *, leaf_terms: int,
+                 leaf_nodes: int, max_depth: int, refine: Refine | None = None,
+                 workers: int = 2, cap: float | None = None) -> None:
         self.problem, self.refine, self.workers = problem, refine, max(int(workers), 1)
+        self.leaf_terms, self.leaf_nodes, self.max_depth = leaf_terms, leaf_nodes, max_depth
         self.u = float(problem.cost(R, t))
         self.c_out = _outlier_cost(problem, R, t)
         self.found: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         self.cap = self.u if cap is None else max(float(cap), self.u)
         self.cap_used = self.cap  # the least cap a cell was dropped at
         self.cells = 0
-        self.hist = np.zeros((MAX_DEPTH, 4), dtype=np.int64)
+        self.hist = np.zeros((max_depth, 4), dtype=np.int64)
         self.failed = False
         self.t0 = time.perf_counter()
         self.curve: list[tuple[float, float]] = []
         self._lock = threading.Lock()
-        setup = _setup(problem, R, t, self.cap, self.cap)
+        setup = setup(self.cap)
         self.empty = setup is None  # no consistent set can go below the cap
         self.too_large = isinstance(setup, str)
         self.roots = np.empty((0, 15))
@@ -205,8 +215,8 @@ class Frontier:
 
     def _worker(self) -> _Worker:
         from solvers.certify._pose_kernels import FRAME_COLS, REC_COLS
-        from solvers.certify.pose_bnb import MAX_DEPTH
 
+        MAX_DEPTH = self.max_depth  # noqa: N806
         m = max(self.m, 1)
         ccol = np.zeros((MAX_DEPTH, m), dtype=np.int64)
         return _Worker(np.zeros((MAX_DEPTH, FRAME_COLS)),
@@ -219,8 +229,6 @@ class Frontier:
 
     def threshold(self, gap: float) -> float:
         """The threshold of ``gap`` against the best pose known."""
-        from solvers.certify.pose_bnb import stage_threshold
-
         return stage_threshold(self.u, self.c_out, gap)
 
     def run(self, gap: float, deadline: float, *, max_cells: int | None = None) -> bool:
@@ -291,7 +299,7 @@ class Frontier:
             chunk = CHUNK_NODES if max_cells is None else max(min(CHUNK_NODES,
                                                                   max_cells - self.cells), 1)
             code = kern(*a[:7], w.ccol, w.cinfo, a[9], a[10], float(thr), float(self.allowance),
-                        _leaf_terms(), _leaf_nodes(), start + chunk, roots, rpool, self.base0,
+                        self.leaf_terms, self.leaf_nodes, start + chunk, roots, rpool, self.base0,
                         w.frames, w.act, w.cnt, w.outc, w.ints, w.best, w.hist, w.rec, w.nrec,
                         w.pool, w.poolid, float(cap), SPLIT_DEPTH)
             with self._lock:
@@ -329,19 +337,17 @@ class Frontier:
             cost = float(p.cost(Rb, tb))
             if not cost < self.u:
                 return False
-            from solvers.certify.pose_bnb import _outlier_cost
-
             self.u, self.c_out, self.found = cost, _outlier_cost(p, Rb, tb), (Rb, tb)
         return True
 
 
-def _leaf_terms() -> int:
-    from solvers.certify.pose_bnb import LEAF_TERMS
+def stage_threshold(u: float, c_out: float, gap: float) -> float:
+    """The threshold whose proof gives a gap of at most ``gap`` to a pose of cost ``u`` with
+    outlier cost ``c_out``: ``undiluted_gap(u, thr, c_out) <= gap`` for ``thr <= u``."""
+    return u - gap * (1.0 + abs(u - c_out))
 
-    return LEAF_TERMS
 
-
-def _leaf_nodes() -> int:
-    from solvers.certify.pose_bnb import LEAF_NODES
-
-    return LEAF_NODES
+def _outlier_cost(problem: WeightedTLSProblem, R: NDArray[np.float64],
+                  t: NDArray[np.float64]) -> float:
+    r2 = problem.residuals_sq(R, t)
+    return float(problem.cbar2 * problem.weights[r2 >= problem.cbar2].sum())
