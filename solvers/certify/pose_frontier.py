@@ -184,6 +184,7 @@ class Frontier:
         self.hist = np.zeros((max_depth, 4), dtype=np.int64)
         self.failed = False
         self.t0 = time.perf_counter()
+        self.merge_time = 0.0  # seconds the last pass took to merge its cells
         self.curve: list[tuple[float, float]] = []
         self._lock = threading.Lock()
         setup = setup(self.cap)
@@ -252,6 +253,9 @@ class Frontier:
         ``gap`` (to at most ``SPLIT_DEPTH`` levels)."""
         state = {"next": 0, "stop": False, "carried": []}
         roots, rpool = self.roots, self.pool.rows
+        # The searching stops early enough for the merge of its cells to end by the deadline
+        # (about as long as the last one, with a little more to merge).
+        deadline -= 1.5 * self.merge_time
         block = max(1, min(64, roots.shape[0] // (8 * self.workers)))
         kern = compiled("solvers.certify._pose_kernels").pose_frontier
 
@@ -280,8 +284,10 @@ class Frontier:
             with ThreadPoolExecutor(self.workers) as ex:
                 futures = [ex.submit(work) for _ in range(self.workers)]
                 parts = [p for f in futures for p in f.result()]
+        started = time.perf_counter()
         kept = np.concatenate(state["carried"] + [roots[state["next"]:]])
         self.roots = _merge(kept, parts, self.pool)
+        self.merge_time = time.perf_counter() - started
 
     def _block(self, kern, w: _Worker, roots: NDArray[np.float64],  # noqa: ANN001
                rpool: NDArray[np.int64], gap: float, deadline: float, max_cells: int | None,
