@@ -77,3 +77,28 @@ def test_refine_translation_keeps_the_rotation_and_never_raises_the_cost() -> No
     # At the refined translation the inliers' weighted mean is the translation itself.
     S = p.inliers(R, t)
     assert np.allclose(t, (b[S] - a[S] @ R.T).mean(axis=0), atol=1e-12)
+
+
+@pytest.mark.slow
+def test_full_bound_searches_from_the_cheaper_solver_pose(corr, monkeypatch) -> None:
+    """At 0.05 m the returned (rotation-certified) pose costs more than the solver's; the full
+    problem's pose search starts from the solver's pose (its cost is the search's first upper
+    bound), and its bound, below both costs, is recorded for the returned pose."""
+    from solvers.certify import front
+
+    starts = []
+    real = front._pose_search_bound
+
+    def spy(pn, R, t, **kw):  # noqa: ANN001, ANN003, ANN202
+        starts.append(pn.cost(R, t))
+        return real(pn, R, t, **kw)
+
+    monkeypatch.setattr(front, "_pose_search_bound", spy)
+    res = register(corr.source, corr.target, noise_bound=0.05, certify=True, time_limit=10.0)
+    assert res.cost > res.info["candidate_cost"]
+    assert len(starts) == 1
+    full = res.info["full_problem_certificate"]
+    ws = full["weight_scale"]
+    assert starts[0] * ws == pytest.approx(res.info["candidate_cost"], rel=1e-9)
+    assert full["upper_bound"] == pytest.approx(res.cost, rel=1e-9)
+    assert full["lower_bound"] <= res.info["candidate_cost"]

@@ -5,6 +5,8 @@ through ``certify_result(pose_search=True)``, and the real 3DMatch pair."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -273,3 +275,127 @@ def test_root_colouring_is_proper(m: int) -> None:
     complete = np.array([(i, j) for i in range(m) for j in range(i + 1, m)],
                         dtype=np.int64).reshape(-1, 2)
     assert np.unique(pose_bnb._colouring(m, complete)).size == m
+
+
+def _interrupted(family: str, seeds: range, limits: tuple[int | None, ...] = (100, 1000, 3000, 10000, None)
+                 ) -> list[str]:
+    """The frontier search stopped after a few cells (two workers), then run to the end
+    (``None``): its anytime bound must be below the enumerated minimum, and rise with the cells
+    searched."""
+    bad = []
+    for seed in seeds:
+        rng = np.random.default_rng(13000 + 100 * FAMILIES.index(family) + seed)
+        p, _ = _normalised(make_family(rng, family, int(rng.integers(6, 13))))
+        res = solve_registration(p)
+        exact = exact_optimum(p)
+        R = _rotate(res.rotation, 20.0, rng)
+        search = pose_bnb.frontier(p, R, res.translation, workers=2)
+        last = -np.inf
+        for limit in limits:
+            for gap in (0.3, 0.01, 1e-3):
+                search.run(gap, time.perf_counter() + 60.0, max_cells=limit)
+            where = f"{family} seed {seed} after {search.cells} cells"
+            if search.lower > exact + 1e-9 * (1 + abs(exact)):
+                bad.append(f"{where}: bound {search.lower!r} > exact minimum {exact!r}")
+            if search.lower < last - 1e-12 * (1 + abs(last)):
+                bad.append(f"{where}: bound fell from {last!r} to {search.lower!r}")
+            last = search.lower
+    return bad
+
+
+@pytest.mark.parametrize("family", FAMILIES)
+def test_an_interrupted_frontier_search_bounds_the_enumerated_optimum(
+        monkeypatch: pytest.MonkeyPatch, family: str) -> None:
+    """13 families x 2 instances, the search stopped after 100, 1000, 3000 and 10000 cells from
+    a candidate 20 degrees off, then to the end (cells solved exactly only from 5 undecided
+    terms down, so that it must split): every bound it reports is below the exact minimum and
+    never falls (a cell left behind unrecorded, or recorded above its bound, would break
+    one)."""
+    monkeypatch.setattr(pose_bnb, "LEAF_TERMS", 5)
+    bad = _interrupted(family, range(2))
+    assert not bad, "\n".join(bad)
+
+
+def test_an_interrupted_frontier_search_catches_an_inflated_bound(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Mutation check of the test above: bounds inflated 4x are reported above the exact
+    minimum."""
+    real = pose_bnb._setup
+
+    def inflated(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        out = real(*args, **kwargs)
+        if out is None or isinstance(out, str):
+            return out
+        kargs, *rest = out
+        kargs = list(kargs)
+        kargs[2] = kargs[2] * 4.0
+        return (tuple(kargs), *rest)
+
+    monkeypatch.setattr(pose_bnb, "_setup", inflated)
+    monkeypatch.setattr(pose_bnb, "LEAF_TERMS", 5)
+    bad = []
+    for family in ("uniform", "uneven", "beta"):
+        bad += _interrupted(family, range(2))
+    assert any("> exact minimum" in b for b in bad)
+
+
+@pytest.mark.parametrize("excess", [0.02, 0.3])
+def test_frontier_search_proves_nothing_above_a_feasible_cost(excess: float) -> None:
+    """As :func:`test_no_proof_above_a_feasible_cost`, for the frontier search: asked to
+    raise its bound above a known pose's cost (cells kept up to far above it), it never
+    gets there, and its bound stays below that cost."""
+    from solvers.certify.front import refine_pose
+
+    bad = []
+    for i, p0 in enumerate(_sensitivity_instances()):
+        p, _ = _normalised(p0)
+        res = solve_registration(p)
+        R, t = refine_pose(p, res.rotation, res.translation)
+        u = p.cost(R, t)
+        search = pose_bnb.frontier(p, R, t, cap=u + 10.0 * (1 + abs(u)), workers=2)
+        done = search.run(-excess, time.perf_counter() + 60.0)
+        if done or search.lower > u + 1e-9 * (1 + abs(u)):
+            bad.append(f"instance {i}: bound {search.lower!r} (done: {done}) above the "
+                       f"cost {u!r} of a pose")
+    assert not bad, "\n".join(bad)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_frontier_stage_is_at_least_the_depth_first_one(seed: int) -> None:
+    """At a completed stage the frontier search's bound is at least what the depth-first
+    search from scratch proves at the same gap (its threshold, less the allowance)."""
+    p, _ = _normalised(_dense_instance(300 + seed, inliers=12, rival=10))
+    res = solve_registration(p)
+    search = pose_bnb.frontier(p, res.rotation, res.translation)
+    for gap in (0.3, 0.1, 0.02):
+        st = pose_bnb._stage(p, res.rotation, res.translation, gap, 60.0)
+        assert st.complete and st.found is None
+        assert search.run(gap, time.perf_counter() + 60.0) and search.found is None
+        assert search.lower >= st.lower - 1e-12 * (1 + abs(st.lower))
+        assert search.lower <= search.u
+
+
+def test_frontier_search_with_its_pool_compacted_at_every_pass(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The term pool compacted after every pass (cells' lists moved): the interrupted and
+    finished searches still bound the enumerated optimum, and complete at the tolerance with
+    the exact optimum within it."""
+    from solvers.certify import pose_frontier
+
+    monkeypatch.setattr(pose_frontier, "COMPACT_ROWS", 0)
+    monkeypatch.setattr(pose_bnb, "LEAF_TERMS", 5)
+    bad = []
+    for family in ("uniform", "uneven", "beta", "grouped"):
+        bad += _interrupted(family, range(2))
+    assert not bad, "\n".join(bad)
+    calls = []
+    real = pose_frontier._Pool.compact
+
+    def counting(self, rec):  # noqa: ANN001, ANN202
+        calls.append(rec.shape[0])
+        return real(self, rec)
+
+    monkeypatch.setattr(pose_frontier._Pool, "compact", counting)
+    bad, complete, runs = _violations("uniform", range(2))
+    assert not bad, "\n".join(bad)
+    assert complete == runs and calls

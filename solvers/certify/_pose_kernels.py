@@ -19,6 +19,13 @@ U2 = nt.uint64[:, ::1]
 I1, I2 = nt.int64[::1], nt.int64[:, ::1]
 f8, i8 = nt.float64, nt.int64
 
+# Columns of a recorded cell: rotation-vector centre, half-side, translation centre,
+# half-side, lower bound, where its parent's terms start in the pool, how many, their
+# parent's outlier cost, the parent's colouring's ``cinfo`` (classes, rotation half-side,
+# terms).
+_BOUND, _POFF, _PLEN, _POUT, _PCOL = 8, 9, 10, 11, 12
+REC_COLS = 15
+
 # Columns of a frame (one cell per depth): rotation-vector centre, half-side, translation
 # centre, half-side, which half is split, the next child to visit.
 _RC, _RS, _TC, _TS, _KIND, _NEXT = 0, 3, 4, 7, 8, 9
@@ -48,6 +55,30 @@ def _rotvec_matrix(r0, r1, r2):  # pragma: no cover - compiled
     R[2, 2] = c + z * z * C
     return R
 
+
+
+@njit(cache=True)
+def _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1, rc2, rs, tc0,
+            tc1, tc2, ts, bound, floor):  # pragma: no cover - compiled
+    """Append a cell (a child of the frame at ``depth``) to ``rec``, its parent's terms and
+    their colour classes to ``pool`` (columns 0 and 1) once per parent; its bound is at least
+    ``floor`` (a bound of a cell holding it)."""
+    if poolid[depth] < 0:
+        off = nrec[1]
+        for q in range(cnt[depth]):
+            i = act[depth, q]
+            pool[off + q, 0] = i
+            pool[off + q, 1] = ccol[depth, i]
+        nrec[1] = off + cnt[depth]
+        poolid[depth] = off
+    j = nrec[0]
+    rec[j, 0], rec[j, 1], rec[j, 2], rec[j, 3] = rc0, rc1, rc2, rs
+    rec[j, 4], rec[j, 5], rec[j, 6], rec[j, 7] = tc0, tc1, tc2, ts
+    rec[j, _BOUND], rec[j, _POFF], rec[j, _PLEN] = max(bound, floor), poolid[depth], cnt[depth]
+    rec[j, _POUT] = outc[depth]
+    rec[j, _PCOL], rec[j, _PCOL + 1], rec[j, _PCOL + 2] = cinfo[depth, 0], cinfo[depth, 1], \
+        cinfo[depth, 2]
+    nrec[0] = j + 1
 
 
 @njit(cache=True)
@@ -114,10 +145,11 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
     ``a``, ``b`` (N, 3) points, ``v`` (N,) least-squares weights, ``wout`` (N,) outlier costs,
     ``anorm`` (N,) ``|a_i|``, ``slack`` (N,) a rounding allowance per term's residual (added to
     every cell's uncertainty radius). A cell with rotation vectors within ``sr`` (half-side) of
-    ``rc`` and translations within ``st`` of ``tc`` moves ``a_i`` by at most
-    ``2 sin(min(sqrt(3) sr, pi) / 2) |a_i| + sqrt(3) st`` from ``R(rc) a_i + tc`` (Hartley and
-    Kahl: rotation vectors ``d`` apart give rotations at most ``d`` apart in angle), so each
-    term's residual lies in ``[e_i - rho_i, e_i + rho_i]`` around its centre's. Terms whose
+    ``rc`` and translations within ``st`` of ``tc`` (a box) moves ``R a_i`` by at most
+    ``rho_i = 2 sin(min(sqrt(3) sr, pi) / 2) |a_i|`` from ``R(rc) a_i`` (Hartley and Kahl:
+    rotation vectors ``d`` apart give rotations at most ``d`` apart in angle), so each term's
+    residual lies between the distances from ``b_i - R(rc) a_i`` to the nearest and the
+    farthest point of the translation box (per axis), less and plus ``rho_i``. Terms whose
     lower residual cannot be an inlier's are outliers throughout the cell ("impossible"); terms
     whose upper residual is an inlier's are inliers throughout ("sure"); the rest are
     "uncertain". A cell's bound is the larger of ``out + sum_uncertain v lo^2 + max(LS_sure,
@@ -143,20 +175,50 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
     caller lowers ``thr`` and resumes). Returns 0 complete, 1 paused at ``stop_nodes``, 2 out
     of ``max_nodes``, 3 a better pose found.
     """
+    return _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolour_max,
+                   thr, allowance, kleaf, leaf_nodes, stop_nodes, max_nodes, frames, act, cnt,
+                   outc, ints, best, hist, outc[0], np.zeros((0, REC_COLS)),
+                   np.zeros(2, dtype=np.int64), np.zeros((0, 2), dtype=np.int64),
+                   np.zeros(frames.shape[0], dtype=np.int64), -np.inf, frames.shape[0] + 1,
+                   -np.inf, _scratch(a.shape[0], recolour_max))
+
+
+@njit(cache=True)
+def _scratch(N, recolour_max):  # pragma: no cover - compiled
+    """Work arrays of :func:`_search` (allocated once per call of a kernel: the recolouring's
+    class table is ``recolour_max`` squared)."""
+    rmax = min(max(recolour_max, 1), N)
+    return (np.empty(N), np.zeros(N, dtype=np.bool_), np.zeros(18), np.zeros(N),
+            np.zeros((rmax, rmax), dtype=np.int64), np.zeros(rmax, dtype=np.int64),
+            np.empty((N, 3)))
+
+
+@njit(cache=True)
+def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolour_max, thr,
+            allowance, kleaf, leaf_nodes, stop_nodes, max_nodes, frames, act, cnt, outc, ints,
+            best, hist, base0, rec, nrec, pool, poolid, cap, split_depth, floor,
+            scratch):  # pragma: no cover - compiled
+    """:func:`pose_bnb`'s search (``scratch``: :func:`_scratch`'s arrays); ``base0`` is the
+    outlier cost of the terms outside the core
+    (the colouring bound's constant). With ``rec`` of at least one row, every cell left with
+    a bound below ``cap`` (pruned, or solved exactly against ``thr``) is recorded there for a
+    later search (:func:`pose_frontier`): its cube, bound, and its parent's terms (stored once
+    per parent in ``pool``; ``poolid[d]``: where the list of the frame at depth ``d`` is, -1 when
+    not yet stored; ``nrec = [records, pool entries]``); returns 4 (resumable) when they might
+    not fit.
+    """
     N = a.shape[0]
     D = frames.shape[0]
     depth, nodes = ints[0], ints[1]
-    lo = np.empty(N)
-    hi_in = np.zeros(N, dtype=np.bool_)
-    s = np.zeros(18)
-    cmax = np.zeros(N)
-    rmax = min(max(recolour_max, 1), N)
-    members = np.zeros((rmax, rmax), dtype=np.int64)
-    size = np.zeros(rmax, dtype=np.int64)
-    dvec = np.empty((N, 3))
+    lo, hi_in, s, cmax, members, size, dvec = scratch
+    rmax = size.size
     wtot = 0.0
     for i in range(N):
         wtot += wout[i]
+    recording = rec.shape[0] > 0
+    # A cell to record is bounded on until its bound reaches ``cap`` (a cell at or above it is
+    # not recorded), so that the next, higher thresholds may leave it alone.
+    early = max(cap - thr, 0.0) if recording else 0.0
     while depth >= 0:
         fr = frames[depth]
         k = int(fr[_NEXT])
@@ -166,6 +228,10 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
         if depth + 1 >= D:  # out of frames: the search cannot be completed
             ints[0], ints[1] = depth, nodes
             return 2
+        if recording and (nrec[0] >= rec.shape[0] or (
+                poolid[depth] < 0 and nrec[1] + cnt[depth] > pool.shape[0])):
+            ints[0], ints[1] = depth, nodes
+            return 4
         fr[_NEXT] = k + 1
         if nodes >= stop_nodes and nodes < max_nodes:
             fr[_NEXT] = k
@@ -192,6 +258,8 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
             dz = max(abs(rc2) - rs, 0.0)
             if dx * dx + dy * dy + dz * dz > math.pi * math.pi * (1.0 + 1e-9):
                 continue
+        elif fr[_KIND] == 2.0:
+            pass  # a recorded cell searched again: its one child is itself
         else:
             ts = 0.5 * ts
             tc0, tc1, tc2 = tc0 + o0 * ts, tc1 + o1 * ts, tc2 + o2 * ts
@@ -199,6 +267,7 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
         theta = min(math.sqrt(3.0) * rs * (1.0 + 1e-12) + 1e-13, math.pi)
         srot = 2.0 * math.sin(0.5 * theta) * (1.0 + 1e-12)
         strans = math.sqrt(3.0) * ts * (1.0 + 1e-12)
+        tbox = ts * (1.0 + 1e-12)
         # Terms: the parent's active (possible) ones; the others are outliers here too.
         n_par = cnt[depth]
         out = outc[depth]
@@ -219,16 +288,21 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
             e0 = R[0, 0] * a[i, 0] + R[0, 1] * a[i, 1] + R[0, 2] * a[i, 2] + tc0 - b[i, 0]
             e1 = R[1, 0] * a[i, 0] + R[1, 1] * a[i, 1] + R[1, 2] * a[i, 2] + tc1 - b[i, 1]
             e2 = R[2, 0] * a[i, 0] + R[2, 1] * a[i, 1] + R[2, 2] * a[i, 2] + tc2 - b[i, 2]
-            e = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
             dvec[i, 0], dvec[i, 1], dvec[i, 2] = e0 - tc0, e1 - tc1, e2 - tc2
-            rho = srot * anorm[i] + strans + slack[i]
-            low = max(e - rho, 0.0)
+            # The translations are a box: the nearest and farthest of its points, per axis,
+            # then the rotations' ball.
+            n0 = max(abs(e0) - tbox, 0.0)
+            n1 = max(abs(e1) - tbox, 0.0)
+            n2 = max(abs(e2) - tbox, 0.0)
+            rho = srot * anorm[i] + slack[i]
+            low = max(math.sqrt(n0 * n0 + n1 * n1 + n2 * n2) - rho, 0.0)
             c_low = v[i] * low * low
             if c_low >= wout[i]:
                 out += wout[i]
                 bound += wout[i]
             else:
-                high = e + rho
+                f0, f1, f2 = abs(e0) + tbox, abs(e1) + tbox, abs(e2) + tbox
+                high = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2) + rho
                 act[depth + 1, n_new] = i
                 n_new += 1
                 lo[i] = c_low
@@ -254,24 +328,27 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
                     n_unc += 1
                     bound += c_low
                 asum += anorm[i]
-            if bound - allowance >= thr:
+            if bound - allowance >= thr + early:
                 pruned = True
                 break
-        if not pruned and s[0] > 0.0 and n_new - n_unc >= 3:
+        if bound - allowance >= thr:
+            pruned = True
+        if (not pruned or (recording and bound - allowance < cap)) and s[0] > 0.0 and \
+                n_new - n_unc >= 3:
             ls = _ls_bound(s)
             if ls > sure_lo:
                 bound += ls - sure_lo
                 if bound - allowance >= thr:
                     pruned = True
-        if not pruned:
+        if not pruned or (recording and bound - allowance < cap):
             # A pose's inliers form a clique: at most one per colour class of the
             # consistency graph, so its gain over all-outliers is at most the classes' best.
             gain = 0.0
             for x in range(ncol):
                 gain += cmax[x]
             inherited = gain
-            if outc[0] + wtot - gain > bound:
-                bound = outc[0] + wtot - gain
+            if base0 + wtot - gain > bound:
+                bound = base0 + wtot - gain
                 if bound - allowance >= thr:
                     pruned = True
         recoloured = False
@@ -287,8 +364,8 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
                                        dvec, a, pair_tol, srot, slack, ccol[depth + 1])
             tried = True
             recoloured = gain < inherited  # else the sub-cells keep the inherited classes
-            if outc[0] + wtot - gain > bound:
-                bound = outc[0] + wtot - gain
+            if base0 + wtot - gain > bound:
+                bound = base0 + wtot - gain
                 if bound - allowance >= thr:
                     pruned = True
                     hist[depth, 2] += 1
@@ -296,6 +373,9 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
             hist[depth, 1] += 1
             if bound - allowance < best[0]:
                 best[0] = bound - allowance
+            if recording and bound - allowance < cap:
+                _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1, rc2,
+                        rs, tc0, tc1, tc2, ts, bound - allowance, floor)
             continue
         if n_unc <= kleaf:
             # Exact over the cell's inlier sets: sure terms in, impossible ones out.
@@ -334,6 +414,9 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
                 if code == 0:
                     if bp[0] - allowance < best[0]:
                         best[0] = bp[0] - allowance
+                    if recording and bp[0] - allowance < cap:
+                        _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0,
+                                rc1, rc2, rs, tc0, tc1, tc2, ts, bp[0] - allowance, floor)
                 else:
                     fr[_NEXT] = k  # not finished: visit the cell again
                 ints[0], ints[1], ints[2] = depth, nodes, code
@@ -342,7 +425,17 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
                 hist[depth, 3] += 1
                 if thr - allowance < best[0]:
                     best[0] = thr - allowance
+                if recording and thr - allowance < cap:
+                    _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1,
+                            rc2, rs, tc0, tc1, tc2, ts, thr - allowance, floor)
                 continue
+        if depth + 1 >= split_depth:
+            # Deep enough below the search's root: left for a later pass (the frontier's
+            # cells are searched lowest bound first, in blocks shared by the workers).
+            if bound - allowance < cap:
+                _record(rec, nrec, pool, poolid, depth, act, cnt, outc, ccol, cinfo, rc0, rc1, rc2,
+                        rs, tc0, tc1, tc2, ts, bound - allowance, floor)
+            continue
         # Split the child: the half with the larger uncertainty radius.
         nf = frames[depth + 1]
         nf[_RC], nf[_RC + 1], nf[_RC + 2], nf[_RS] = rc0, rc1, rc2, rs
@@ -351,6 +444,7 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
         nf[_NEXT] = 0.0
         cnt[depth + 1] = n_new
         outc[depth + 1] = out
+        poolid[depth + 1] = -1
         if recoloured:
             cinfo[depth + 1, 0], cinfo[depth + 1, 1], cinfo[depth + 1, 2] = ncls_new, rs, n_new
         else:
@@ -364,3 +458,57 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
         depth += 1
     ints[0], ints[1] = depth, nodes
     return 0
+
+
+@kernel(F2, F2, F1, F1, F1, F1, F1, I2, F2, U2, i8, f8, f8, i8, i8, i8, F2, I2, f8, F2, I2,
+        I1, F1, I1, F1, I2, F2, I1, I2, I1, f8, i8, nogil=True)
+def pose_frontier(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolour_max, thr,
+                  allowance, kleaf, leaf_nodes, stop_nodes, roots, rpool, base0, frames,
+                  act, cnt, outc, ints, best, hist, rec, nrec, pool, poolid, cap,
+                  split_depth):  # pragma: no cover - compiled
+    """:func:`pose_bnb`'s search below each of the cells ``roots`` (rows as ``rec``'s, sorted
+    by bound; their parents' terms in ``rpool``) in turn, recording every cell it leaves with a
+    bound below ``cap`` in ``rec`` (see :func:`_search`), and every cell ``split_depth`` levels
+    below its root unsplit, with its bound (for a later pass); resumable.
+
+    Each root is bounded again (its one child is itself: frame kind 2) from its parent's terms
+    (``outc``: their parent's outlier cost) and their colouring (``rpool`` columns 0 and 1), as
+    the depth-first search bounds a child, and split while its bound is below ``thr``
+    (``base0``: the outlier cost of the terms outside the core). ``ints =
+    [depth, nodes, code, next root, searching a root]``. Returns 0 when every root is done
+    or the next root's bound is at least ``thr`` (it and the later ones stay as they are),
+    else :func:`_search`'s code (1 paused at ``stop_nodes``, 2 out of frames, 3 a better
+    pose, 4 records full).
+    """
+    max_nodes = np.iinfo(np.int64).max // 2
+    scratch = _scratch(a.shape[0], recolour_max)
+    while True:
+        if ints[4] == 0:
+            r = ints[3]
+            if r >= roots.shape[0] or roots[r, _BOUND] >= thr:
+                return 0
+            fr = frames[0]
+            for x in range(8):
+                fr[x] = roots[r, x]
+            off, n = int(roots[r, _POFF]), int(roots[r, _PLEN])
+            for q in range(n):
+                i = rpool[off + q, 0]
+                act[0, q] = i
+                ccol[0, i] = rpool[off + q, 1]
+            cnt[0] = n
+            outc[0] = roots[r, _POUT]
+            for x in range(3):
+                cinfo[0, x] = roots[r, _PCOL + x]
+            fr[_KIND] = 2.0
+            fr[_NEXT] = 7.0
+            poolid[0] = -1
+            ints[0] = 0
+            ints[4] = 1
+        code = _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits,
+                       recolour_max, thr, allowance, kleaf, leaf_nodes, stop_nodes, max_nodes,
+                       frames, act, cnt, outc, ints, best, hist, base0, rec, nrec, pool, poolid,
+                       cap, split_depth, roots[ints[3], _BOUND], scratch)
+        if code != 0:
+            return code
+        ints[4] = 0
+        ints[3] += 1

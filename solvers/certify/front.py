@@ -1218,9 +1218,10 @@ def certify_result(
     pose_search : bool
         On the full problem, when the maximal cliques are too many to list (real-feature
         scans), bound it by a branch and bound over poses (:mod:`solvers.certify.pose_bnb`)
-        rather than by the clique number alone: it proves gaps at a sequence of thresholds
-        (0.5, 0.3, ..., ``tol``) while time remains (``POSE_DEFAULT_TIME`` seconds without a
-        limit). With ``rotation_fallback`` it runs after the subproblem's certificate, in what
+        rather than by the clique number alone: it raises its threshold through a sequence of
+        gaps (0.3, 0.1, 0.07, ..., ``tol``) while time remains (``POSE_DEFAULT_TIME`` seconds
+        without a limit), keeping the cells each stage leaves, so its bound (the least bound
+        of those cells) rises until the time limit, even within a stage. With ``rotation_fallback`` it runs after the subproblem's certificate, in what
         that leaves, for the returned pose: its certificate replaces the subproblem's when it
         certifies, else it is recorded as ``info["full_problem_certificate"]`` (a better pose
         it finds: its cost as ``info["full_problem_better_cost"]``). Without it, a better pose
@@ -1259,7 +1260,8 @@ def certify_result(
 def _full_after_fallback(problem: WeightedTLSProblem, out: RegistrationResult,
                          kw: dict[str, Any], t0: float) -> RegistrationResult:
     """The full problem bounded by the pose search for ``out``'s pose in what is left of the
-    time limit. When ``out``'s certificate is the rotation subproblem's, the new one replaces
+    time limit (the search starts from the solver's pose when ``info`` holds it as a cheaper
+    candidate). When ``out``'s certificate is the rotation subproblem's, the new one replaces
     it if it certifies, else it is recorded in ``info`` if it proves a smaller gap than the one
     there; when it is the full problem's (the subproblem certified nothing), the new one
     replaces it if its gap is smaller."""
@@ -1270,8 +1272,15 @@ def _full_after_fallback(problem: WeightedTLSProblem, out: RegistrationResult,
     R, t = np.array(out.rotation), np.array(out.translation)
     scoped = _scope_problem(problem, "full", None)
     pn, ws = _normalised(problem)
-    # The listing already gave up on this problem: straight to the pose search.
-    bound = _pose_search_bound(pn, R, t, tol=kw["tol"], t0=t1, share=1.0,
+    # The listing already gave up on this problem: straight to the pose search, from the
+    # best pose at hand (a lower first threshold: fewer cells to search).
+    Rs, ts = R, t
+    cand = out.info.get("candidate_T_target_source")
+    if cand is not None:
+        T = np.asarray(cand, dtype=np.float64)
+        if problem.cost(T[:3, :3], T[:3, 3]) < problem.cost(R, t):
+            Rs, ts = T[:3, :3], T[:3, 3]
+    bound = _pose_search_bound(pn, Rs, ts, tol=kw["tol"], t0=t1, share=1.0,
                                time_limit=POSE_DEFAULT_TIME if remaining is None else remaining)
     better = None
     if bound.rotation is not None and bound.translation is not None:

@@ -20,16 +20,21 @@ constant outlier cost (:func:`solvers.certify.cliques._core`).
 What it costs
 -------------
 The cells are six-dimensional and the bound is per term, so the search grows quickly as ``thr``
-approaches the optimum. :func:`pose_lower_bound` therefore runs it at a sequence of thresholds,
-from a loose one (a large gap, a quick proof) towards the certificate's tolerance, and keeps the
-last one it completed: the proved gap shrinks as time allows. The rotation and translation are
-expressed about the candidate's inlier centroid, so rotations about it (the flat directions of
-an inlier cluster seen from one side) barely move the terms that matter.
+approaches the optimum. :func:`pose_lower_bound` therefore raises ``thr`` in stages, from a
+loose one (a large gap, a quick proof) towards the certificate's tolerance, without starting
+again: the cells a stage leaves (pruned, or solved exactly) are kept with their bounds
+(:class:`solvers.certify.pose_frontier.Frontier`), the next stage searches below only those still
+under its threshold, lowest bound first, and the least bound of the kept cells is a proved
+bound at any moment, so a stage the time limit stops still tightens it. The rotation and
+translation are expressed about the candidate's inlier centroid, so rotations about it (the flat
+directions of an inlier cluster seen from one side) barely move the terms that matter.
+:func:`_stage` is the plain depth-first search against one threshold that the stages refine.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -38,10 +43,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from solvers.certificate import undiluted_gap
+from solvers.certify.pose_frontier import Frontier, _outlier_cost, stage_threshold
 from solvers.jit import compiled
 from solvers.problem import WeightedTLSProblem
 
-__all__ = ["PoseBound", "pose_lower_bound", "stage_threshold", "STAGE_GAPS"]
+__all__ = ["PoseBound", "pose_lower_bound", "frontier", "stage_threshold", "default_workers",
+           "FRONTIER_GAPS", "STAGE_GAPS"]
 
 log = logging.getLogger(__name__)
 
@@ -51,12 +58,17 @@ Refine = Callable[[WeightedTLSProblem, NDArray[np.float64], NDArray[np.float64]]
                   tuple[NDArray[np.float64], NDArray[np.float64]]]
 
 STAGE_GAPS = (0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01, 0.005, 0.002)
-"""Gaps (:func:`solvers.certificate.undiluted_gap`) the search proves in turn, loosest first,
-before the certificate's own tolerance; each completed stage is a proved bound."""
+"""Gaps of the depth-first stages, each a search from scratch (kept as the reference the tests
+compare :data:`FRONTIER_GAPS`' search with)."""
+FRONTIER_GAPS = (0.3, 0.2, 0.14, 0.1, 0.07, 0.05, 0.035, 0.025, 0.018, 0.012, 0.008, 0.005,
+                 0.003, 0.002)
+"""Gaps (:func:`solvers.certificate.undiluted_gap`) :func:`pose_lower_bound` proves in turn,
+loosest first, before the certificate's own tolerance, each stage going on from the cells the
+last one left."""
 
-LEAF_TERMS = 20
+LEAF_TERMS = 8
 """Cells with at most this many undecided terms are solved exactly over their inlier sets."""
-LEAF_NODES = 500
+LEAF_NODES = 100
 """Node budget of one cell's exact solve (beyond it the cell is split instead)."""
 RECOLOUR_MAX = 1000
 """Cells with at most this many possible inliers are recoloured with their own rotations."""
@@ -76,7 +88,8 @@ class PoseBound:
     Attributes
     ----------
     lower : float
-        A sound lower bound on the problem's minimum (``-inf`` when no stage completed).
+        A sound lower bound on the problem's minimum: the least bound of the cells left to
+        search when the search stopped (``-inf`` when none was searched).
     proved_gap : float
         The gap of ``upper`` against ``lower`` (:func:`solvers.certificate.undiluted_gap`).
     upper : float
@@ -89,8 +102,10 @@ class PoseBound:
     stages : list of (float, bool, int, float)
         Per stage tried: target gap, completed, cells visited, seconds.
     depth_profile : (D, 4) ndarray of int
-        Per depth of the last stage tried: cells visited, pruned by bounds, pruned by
-        recolouring, solved exactly.
+        Per depth below the cell a search started from (all stages): cells visited, pruned
+        by bounds, pruned by recolouring, solved exactly.
+    curve : list of (float, float)
+        The lower bound after each pass over the kept cells: (seconds since the start, bound).
     """
 
     lower: float
@@ -101,6 +116,7 @@ class PoseBound:
     complete: bool
     stages: list[tuple[float, bool, int, float]] = field(default_factory=list)
     depth_profile: NDArray[np.int64] | None = None
+    curve: list[tuple[float, float]] = field(default_factory=list)
 
 
 def _colouring(m: int, edges: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -176,7 +192,7 @@ class _StageResult:
 
 def pose_lower_bound(
     problem: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.float64], *, tol: float,
-    time_limit: float, refine: Refine | None = None,
+    time_limit: float, refine: Refine | None = None, workers: int | None = None,
 ) -> PoseBound:
     """Prove ``min f >= lower`` for the full problem by branch and bound over poses.
 
@@ -191,57 +207,66 @@ def pose_lower_bound(
         The certificate's tolerance on :func:`solvers.certificate.undiluted_gap`: the last
         stage's target.
     time_limit : float
-        Seconds; the stages run while time remains, each with what is left.
+        Seconds; the stages run while time remains. The bound is anytime: a stage stopped by
+        the time limit still raises it (the least bound of the cells left to search).
     refine : callable, optional
         ``refine(problem, R, t) -> (R, t)``, a local refinement of a better pose the search
         finds (e.g. :func:`solvers.certify.refine_pose`); default: the least-squares pose of the
         inlier set it found, as is.
+    workers : int, optional
+        Threads searching the frontier's cells (default :func:`default_workers`).
 
     Returns
     -------
     PoseBound
     """
     t0 = time.perf_counter()
+    deadline = t0 + time_limit
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64).reshape(3)
-    u = problem.cost(R, t)
-    found: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
-    total = float(problem.cbar2 * problem.weights.sum())
-    lower, stages, profile, complete = -np.inf, [], None, False
-    for gap in [g for g in STAGE_GAPS if g > tol] + [tol]:
-        remaining = time_limit - (time.perf_counter() - t0)
-        if remaining <= 0:
+    search = frontier(problem, R, t, refine=refine,
+                      workers=default_workers() if workers is None else workers)
+    if search.too_large:
+        log.info("pose branch and bound: core of more than %d terms, not searched", MAX_TERMS)
+    stages, complete = [], False
+    for gap in [g for g in FRONTIER_GAPS if g > tol] + [tol]:
+        if time.perf_counter() >= deadline or search.too_large or search.failed:
             break
-        Rc, tc = found if found is not None else (R, t)
-        started = time.perf_counter()
-        res = _stage(problem, Rc, tc, gap, remaining, refine)
-        stages.append((gap, res.complete, res.cells, time.perf_counter() - started))
-        u, profile = res.upper, res.profile
-        found = res.found if res.found is not None else found
-        if not res.complete:
+        started, cells = time.perf_counter(), search.cells
+        done = search.run(gap, deadline)
+        stages.append((gap, done, search.cells - cells, time.perf_counter() - started))
+        if not done:
             break
-        lower = max(lower, min(res.lower, total))
         complete = gap == tol
-        log.info("pose branch and bound: gap %.3g proved in %d cells", gap, res.cells)
+        log.info("pose branch and bound: gap %.3g proved in %d cells", gap, search.cells)
+    u, found = search.u, search.found
     Rc, tc = found if found is not None else (R, t)
-    lower = min(lower, u)
+    lower = min(search.lower, u)
     return PoseBound(lower=float(lower),
                      proved_gap=float(undiluted_gap(u, lower, _outlier_cost(problem, Rc, tc))),
                      upper=float(u), rotation=None if found is None else found[0],
                      translation=None if found is None else found[1], complete=complete,
-                     stages=stages, depth_profile=profile)
+                     stages=stages, depth_profile=search.hist,
+                     curve=[(s, min(lo, u)) for s, lo in search.curve])
 
 
-def _outlier_cost(problem: WeightedTLSProblem, R: NDArray[np.float64],
-                  t: NDArray[np.float64]) -> float:
-    r2 = problem.residuals_sq(R, t)
-    return float(problem.cbar2 * problem.weights[r2 >= problem.cbar2].sum())
+def frontier(problem: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.float64], *,
+             refine: Refine | None = None, workers: int = 2, cap: float | None = None
+             ) -> Frontier:
+    """The anytime search (:class:`solvers.certify.pose_frontier.Frontier`) for the candidate
+    ``(R, t)``, with this module's core, frame and leaf settings (``cap``: as there)."""
+    return Frontier(problem, R, t, lambda c: _setup(problem, R, t, c, c),
+                    leaf_terms=LEAF_TERMS, leaf_nodes=LEAF_NODES, max_depth=MAX_DEPTH,
+                    refine=refine, workers=workers, cap=cap)
 
 
-def stage_threshold(u: float, c_out: float, gap: float) -> float:
-    """The threshold whose proof gives a gap of at most ``gap`` to a pose of cost ``u`` with
-    outlier cost ``c_out``: ``undiluted_gap(u, thr, c_out) <= gap`` for ``thr <= u``."""
-    return u - gap * (1.0 + abs(u - c_out))
+def default_workers() -> int:
+    """Threads of the search: the cores this process may run on, at most 4."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        n = os.cpu_count() or 1
+    return max(1, min(n, 4))
 
 
 def _stage(problem: WeightedTLSProblem, R: NDArray[np.float64], t: NDArray[np.float64],
