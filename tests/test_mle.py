@@ -548,6 +548,24 @@ def test_compass_polish_climbs_to_the_top_and_never_worsens():
         polish_poses(lik, np.eye(3), scale=0.03)
     with pytest.raises(ValueError, match="scale"):
         polish_poses(lik, T, scale=0.0)
+
+
+def test_compass_polish_on_chosen_axes_holds_the_others():
+    from certpose.estimation.batch import polish_poses
+
+    obj, T, scene, cls, lik = _box_case([0.4, -0.3, 0.2], [0.0, 0.01, 0.5])
+    off = T @ make_transform(Rotation.from_rotvec(np.radians([3.0, 0.0, 0.0])).as_matrix(), [0.003, 0, 0])
+    # Translations only: the rotation stays as it started, the value still climbs.
+    moves = np.hstack([np.eye(3), np.zeros((3, 3))])
+    (P,), (v,), n = polish_poses(lik, off, scale=0.03, axes=np.vstack([moves, -moves]))
+    np.testing.assert_allclose(P[:3, :3], off[:3, :3], atol=1e-12)
+    assert v > float(lik(off)) and n > 6
+    # All twelve directions climb at least as high as the translations alone here.
+    (_,), (v_all,), _ = polish_poses(lik, off, scale=0.03)
+    assert v_all > v
+    for bad in (np.zeros((0, 6)), np.ones((2, 5)), np.full((1, 6), np.nan)):
+        with pytest.raises(ValueError, match="axes"):
+            polish_poses(lik, off, scale=0.03, axes=bad)
     with pytest.raises(ValueError, match="min_step"):
         polish_poses(lik, T, scale=0.03, step=1e-3, min_step=1e-2)
     with pytest.raises(ValueError, match="polish"):

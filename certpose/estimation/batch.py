@@ -347,6 +347,7 @@ def polish_poses(
     step: float = 0.02,
     min_step: float = 1e-3,
     max_iter: int = 200,
+    axes: ArrayLike | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], int]:
     """Compass search of eq. (1) from each of ``T0`` (see the module docstring).
 
@@ -363,6 +364,9 @@ def polish_poses(
         A pose stops when its step falls below this.
     max_iter : int
         Iteration limit (one batched eq. (1) call each).
+    axes : (k, 6) array_like, optional
+        The chart directions searched (default: the 12 of ``+-`` each axis); e.g. a subset to
+        climb with some coordinates held.
 
     Returns
     -------
@@ -379,14 +383,20 @@ def polish_poses(
     values = np.asarray(likelihood(T), dtype=np.float64).reshape(H)
     n_eval = H
     steps = np.full(H, float(step))
-    axes = np.vstack([np.eye(6), -np.eye(6)])
+    if axes is None:
+        axes = np.vstack([np.eye(6), -np.eye(6)])
+    else:
+        axes = np.asarray(axes, dtype=np.float64)
+        if axes.ndim != 2 or axes.shape[1] != 6 or axes.shape[0] == 0 or not np.all(np.isfinite(axes)):
+            raise ValueError(f"Expected `axes` to have shape (k, 6) with k >= 1 and finite entries, got {np.shape(axes)}.")
+    k = axes.shape[0]
     for _ in range(int(max_iter)):
         live = np.flatnonzero(steps >= min_step)
         if live.size == 0:
             break
         X = steps[live, None, None] * axes[None]
         P = twists_to_poses(T[live], X, scale)
-        v = np.asarray(likelihood(P.reshape(-1, 4, 4)), dtype=np.float64).reshape(live.size, 12)
+        v = np.asarray(likelihood(P.reshape(-1, 4, 4)), dtype=np.float64).reshape(live.size, k)
         n_eval += v.size
         j = np.argmax(v, axis=1)
         best = v[np.arange(live.size), j]

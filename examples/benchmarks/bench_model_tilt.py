@@ -273,27 +273,11 @@ def climb_at_tilt(lik: Any, T0: np.ndarray, scale: float, *, step: float = 0.02,
     """Compass search of eq. (1) from each of ``T0`` (H, 4, 4) over the turn about the model's
     axis and the translation only: the axis keeps its direction (the profile of eq. (1) at the
     tilt of each start)."""
-    from certpose.estimation.batch import twists_to_poses
+    from certpose.estimation.batch import polish_poses
 
-    T = np.array(T0, dtype=np.float64)
-    H = T.shape[0]
-    values = np.asarray(lik(T), dtype=np.float64).reshape(H)
-    axes = np.zeros((8, 6))
-    for k, j in enumerate((0, 1, 2, 5)):  # rho x, y, z (object frame), omega about z
-        axes[k, j], axes[k + 4, j] = 1.0, -1.0
-    steps = np.full(H, float(step))
-    for _ in range(int(max_iter)):
-        live = np.flatnonzero(steps >= min_step)
-        if live.size == 0:
-            break
-        P = twists_to_poses(T[live], steps[live, None, None] * axes[None], scale)
-        v = np.asarray(lik(P.reshape(-1, 4, 4)), dtype=np.float64).reshape(live.size, 8)
-        j = np.argmax(v, axis=1)
-        best = v[np.arange(live.size), j]
-        up = best > values[live]
-        T[live[up]] = P[np.flatnonzero(up), j[up]]
-        values[live[up]] = best[up]
-        steps[live[~up]] *= 0.5
+    held = np.eye(6)[[0, 1, 2, 5]]  # rho x, y, z (object frame), omega about z
+    T, values, _ = polish_poses(lik, T0, scale=scale, step=step, min_step=min_step, max_iter=max_iter,
+                                axes=np.vstack([held, -held]))
     return T, values
 
 
