@@ -140,6 +140,22 @@ def test_frame_backproject_world_and_colors():
     np.testing.assert_allclose(frame.colors_at(px), [[1.0, 0.0, 0.2]])
 
 
+
+def test_frame_pixels_of_inverts_backproject_and_flags_the_rest():
+    depth = np.zeros((4, 5))
+    depth[1, 3] = 2.0
+    T = make_transform(Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix(), [1.0, 2.0, 3.0])
+    frame = RGBDFrame(_color(), depth, K_SMALL, T)
+    p_world, px = frame.backproject(world=True)
+    behind = T[:3, :3] @ np.array([0.0, 0.0, -1.0]) + T[:3, 3]
+    outside = T[:3, :3] @ np.array([50.0, 0.0, 1.0]) + T[:3, 3]
+    row, col, z, inside = frame.pixels_of(np.vstack([p_world, behind, outside]))
+    assert (row[0], col[0]) == tuple(px[0]) and z[0] == pytest.approx(2.0)
+    assert inside.tolist() == [True, False, False]
+    assert (row[1], col[1]) == (-1, -1)
+    with pytest.raises(ValueError, match="points"):
+        frame.pixels_of(np.zeros((2, 2)))
+
 def test_load_rgbd_reads_files_and_names_missing_ones(tmp_path):
     import imageio.v3 as iio
 

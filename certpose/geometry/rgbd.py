@@ -376,6 +376,23 @@ class RGBDFrame:
 
         return invert_transform(self.T_world_camera)
 
+    def pixels_of(self, points: ArrayLike) -> tuple[NDArray[np.int64], NDArray[np.int64],
+                                                     NDArray[np.float64], NDArray[np.bool_]]:
+        """The nearest pixel of world points (N, 3), metres: ``(row, col, z, inside)``, with
+        ``z`` the camera depth (metres) and ``inside`` whether the point lies in front of the
+        camera and its pixel in the image (row and column are -1 where it is not in front)."""
+        T = self.T_camera_world
+        pc = check_points(points, "points", min_points=0) @ T[:3, :3].T + T[:3, 3]
+        u, v, z = self.intrinsics.project(pc)
+        ok = np.isfinite(u) & np.isfinite(v)
+        col = np.full(u.shape, -1, dtype=np.int64)
+        row = np.full(v.shape, -1, dtype=np.int64)
+        col[ok] = np.floor(u[ok] + 0.5).astype(np.int64)
+        row[ok] = np.floor(v[ok] + 0.5).astype(np.int64)
+        h, w = self.shape
+        ok &= (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        return row, col, z, ok
+
     def with_mask(self, mask: ArrayLike | None) -> RGBDFrame:
         """A copy of this frame with another mask."""
         return RGBDFrame(self.color, self.depth, self.intrinsics, self.T_world_camera, mask)

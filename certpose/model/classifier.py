@@ -201,22 +201,6 @@ def _nearest_both_ways(
     return top_b, best_a, best_a_sim
 
 
-def _project(frame: RGBDFrame, centres: NDArray[np.float64]) -> tuple[
-        NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], NDArray[np.bool_]]:
-    """Pixel ``(row, col)`` and camera depth of world points, and whether they land in the image."""
-    T = frame.T_camera_world
-    pc = centres @ T[:3, :3].T + T[:3, 3]
-    u, v, z = frame.intrinsics.project(pc)
-    ok = np.isfinite(u) & np.isfinite(v)
-    col = np.full(u.shape, -1, dtype=np.int64)
-    row = np.full(v.shape, -1, dtype=np.int64)
-    col[ok] = np.floor(u[ok] + 0.5).astype(np.int64)
-    row[ok] = np.floor(v[ok] + 0.5).astype(np.int64)
-    h, w = frame.shape
-    ok &= (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    return row, col, z, ok
-
-
 def check_box(box: Any, shape: tuple[int, int], name: str = "box") -> tuple[float, float, float, float]:
     """Validate a 2-D box ``(x0, y0, x1, y1)`` (pixels; x = column, y = row) against an image
     of ``shape`` ``(H, W)``; return it as floats.
@@ -327,7 +311,7 @@ def classify_best_buddies(
         if frame is None:
             raise ValueError("A `box` needs the `frame` it was drawn in.")
         inside = box_mask(box, frame.shape, margin=params.box_margin)
-        row, col, _, ok = _project(frame, centres)
+        row, col, _, ok = frame.pixels_of(centres)
         candidate = ok.copy()
         candidate[ok] = inside[row[ok], col[ok]]
         if not candidate.any():
@@ -405,7 +389,7 @@ def classify_from_mask(
     if not (math.isfinite(tol) and tol > 0):
         raise ValueError(f"`depth_tolerance` must be positive, got {depth_tolerance}.")
     idx, centres = _occupied(scene)
-    row, col, z, ok = _project(frame, centres)
+    row, col, z, ok = frame.pixels_of(centres)
     hit = np.zeros(z.shape, dtype=bool)
     r, c = row[ok], col[ok]
     depth = frame.depth[r, c]

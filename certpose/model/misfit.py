@@ -88,22 +88,14 @@ def _view_residuals(frame: Any, world: NDArray[np.float64], seen: NDArray[np.boo
                     ) -> NDArray[np.float64]:
     """Residuals ``d(u) - z`` of the seen points (world frame) in one view; nan where the
     pixel has no depth, lies outside the image, or the point is behind the camera."""
-    T_cw = np.linalg.inv(np.asarray(frame.T_world_camera, dtype=np.float64))
-    pc = world @ T_cw[:3, :3].T + T_cw[:3, 3]
-    z = pc[:, 2]
-    k = frame.intrinsics
+    row, col, z, inside = frame.pixels_of(world)
+    inside &= seen
     out = np.full(len(world), np.nan)
-    front = seen & (z > 1e-9)
-    zs = np.where(front, z, 1.0)
-    col = np.rint(k.fx * pc[:, 0] / zs + k.cx).astype(np.int64)
-    row = np.rint(k.fy * pc[:, 1] / zs + k.cy).astype(np.int64)
-    inside = front & (col >= 0) & (col < k.width) & (row >= 0) & (row < k.height)
     d = np.zeros(len(world))
     d[inside] = np.asarray(frame.depth)[row[inside], col[inside]]
     ok = inside & (d > 0)
     out[ok] = d[ok] - z[ok]
     return out
-
 
 def depth_misfit(scene: Any, object_model: Any, T_scene_object: ArrayLike, *,
                  occlusion: float = 0.02, grazing: float = 0.25) -> DepthMisfit:
