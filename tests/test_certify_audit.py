@@ -14,7 +14,7 @@ Families: uneven weights (100x), per-correspondence noise bounds, duplicated, co
 coplanar and symmetric points, all outliers, scaled (1e-3, 1e3), tiny weights (1e-4),
 ``cbar2 != 1``, grouped (eq. (2)-like: 2-4 candidate targets per source point, weights
 ``max(c - c_floor, 0)`` some of them 0), real FPFH correspondences (drawn from the shared 3DMatch
-pair: true matches and wrong ones, noise bounds 0.05 and 0.1 m), and wrong candidates (3 and
+pair: true matches and wrong ones, noise bounds 0.05 and 0.1 m), real eq. (2) problems (two or three groups of a YCB-Video mug's eq. (2)), and wrong candidates (3 and
 180 deg from the best pose).
 """
 
@@ -180,14 +180,39 @@ def real_family(rng: np.random.Generator, k: int) -> WeightedTLSProblem:
     return WeightedTLSProblem(corr.source[idx], corr.target[idx], noise_bound=beta)
 
 
+@lru_cache(maxsize=1)
+def _eq2_mug():
+    from certpose.estimation.pipeline import build_eq2_ycbv
+
+    root = require_data("ycbv", "0000", "000001-color.png").parents[1]
+    return build_eq2_ycbv(root, "0000/000001", "025_mug", rng=0)
+
+
+def real_eq2_family(rng: np.random.Generator, k: int) -> WeightedTLSProblem:
+    """Whole groups (a model point and its candidate voxels) of the eq. (2) problem of the mug in
+    YCB-Video 0000/000001, about ``k`` terms, as ``certpose pose`` builds it."""
+    d = _eq2_mug()
+    _, group = np.unique(d["source"], axis=0, return_inverse=True)
+    group = group.ravel()
+    idx: list[int] = []
+    for g in rng.permutation(group.max() + 1):
+        members = np.flatnonzero(group == g)
+        if len(idx) + members.size > k and idx:
+            break
+        idx.extend(members.tolist())
+    idx_a = np.asarray(idx)
+    return WeightedTLSProblem(d["source"][idx_a], d["target"][idx_a],
+                              noise_bound=d["noise_bound"], weights=d["weights"][idx_a])
+
+
 def _run_family(family: str, seeds: range, scopes: tuple[str, ...],
                 time_limit: float = 20.0) -> tuple[int, list[str]]:
     n_certs, violations = 0, []
     for seed in seeds:
-        if family == "real":
+        if family in ("real", "real_eq2"):
             rng = np.random.default_rng(90_000 + seed)
-            k = int(rng.integers(4, 13))
-            p = real_family(rng, k)
+            k = int(rng.integers(4, 13)) if family == "real" else int(rng.integers(8, 13))
+            p = real_family(rng, k) if family == "real" else real_eq2_family(rng, k)
         else:
             rng = np.random.default_rng(1000 * FAMILIES.index(family) + seed)
             k = int(rng.integers(4, 13))
@@ -229,10 +254,12 @@ def test_audit_full_and_rotation_scopes(family: str) -> None:
     assert not violations, "\n".join(violations[:20])
 
 
-def test_audit_real_feature_correspondences() -> None:
-    """26 problems drawn from the shared 3DMatch pair's FPFH correspondences: no certificate
-    violates the enumerated optimum, and the full scope returns it certified."""
-    n, violations = _run_family("real", range(26), ("full", "rotation"))
+@pytest.mark.parametrize("family", ["real", "real_eq2"])
+def test_audit_real_problems(family: str) -> None:
+    """26 problems drawn from the shared 3DMatch pair's FPFH correspondences, and 26 from a
+    YCB-Video eq. (2) problem: no certificate violates the enumerated optimum, and the full
+    scope returns it certified."""
+    n, violations = _run_family(family, range(26), ("full", "rotation"))
     assert n == 26 * 8
     assert not violations, "\n".join(violations[:20])
 
