@@ -87,7 +87,10 @@ def register(
         ``"certificate"``: return that subproblem's certified optimum (translation refined on
         the full cost) even when its full cost is higher than the solver's pose (``info``
         records the solver's pose and cost); ``"cost"``: never return a pose of higher cost
-        (the certificate may then certify nothing). ``certificate.problem`` names the problem
+        (the certificate may then certify nothing; when the subproblem's local solvers
+        already find a cheaper rotation of the subproblem whose pose costs more on the full
+        problem, the subproblem's dual search, which could only refuse the pose, is skipped
+        and the full problem's bound gets its time). ``certificate.problem`` names the problem
         bounded; the other problem's certificate is in ``info``. In what time is left, the full
         problem is then bounded for the returned pose by a branch and bound over poses
         (:mod:`solvers.certify.pose_bnb`): its certificate replaces the subproblem's when it

@@ -64,6 +64,37 @@ def test_prefer_cost_never_returns_a_costlier_pose(corr) -> None:
         register(corr.source, corr.target, noise_bound=0.05, certify=True, prefer="best")
 
 
+def test_prefer_cost_does_not_search_a_rotation_certificate_it_could_not_use(corr) -> None:
+    """At 0.05 m the solver's rotation is not the rotation subproblem's optimum (the
+    subproblem's local solvers find a cheaper rotation) and that rotation's pose costs more on
+    the full problem: with ``prefer="cost"`` the dual search, which could only refuse the
+    candidate, is not run, and the full problem's pose search gets its time. The record says
+    so, bounds the subproblem by 0 and names the cheaper rotation's cost, checked here on the
+    rebuilt subproblem; the solver's pose is kept."""
+    from solvers.certify.front import _dual_candidate, _normalised, tim_problem
+
+    beta = 0.05
+    gnc = register(corr.source, corr.target, noise_bound=beta)
+    res = register(corr.source, corr.target, noise_bound=beta, certify=True, time_limit=3.0,
+                   prefer="cost")
+    rc = res.info["rotation_certificate"]
+    assert rc["backend_status"] == "not attempted" and rc["status"] == "gap_too_large"
+    assert not rc["certified"] and rc["lower_bound"] == 0.0
+    assert "dual search not attempted" in rc["message"] and "not attempted" in res.message
+    assert res.certificate.problem == "full_weighted_tls"
+    assert res.cost == pytest.approx(gnc.cost, rel=1e-12)
+    p = WeightedTLSProblem(corr.source, corr.target, noise_bound=beta)
+    sub = tim_problem(p, np.asarray(rc["pairs"]))
+    assert sub.cost(res.rotation) == pytest.approx(rc["upper_bound"], rel=1e-9)
+    assert rc["better_upper_bound"] < rc["upper_bound"]
+    cheaper = _dual_candidate(_normalised(sub)[0], res.rotation)
+    assert sub.cost(cheaper) == pytest.approx(rc["better_upper_bound"], rel=1e-9)
+    # prefer="certificate" still searches it (and certifies the subproblem: the slow tests).
+    dflt = register(corr.source, corr.target, noise_bound=beta, certify=True, time_limit=0.5)
+    rot = dflt.info.get("rotation_certificate") or dflt.certificate.to_dict()
+    assert rot["backend_status"] != "not attempted"
+
+
 def test_refine_translation_keeps_the_rotation_and_never_raises_the_cost() -> None:
     rng = np.random.default_rng(0)
     a = rng.uniform(-1, 1, (60, 3))

@@ -14,6 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from certpose.cli import main
+from certpose.data.threedmatch import load_threedmatch_pair
 from certpose.io.points import load_bunny
 from solvers.lie import rotation_error_deg, transform_points
 from tests.conftest import require_data, strict_json
@@ -102,6 +103,26 @@ def test_register_weights_and_prune_never(tmp_path, bunny_problem):
     T = np.array(data["result"]["T_target_source"])
     r2 = np.sum((dst - transform_points(T, src)) ** 2, axis=1) / BETA**2
     assert data["result"]["cost"] == pytest.approx(float(w @ np.minimum(r2, 1.0)), rel=1e-9)
+
+
+def test_register_fpfh_matches_two_scans_first(tmp_path, capsys):
+    """``--fpfh VOXEL``: two real scans (the shared 3DMatch pair's files, different sizes) are
+    matched, then registered: the pose is the ground truth's."""
+    data = require_data("3dmatch", "gt.npy").parent
+    out = tmp_path / "r.json"
+    rc = main(["register", str(data / "src.npy"), str(data / "ref.npy"), "--fpfh", "0.05",
+               "--noise-bound", "0.05", "--json", str(out)])
+    assert rc == 0
+    res = strict_json(out.read_text())
+    assert res["inputs"]["fpfh_voxel"] == 0.05 and 500 <= res["inputs"]["num_correspondences"] <= 2000
+    T = np.array(res["result"]["T_target_source"])
+    G = load_threedmatch_pair(data).T_target_source
+    assert rotation_error_deg(T[:3, :3], G[:3, :3]) < 5
+    assert np.linalg.norm(T[:3, 3] - G[:3, 3]) < 0.1
+    assert "FPFH correspondences (voxel 0.05)" in capsys.readouterr().out
+    # Without --fpfh the same files are not row-matched correspondences: refused.
+    assert main(["register", str(data / "src.npy"), str(data / "ref.npy"),
+                 "--noise-bound", "0.05"]) == 2
 
 
 @pytest.mark.slow  # over 3 s
@@ -220,6 +241,10 @@ def test_register_bad_certificate_options(capsys):  # type: ignore[no-untyped-de
     (["--demo", "--solver", "sdp", "--prune", "never"], "--prune applies to --solver gnc"),
     (["--demo", "--weights", "w.npy"], "--weights does not apply to --demo"),
     (["a.npy", "b.npy", "--noise-bound", "0.1", "--demo-n", "20"], "--demo-n sets the --demo"),
+    (["--demo", "--fpfh", "0.05"], "--fpfh matches the scans SRC DST"),
+    (["a.npy", "b.npy", "--noise-bound", "0.1", "--fpfh", "0.05", "--weights", "w.npy"],
+     "--weights does not apply to --fpfh"),
+    (["a.npy", "b.npy", "--noise-bound", "0.1", "--fpfh", "0"], "--fpfh must be a positive"),
 ])
 def test_register_refuses_options_it_would_ignore(capsys, argv, names):  # type: ignore[no-untyped-def]
     # Each of these ran without the option having any effect (a rotation scope without a

@@ -467,3 +467,23 @@ def test_bench_certify_scans_certifies_the_rotation_subproblem() -> None:
     assert by_prefer["certificate"][3:5] == ["True", "rotation_tim_subproblem"]
     assert float(by_prefer["cost"][6]) <= float(by_prefer["cost"][7])  # never costlier
     assert "load" in proc.stdout
+
+
+def test_bench_certify_scans_runs_pairs_of_cloud_files() -> None:
+    """``--pair SRC TGT [GT]``: the shared pair's own files, once with its ground truth (rotation
+    errors printed, small) and once without (``-`` in their place)."""
+    data = require_data("3dmatch", "gt.npy").parent
+    src, ref, gt = (str(data / f) for f in ("src.npy", "ref.npy", "gt.npy"))
+    proc = _run("benchmarks/bench_certify_scans.py", "--no-shared", "--pair", src, ref, gt,
+                "--pair", src, ref, "--noise-bounds", "0.1", "--time-limit", "1")
+    assert proc.returncode == 0, proc.stderr
+    cases = proc.stdout.split("== src.npy -> ref.npy: ")[1:]
+    assert len(cases) == 2 and "shared 3DMatch pair" not in proc.stdout
+    with_gt, without = ([line.split() for line in c.splitlines() if line.startswith(" 0.10")]
+                        for c in cases)
+    assert "ground truth given" in cases[0] and "ground truth none" in cases[1]
+    assert len(with_gt) == len(without) == 2
+    assert all(float(r[8]) < 5 and float(r[9]) < 5 for r in with_gt), cases[0]
+    assert all(r[8] == r[9] == "-" for r in without), cases[1]
+    bad = _run("benchmarks/bench_certify_scans.py", "--no-shared", "--pair", src)
+    assert bad.returncode == 2 and "--pair takes SRC TGT [GT]" in bad.stderr

@@ -10,6 +10,8 @@ from solvers.certify import refine_rotation, rotation_gnc
 from solvers.certify.relaxation import RotationTLSProblem, rotation_lifting
 from solvers.certify.sdp_dual import (
     _IdentityFrameProjector,
+    _NegativePart,
+    _psd_part,
     _rotation_initial_dual,
     rotation_dual_certificate,
 )
@@ -150,6 +152,25 @@ def test_compiled_projection_matches_numpy_reference() -> None:
         G = rng.normal(size=S0.shape)
         M = G + G.T
         np.testing.assert_allclose(proj(M), proj.reference(M), rtol=1e-12, atol=1e-10)
+
+
+@pytest.mark.parametrize("n", [40, 100, 432])
+def test_negative_part_projection_equals_the_full_decomposition(n: int) -> None:
+    """The projection from the negative eigenpairs only is the full one, whether the iterates
+    have few negative eigenvalues (LAPACK's evr over them) or many (the full decomposition,
+    chosen from the previous iterate's count), and counts them."""
+    rng = np.random.default_rng(n)
+    project = _NegativePart()
+    for neg in (3, n // 3, n // 3, 5, 0):
+        Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+        w = rng.uniform(0.1, 2.0, n)
+        w[:neg] *= -1
+        M = (Q * w) @ Q.T
+        M = (M + M.T) / 2
+        P = project(M)
+        np.testing.assert_allclose(P, _psd_part(M), atol=1e-10)
+        assert np.linalg.eigvalsh(P)[0] > -1e-10
+        assert project.count == neg
 
 
 def test_bad_arguments_are_refused_with_their_name() -> None:

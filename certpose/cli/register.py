@@ -14,6 +14,9 @@ from certpose.cli import busy
 _EPILOG = """\
 Point files: .npy (N, 3), .csv/.txt (3 columns, comma or whitespace, optional header), .xyz,
 .ply, .pcd. Row k of SRC corresponds to row k of DST. Weights: .npy or .csv/.txt, shape (N,).
+With --fpfh VOXEL, SRC and DST are two scans (any sizes): they are matched first, as TEASER++'s
+FPFH example matches them (voxel downsampling, FPFH, mutual nearest neighbours), e.g.
+  certpose register cloud_bin_0.ply cloud_bin_4.ply --fpfh 0.05 --noise-bound 0.05 --certify
 """
 
 
@@ -36,6 +39,9 @@ def add_parser(subparsers: Any) -> None:
                    help="inlier noise bound beta, in the units of the points (required with "
                         "point files; overrides a problem file's bounds)")
     p.add_argument("--weights", metavar="W", help="per-correspondence weights file")
+    p.add_argument("--fpfh", type=float, default=None, metavar="VOXEL",
+                   help="SRC and DST are scans: match them by FPFH features at this voxel size "
+                        "(metres; TEASER++'s example: 0.05) and register the matches")
     p.add_argument("--solver", choices=("gnc", "sdp"), default="gnc",
                    help="gnc (default) or sdp (the SDP relaxation, with its certificate)")
     p.add_argument("--certify", action="store_true", help="attach an optimality certificate")
@@ -89,21 +95,30 @@ def run(args: argparse.Namespace) -> int:
     from certpose.api import register
     from certpose.io.points import read_correspondences, read_weights
 
-    source, target = read_correspondences(args.source, args.target)
+    if args.fpfh is None:
+        source, target = read_correspondences(args.source, args.target)
+        how = "correspondences"
+    else:
+        from certpose.data.threedmatch import scan_correspondences
+
+        corr = scan_correspondences(args.source, args.target, voxel_size=args.fpfh)
+        source, target = corr.source, corr.target
+        how = f"FPFH correspondences (voxel {args.fpfh:g})"
     weights = None if args.weights is None else read_weights(args.weights, n=source.shape[0])
     with busy(args, "certpose register"):
         result = register(
             source, target, noise_bound=args.noise_bound, weights=weights, solver=args.solver,
             certify=args.certify, prune=args.prune, **_cert_options(args),
         )
-    _say(args, f"certpose register: {source.shape[0]} correspondences, {args.source} -> "
+    _say(args, f"certpose register: {source.shape[0]} {how}, {args.source} -> "
                f"{args.target}, noise bound {args.noise_bound:g}, solver {args.solver}")
     _say(args, _summary(result))
     if args.json:
         inputs = {
             "source": str(args.source), "target": str(args.target),
             "weights": None if args.weights is None else str(args.weights),
-            "num_correspondences": int(source.shape[0]), "noise_bound": args.noise_bound,
+            "num_correspondences": int(source.shape[0]), "fpfh_voxel": args.fpfh,
+            "noise_bound": args.noise_bound,
             "solver": args.solver, "certify": args.certify, "prune": args.prune,
         }
         _write_json(args, {"inputs": inputs, "result": result.to_dict()})
@@ -130,6 +145,15 @@ def _check_options(args: argparse.Namespace) -> None:
                        "problem: add --demo")
     if args.demo and args.weights is not None:
         raise CLIError("--weights does not apply to --demo (its weights are 1)")
+    if args.fpfh is not None:
+        if args.demo or args.problem is not None:
+            raise CLIError("--fpfh matches the scans SRC DST: it does not apply to "
+                           f"{'--demo' if args.demo else '--problem'}")
+        if args.weights is not None:
+            raise CLIError("--weights does not apply to --fpfh (the matches are not known "
+                           "before matching)")
+        if not (math.isfinite(args.fpfh) and args.fpfh > 0):
+            raise CLIError(f"--fpfh must be a positive voxel size in metres, got {args.fpfh}")
     defaults = {"scope": "auto", "tol": 1e-3, "prune": "auto", "prefer": "certificate",
                 "demo_n": 100, "demo_outliers": 0.8, "demo_noise": 0.01}
     for name, value in defaults.items():
