@@ -237,3 +237,24 @@ def test_peel_to_core_matches_networkx() -> None:
         k = int(rng.integers(1, 10))
         got = set(_peel_to_core(A, A.sum(axis=1), k).tolist())
         assert got == set(nx.k_core(nx.from_numpy_array(A), k).nodes())
+
+
+def test_register_time_limit_covers_the_solve(monkeypatch) -> None:
+    """``time_limit`` is the call's budget: the certifier gets what the solver left."""
+    import solvers.certify as sc
+    from certpose import register
+
+    seen = []
+    real = sc.certify_result
+
+    def spy(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        seen.append(kwargs["time_limit"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(sc, "certify_result", spy)
+    rng = np.random.default_rng(3)
+    src = rng.uniform(-1, 1, (40, 3))
+    R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    res = register(src, src @ R.T + [0.1, 0.2, 0.3], noise_bound=0.05, certify=True, time_limit=5.0)
+    assert res.certificate is not None and res.certificate.certified
+    assert len(seen) == 1 and 0 < seen[0] < 5.0
