@@ -11,6 +11,7 @@ import numpy as np
 from numba import njit
 from numba import types as nt
 
+from solvers.certify._convex_cell import ENV_COLS, cell_terms, convex_bound
 from solvers.certify._kernels import _ls_bound, clique_bnb
 from solvers.jit import kernel
 
@@ -190,7 +191,8 @@ def _scratch(N, recolour_max):  # pragma: no cover - compiled
     rmax = min(max(recolour_max, 1), N)
     return (np.empty(N), np.zeros(N, dtype=np.bool_), np.zeros(18), np.zeros(N),
             np.zeros((rmax, rmax), dtype=np.int64), np.zeros(rmax, dtype=np.int64),
-            np.empty((N, 3)))
+            np.empty((N, 3)), np.empty((N, 3)), np.empty((N, 3)), np.empty((N, ENV_COLS)),
+            np.zeros(6))
 
 
 @njit(cache=True)
@@ -210,7 +212,7 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
     N = a.shape[0]
     D = frames.shape[0]
     depth, nodes = ints[0], ints[1]
-    lo, hi_in, s, cmax, members, size, dvec = scratch
+    lo, hi_in, s, cmax, members, size, dvec, cE, cQ, cenv, cz = scratch
     rmax = size.size
     wtot = 0.0
     for i in range(N):
@@ -369,6 +371,22 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
                 if bound - allowance >= thr:
                     pruned = True
                     hist[depth, 2] += 1
+        if not pruned or (recording and bound - allowance < cap):
+            # The joint convex bound (every term at one pose, second order in the rotation).
+            ncv, ccon = cell_terms(a, b, v, wout, anorm, slack, act[depth + 1, :n_new], R, tc0,
+                                   tc1, tc2, theta, tbox, cE, cQ, cenv)
+            for x in range(6):
+                cz[x] = 0.0
+            # Of use only above the cell's bound and the threshold; enough at the cap.
+            useless = max(bound, thr + allowance) - out - ccon
+            enough = (max(cap, thr) if recording else thr) + allowance - out - ccon
+            cvx = out + ccon + convex_bound(cE, cQ, cenv, ncv, theta, tbox, cz, useless, enough)
+            hist[depth, 4] += 1
+            if cvx > bound:
+                bound = cvx
+                if bound - allowance >= thr and not pruned:
+                    pruned = True
+                    hist[depth, 5] += 1
         if pruned:
             hist[depth, 1] += 1
             if bound - allowance < best[0]:

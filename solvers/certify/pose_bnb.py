@@ -177,7 +177,7 @@ def _fresh(m: int, half_t: float, base: float, colour: NDArray[np.int64]) -> _Se
     cinfo = np.zeros((MAX_DEPTH, 3))
     cinfo[0] = (colour.max(initial=-1) + 1, np.inf, m)
     return _Search(frames, act, cnt, outc, ccol, cinfo, np.zeros(3, dtype=np.int64), best,
-                   np.zeros((MAX_DEPTH, 4), dtype=np.int64))
+                   np.zeros((MAX_DEPTH, 6), dtype=np.int64))
 
 
 @dataclass

@@ -1,0 +1,245 @@
+"""A joint convex lower bound of the weighted TLS cost over one cell of poses (numba).
+
+A cell of :func:`solvers.certify._pose_kernels.pose_bnb` holds the rotations
+``R = exp([w]x) R_c`` with ``|w| <= theta`` (rotation vectors within ``theta`` of the cube's
+centre give rotations within angle ``theta`` of ``R_c``) and the translations ``t_c + dt`` with
+``|dt|_inf <= ts``. With ``q_i = R_c a_i`` and ``e_i = q_i + t_c - b_i``, the residual is
+``e_i + w x q_i + dt + r_i`` where ``r_i = (exp([w]x) - I - [w]x) q_i``; for ``|w| = theta``
+and a unit vector ``x`` perpendicular to ``w``, ``|(exp([w]x) - I - [w]x) x| = |exp(i theta) -
+1 - i theta| = |int_0^theta i (exp(i s) - 1) ds| <= theta^2 / 2`` (the component along ``w``
+is fixed), so ``|r_i| <= err_i = theta^2 |a_i| / 2``: second order in the cell's size. Each
+term's cost ``min(v_i |res|^2, wout_i)`` is nondecreasing in ``|res|``, so it is at least
+``phi_i(d_i) = min(v_i (d_i - err_i)_+^2, wout_i)`` with ``d_i(w, dt) = |e_i + w x q_i + dt|``,
+a convex function of ``z = (w, dt)``. ``phi_i`` is not convex; its convex envelope on the range
+``[lo_i, hi_i]`` of ``d_i`` over the cell is: the quadratic up to the point where its tangent
+passes through ``(hi_i, wout_i)``, then that tangent (the chord from ``lo_i`` when the tangent
+point is left of ``lo_i``). The envelope is convex and nondecreasing, so ``F(z) = sum_i
+env_i(d_i(z))`` is convex and below the cost on the cell; unlike a bound per term, every term
+sees the same pose. A few damped Newton steps approach ``F``'s minimum ``z*`` over the ball
+times the box, and ``F(z*) + min_z g . (z - z*)`` (``g`` the gradient at ``z*``; closed form
+over the ball and the box) is a lower bound whatever ``z*`` is.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from numba import types as nt
+
+from solvers.jit import kernel
+
+F1, F2 = nt.float64[::1], nt.float64[:, ::1]
+I1 = nt.int64[::1]
+f8 = nt.float64
+
+# Columns of a term's envelope: err (the residual's shift), knot p, value below the knot's
+# constant b0, value at the knot, slope beyond it, the quadratic's weight (0: a chord).
+_C, _P, _B0, _BASE, _S, _VQ = 0, 1, 2, 3, 4, 5
+ENV_COLS = 6
+NEWTON_STEPS = 8
+"""Damped Newton steps towards the minimum of the convex relaxation."""
+
+
+@njit(cache=True)
+def _envelope(v, w, c, lo, hi, env):  # pragma: no cover - compiled
+    """The convex envelope of ``min(v (d - c)_+^2, w)`` on ``[lo, hi]`` into ``env``
+    (``ENV_COLS``); returns False when the term costs ``w`` throughout."""
+    m = max(lo - c, 0.0)
+    phil = v * m * m
+    if phil >= w:
+        return False
+    W = w / v
+    H = hi - c
+    env[_C] = c
+    if H * H <= W:  # never an outlier on the range: the quadratic itself
+        env[_P], env[_B0], env[_BASE], env[_S], env[_VQ] = np.inf, 0.0, 0.0, 0.0, v
+        return True
+    u = H - math.sqrt(H * H - W)  # the tangent from (hi, w) touches at c + u
+    if c + u >= lo:
+        env[_P], env[_B0], env[_BASE], env[_S], env[_VQ] = c + u, 0.0, v * u * u, 2.0 * v * u, v
+    else:  # the chord from (lo, phi(lo)) to (hi, w)
+        env[_P], env[_B0], env[_BASE], env[_VQ] = lo, phil, phil, 0.0
+        env[_S] = (w - phil) / max(hi - lo, 1e-300)
+    return True
+
+
+@njit(cache=True)
+def _term(env, d):  # pragma: no cover - compiled
+    """The envelope's value, slope and curvature at ``d``."""
+    if d <= env[_P]:
+        x = d - env[_C]
+        if x <= 0.0:
+            return env[_B0], 0.0, 0.0
+        vq = env[_VQ]
+        return env[_B0] + vq * x * x, 2.0 * vq * x, 2.0 * vq
+    return env[_BASE] + env[_S] * (d - env[_P]), env[_S], 0.0
+
+
+@njit(cache=True)
+def _value(E, Q, env, n, z, grad, hess, want):  # pragma: no cover - compiled
+    """``F(z)``; with ``want`` 1 its gradient into ``grad``, with 2 also its Hessian."""
+    f = 0.0
+    if want >= 1:
+        for x in range(6):
+            grad[x] = 0.0
+    if want >= 2:
+        for x in range(6):
+            for y in range(6):
+                hess[x, y] = 0.0
+    J = np.empty((3, 6))
+    for k in range(n):
+        q0, q1, q2 = Q[k, 0], Q[k, 1], Q[k, 2]
+        # y = e + w x q + dt
+        y0 = E[k, 0] + z[1] * q2 - z[2] * q1 + z[3]
+        y1 = E[k, 1] + z[2] * q0 - z[0] * q2 + z[4]
+        y2 = E[k, 2] + z[0] * q1 - z[1] * q0 + z[5]
+        d = math.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
+        val, slope, curv = _term(env[k], d)
+        f += val
+        if want == 0 or slope == 0.0:
+            continue
+        dd = max(d, 1e-12)
+        n0, n1, n2 = y0 / dd, y1 / dd, y2 / dd
+        # dy/dz = [ -[q]x | I ]
+        J[0, 0], J[0, 1], J[0, 2] = 0.0, q2, -q1
+        J[1, 0], J[1, 1], J[1, 2] = -q2, 0.0, q0
+        J[2, 0], J[2, 1], J[2, 2] = q1, -q0, 0.0
+        for r in range(3):
+            for col in range(3, 6):
+                J[r, col] = 1.0 if r == col - 3 else 0.0
+        for col in range(6):
+            grad[col] += slope * (n0 * J[0, col] + n1 * J[1, col] + n2 * J[2, col])
+        if want >= 2:
+            # Hess_y = curv n n^T + slope / d (I - n n^T)
+            beta = slope / dd
+            alpha = curv - beta
+            for c1 in range(6):
+                g1 = n0 * J[0, c1] + n1 * J[1, c1] + n2 * J[2, c1]
+                for c2 in range(c1, 6):
+                    g2 = n0 * J[0, c2] + n1 * J[1, c2] + n2 * J[2, c2]
+                    h = alpha * g1 * g2 + beta * (J[0, c1] * J[0, c2] + J[1, c1] * J[1, c2]
+                                                  + J[2, c1] * J[2, c2])
+                    hess[c1, c2] += h
+    if want >= 2:
+        for c1 in range(6):
+            for c2 in range(c1):
+                hess[c1, c2] = hess[c2, c1]
+    return f
+
+
+@njit(cache=True)
+def _project(z, theta, ts):  # pragma: no cover - compiled
+    nw = math.sqrt(z[0] * z[0] + z[1] * z[1] + z[2] * z[2])
+    if nw > theta:
+        f = theta / nw
+        z[0], z[1], z[2] = z[0] * f, z[1] * f, z[2] * f
+    for x in range(3, 6):
+        z[x] = min(max(z[x], -ts), ts)
+
+
+@njit(cache=True)
+def _linear_floor(z, g, theta, ts):  # pragma: no cover - compiled
+    """``min g . (z' - z)`` over ``|w'| <= theta``, ``|dt'|_inf <= ts``."""
+    gw = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+    out = -theta * gw - (g[0] * z[0] + g[1] * z[1] + g[2] * z[2])
+    for x in range(3, 6):
+        out += -ts * abs(g[x]) - g[x] * z[x]
+    return out
+
+
+@njit(cache=True)
+def convex_bound(E, Q, env, n, theta, ts, z, useless, enough):  # pragma: no cover - compiled
+    """A lower bound of ``sum_k env_k(|E_k + w x Q_k + dt|)`` over ``|w| <= theta``,
+    ``|dt|_inf <= ts`` (rows ``:n`` of ``E``, ``Q``, ``env``); ``z`` (6,) holds the
+    starting point and receives the last iterate. It stops once the bound reaches ``enough``,
+    or once an iterate's value is at most ``useless`` (no bound can exceed it then)."""
+    grad = np.empty(6)
+    hess = np.empty((6, 6))
+    trial = np.empty(6)
+    g2 = np.empty(6)
+    _project(z, theta, ts)
+    f = _value(E, Q, env, n, z, grad, hess, 2)
+    best = f + _linear_floor(z, grad, theta, ts)
+    for _ in range(NEWTON_STEPS):
+        if best >= enough or f <= useless:
+            break
+        tr = 0.0
+        for x in range(6):
+            tr += hess[x, x]
+        lam = 1e-9 * tr + 1e-300
+        for x in range(6):
+            hess[x, x] += lam
+        try:
+            step = np.linalg.solve(hess, -grad)
+        except Exception:  # singular: no curvature left to follow
+            break
+        moved = False
+        tstep = 1.0
+        for _ls in range(6):
+            for x in range(6):
+                trial[x] = z[x] + tstep * step[x]
+            _project(trial, theta, ts)
+            ft = _value(E, Q, env, n, trial, g2, hess, 0)
+            if ft < f:
+                moved = True
+                break
+            tstep *= 0.25
+        if not moved:
+            break
+        for x in range(6):
+            z[x] = trial[x]
+        f = _value(E, Q, env, n, z, grad, hess, 2)
+        lb = f + _linear_floor(z, grad, theta, ts)
+        if lb > best:
+            best = lb
+        if f - best <= 1e-9 * (1.0 + abs(f)):
+            break
+    return best
+
+
+@njit(cache=True)
+def cell_terms(a, b, v, wout, anorm, slack, idx, R, tc0, tc1, tc2, theta, ts, E, Q,
+               env):  # pragma: no cover - compiled
+    """Fill ``E``, ``Q``, ``env`` for the terms ``idx`` of the cell (rotation ``R`` at its
+    centre, angle radius ``theta``; translation centre ``tc``, half-side ``ts``); returns the
+    number of rows filled and the outlier cost of the terms costing ``wout`` throughout."""
+    rem = 0.5 * theta * theta * (1.0 + 1e-12)
+    tr = math.sqrt(3.0) * ts * (1.0 + 1e-12)
+    n = 0
+    const = 0.0
+    for k in range(idx.size):
+        i = idx[k]
+        q0 = R[0, 0] * a[i, 0] + R[0, 1] * a[i, 1] + R[0, 2] * a[i, 2]
+        q1 = R[1, 0] * a[i, 0] + R[1, 1] * a[i, 1] + R[1, 2] * a[i, 2]
+        q2 = R[2, 0] * a[i, 0] + R[2, 1] * a[i, 1] + R[2, 2] * a[i, 2]
+        e0, e1, e2 = q0 + tc0 - b[i, 0], q1 + tc1 - b[i, 1], q2 + tc2 - b[i, 2]
+        en = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        reach = theta * anorm[i] * (1.0 + 1e-12) + tr
+        lo = max(en - reach, 0.0)
+        hi = en + reach
+        c = rem * anorm[i] + slack[i]
+        if not _envelope(v[i], wout[i], c, lo, hi, env[n]):
+            const += wout[i]
+            continue
+        E[n, 0], E[n, 1], E[n, 2] = e0, e1, e2
+        Q[n, 0], Q[n, 1], Q[n, 2] = q0, q1, q2
+        n += 1
+    return n, const
+
+
+@kernel(F2, F2, F1, F1, F1, F1, I1, F2, f8, F1, f8)
+def cell_bound(a, b, v, wout, anorm, slack, idx, R, theta, tc, ts):  # pragma: no cover - compiled
+    """The convex bound of ``sum_{i in idx} min(v_i |R' a_i + t - b_i|^2, wout_i)`` over the
+    rotations ``R'`` within angle ``theta`` (radians) of ``R`` (3, 3) and the translations
+    within ``ts`` (per axis) of ``tc`` (3,); ``slack`` (N,) is added to each residual's
+    remainder (a rounding allowance); other arrays as :func:`pose_bnb`'s."""
+    m = idx.size
+    E = np.empty((m, 3))
+    Q = np.empty((m, 3))
+    env = np.empty((m, ENV_COLS))
+    ts = ts * (1.0 + 1e-12)
+    n, const = cell_terms(a, b, v, wout, anorm, slack, idx, R, tc[0], tc[1], tc[2], theta, ts,
+                          E, Q, env)
+    return const + convex_bound(E, Q, env, n, theta, ts, np.zeros(6), -np.inf, np.inf)
