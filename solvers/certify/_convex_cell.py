@@ -53,7 +53,7 @@ def _envelope(v, w, c, lo, hi, env):  # pragma: no cover - compiled
     W = w / v
     H = hi - c
     env[_C] = c
-    if H * H <= W:  # never an outlier on the range: the quadratic itself
+    if H <= math.sqrt(W):  # never an outlier on the range (H < 0 too): the quadratic itself
         env[_P], env[_B0], env[_BASE], env[_S], env[_VQ] = np.inf, 0.0, 0.0, 0.0, v
         return True
     u = H - math.sqrt(H * H - W)  # the tangent from (hi, w) touches at c + u
