@@ -154,12 +154,16 @@ def convex_bound(E, Q, env, n, theta, ts, z, useless, enough):  # pragma: no cov
     """A lower bound of ``sum_k env_k(|E_k + w x Q_k + dt|)`` over ``|w| <= theta``,
     ``|dt|_inf <= ts`` (rows ``:n`` of ``E``, ``Q``, ``env``); ``z`` (6,) holds the
     starting point and receives the last iterate. It stops once the bound reaches ``enough``,
-    or once an iterate's value is at most ``useless`` (no bound can exceed it then)."""
+    or once an iterate's value is at most ``useless`` (no bound can exceed it then; ``-inf``
+    when the starting point's is)."""
     grad = np.empty(6)
     hess = np.empty((6, 6))
     trial = np.empty(6)
     g2 = np.empty(6)
     _project(z, theta, ts)
+    f = _value(E, Q, env, n, z, grad, hess, 0)
+    if f <= useless:
+        return -np.inf
     f = _value(E, Q, env, n, z, grad, hess, 2)
     best = f + _linear_floor(z, grad, theta, ts)
     for _ in range(NEWTON_STEPS):
