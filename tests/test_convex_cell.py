@@ -218,3 +218,39 @@ def test_search_prunes_cells_with_it_the_other_bounds_leave() -> None:
     assert pb.complete
     prof = pb.depth_profile
     assert prof[:, 4].sum() > 0 and prof[:, 5].sum() > 0, prof[prof[:, 0] > 0]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_relaxation_gradient_and_hessian_are_its_derivatives(seed: int) -> None:
+    """The relaxation's gradient (the bound's linear term: a wrong one would make the bound
+    unsound) and Hessian match central differences at random points of a cell."""
+    from solvers.certify._convex_cell import _value, cell_terms
+
+    rng = np.random.default_rng(seed)
+    p, r0, t0 = _synthetic(rng)
+    a, b, v, wout, anorm, slack = _terms(p)
+    rs, ts = 0.02, 0.05
+    R = Rotation.from_rotvec(r0 + rs * rng.uniform(-1, 1, 3)).as_matrix()
+    tc = t0 + ts * rng.uniform(-1, 1, 3)
+    E, Q, env = np.empty((p.n, 3)), np.empty((p.n, 3)), np.empty((p.n, ENV_COLS))
+    n, _ = cell_terms(a, b, v, wout, anorm, slack, np.arange(p.n, dtype=np.int64), R, tc[0],
+                      tc[1], tc[2], np.sqrt(3) * rs, ts, E, Q, env)
+    assert n > 10
+    grad, hess, scratch_g, scratch_h = np.empty(6), np.empty((6, 6)), np.empty(6), np.empty((6, 6))
+    h = 1e-6
+    for _ in range(5):
+        z = np.r_[rs * rng.uniform(-1, 1, 3), ts * rng.uniform(-1, 1, 3)]
+        _value(E, Q, env, n, z, grad, hess, 2)
+        num_g, num_h = np.empty(6), np.empty((6, 6))
+        for k in range(6):
+            dz = np.zeros(6)
+            dz[k] = h
+            fp = _value(E, Q, env, n, z + dz, scratch_g, scratch_h, 1)
+            gp = scratch_g.copy()
+            fm = _value(E, Q, env, n, z - dz, scratch_g, scratch_h, 1)
+            num_g[k] = (fp - fm) / (2 * h)
+            num_h[:, k] = (gp - scratch_g) / (2 * h)
+        scale = 1 + np.abs(grad).max()
+        assert np.allclose(grad, num_g, rtol=1e-4, atol=1e-4 * scale), (grad, num_g)
+        # Hessians agree except where a term crosses a kink within h (rare at random z).
+        assert np.allclose(hess, num_h, rtol=1e-3, atol=1e-3 * (1 + np.abs(hess).max()))

@@ -79,50 +79,78 @@ def _term(env, d):  # pragma: no cover - compiled
 
 @njit(cache=True)
 def _value(E, Q, env, n, z, grad, hess, want):  # pragma: no cover - compiled
-    """``F(z)``; with ``want`` 1 its gradient into ``grad``, with 2 also its Hessian."""
+    """``F(z)``; with ``want`` 1 its gradient into ``grad``, with 2 also its Hessian.
+
+    With ``y = e + w x q + dt``, ``d = |y|``, ``u = y / d``: ``dF/dw = F' q x u``, ``dF/dt =
+    F' u``; the Hessian is ``alpha g g^T + beta J^T J`` with ``g = (q x u, u)``, ``beta = F' /
+    d``, ``alpha = F'' - beta`` and ``J^T J = [[|q|^2 I - q q^T, [q]x], [-[q]x, I]]``, whose
+    sums over the terms are gathered first.
+    """
     f = 0.0
-    if want >= 1:
-        for x in range(6):
-            grad[x] = 0.0
+    for x in range(6):
+        grad[x] = 0.0
+    acc = np.zeros(11)  # sum beta, beta q (3), beta |q|^2, beta q q^T (6: xx yy zz xy xz yz)
     if want >= 2:
         for x in range(6):
             for y in range(6):
                 hess[x, y] = 0.0
-    J = np.empty((3, 6))
+    w0, w1, w2, t0, t1, t2 = z[0], z[1], z[2], z[3], z[4], z[5]
     for k in range(n):
         q0, q1, q2 = Q[k, 0], Q[k, 1], Q[k, 2]
-        # y = e + w x q + dt
-        y0 = E[k, 0] + z[1] * q2 - z[2] * q1 + z[3]
-        y1 = E[k, 1] + z[2] * q0 - z[0] * q2 + z[4]
-        y2 = E[k, 2] + z[0] * q1 - z[1] * q0 + z[5]
+        y0 = E[k, 0] + w1 * q2 - w2 * q1 + t0
+        y1 = E[k, 1] + w2 * q0 - w0 * q2 + t1
+        y2 = E[k, 2] + w0 * q1 - w1 * q0 + t2
         d = math.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
         val, slope, curv = _term(env[k], d)
         f += val
         if want == 0 or slope == 0.0:
             continue
-        dd = max(d, 1e-12)
-        n0, n1, n2 = y0 / dd, y1 / dd, y2 / dd
-        # dy/dz = [ -[q]x | I ]
-        J[0, 0], J[0, 1], J[0, 2] = 0.0, q2, -q1
-        J[1, 0], J[1, 1], J[1, 2] = -q2, 0.0, q0
-        J[2, 0], J[2, 1], J[2, 2] = q1, -q0, 0.0
-        for r in range(3):
-            for col in range(3, 6):
-                J[r, col] = 1.0 if r == col - 3 else 0.0
-        for col in range(6):
-            grad[col] += slope * (n0 * J[0, col] + n1 * J[1, col] + n2 * J[2, col])
+        dd = max(d, 1e-300)
+        u0, u1, u2 = y0 / dd, y1 / dd, y2 / dd
+        g0 = q1 * u2 - q2 * u1
+        g1 = q2 * u0 - q0 * u2
+        g2 = q0 * u1 - q1 * u0
+        grad[0] += slope * g0
+        grad[1] += slope * g1
+        grad[2] += slope * g2
+        grad[3] += slope * u0
+        grad[4] += slope * u1
+        grad[5] += slope * u2
         if want >= 2:
-            # Hess_y = curv n n^T + slope / d (I - n n^T)
             beta = slope / dd
             alpha = curv - beta
+            gg = (g0, g1, g2, u0, u1, u2)
             for c1 in range(6):
-                g1 = n0 * J[0, c1] + n1 * J[1, c1] + n2 * J[2, c1]
+                ac = alpha * gg[c1]
                 for c2 in range(c1, 6):
-                    g2 = n0 * J[0, c2] + n1 * J[1, c2] + n2 * J[2, c2]
-                    h = alpha * g1 * g2 + beta * (J[0, c1] * J[0, c2] + J[1, c1] * J[1, c2]
-                                                  + J[2, c1] * J[2, c2])
-                    hess[c1, c2] += h
+                    hess[c1, c2] += ac * gg[c2]
+            acc[0] += beta
+            acc[1] += beta * q0
+            acc[2] += beta * q1
+            acc[3] += beta * q2
+            acc[4] += beta * (q0 * q0 + q1 * q1 + q2 * q2)
+            acc[5] += beta * q0 * q0
+            acc[6] += beta * q1 * q1
+            acc[7] += beta * q2 * q2
+            acc[8] += beta * q0 * q1
+            acc[9] += beta * q0 * q2
+            acc[10] += beta * q1 * q2
     if want >= 2:
+        # beta J^T J: rotation block |q|^2 I - q q^T, cross block [q]x, translation block I
+        hess[0, 0] += acc[4] - acc[5]
+        hess[1, 1] += acc[4] - acc[6]
+        hess[2, 2] += acc[4] - acc[7]
+        hess[0, 1] -= acc[8]
+        hess[0, 2] -= acc[9]
+        hess[1, 2] -= acc[10]
+        hess[0, 4] -= acc[3]
+        hess[0, 5] += acc[2]
+        hess[1, 3] += acc[3]
+        hess[1, 5] -= acc[1]
+        hess[2, 3] -= acc[2]
+        hess[2, 4] += acc[1]
+        for x in range(3, 6):
+            hess[x, x] += acc[0]
         for c1 in range(6):
             for c2 in range(c1):
                 hess[c1, c2] = hess[c2, c1]
