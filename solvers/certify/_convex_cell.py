@@ -38,7 +38,7 @@ f8 = nt.float64
 # constant b0, value at the knot, slope beyond it, the quadratic's weight (0: a chord).
 _C, _P, _B0, _BASE, _S, _VQ = 0, 1, 2, 3, 4, 5
 ENV_COLS = 6
-NEWTON_STEPS = 8
+NEWTON_STEPS = 4
 """Damped Newton steps towards the minimum of the convex relaxation."""
 
 

@@ -361,22 +361,6 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
         recoloured = False
         tried = False
         convexed = False
-        ncls_new = 0
-        if not pruned and n_new <= recolour_max and (
-                rs < cinfo[depth, 1] or n_new < 0.7 * cinfo[depth, 2]):
-            # The same bound from a greedy colouring of this cell's possible terms alone,
-            # kept for its sub-cells (a colouring stays valid in any sub-cell).
-            for x in range(rmax):
-                size[x] = 0
-            gain, ncls_new = _recolour(act[depth + 1, :n_new], lo, wout, adjbits, members, size,
-                                       dvec, a, pair_tol, srot, slack, ccol[depth + 1])
-            tried = True
-            recoloured = gain < inherited  # else the sub-cells keep the inherited classes
-            if base0 + wtot - gain > bound:
-                bound = base0 + wtot - gain
-                if bound - allowance >= thr:
-                    pruned = True
-                    hist[depth, 2] += 1
         if (not pruned or (recording and bound - allowance < cap)) and theta <= CONVEX_THETA:
             # The joint convex bound (every term at one pose, second order in the rotation).
             ncv, ccon = cell_terms(a, b, v, wout, anorm, slack, act[depth + 1, :n_new], R, tc0,
@@ -397,6 +381,22 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
                 if bound - allowance >= thr and not pruned:
                     pruned = True
                     hist[depth, 5] += 1
+        ncls_new = 0
+        if not pruned and n_new <= recolour_max and (
+                rs < cinfo[depth, 1] or n_new < 0.7 * cinfo[depth, 2]):
+            # The same bound from a greedy colouring of this cell's possible terms alone,
+            # kept for its sub-cells (a colouring stays valid in any sub-cell).
+            for x in range(rmax):
+                size[x] = 0
+            gain, ncls_new = _recolour(act[depth + 1, :n_new], lo, wout, adjbits, members, size,
+                                       dvec, a, pair_tol, srot, slack, ccol[depth + 1])
+            tried = True
+            recoloured = gain < inherited  # else the sub-cells keep the inherited classes
+            if base0 + wtot - gain > bound:
+                bound = base0 + wtot - gain
+                if bound - allowance >= thr:
+                    pruned = True
+                    hist[depth, 2] += 1
         if pruned:
             hist[depth, 1] += 1
             if bound - allowance < best[0]:
