@@ -382,7 +382,7 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
                     pruned = True
                     hist[depth, 5] += 1
         ncls_new = 0
-        if not pruned and n_new <= recolour_max and (
+        if not pruned and not convexed and n_new <= recolour_max and (
                 rs < cinfo[depth, 1] or n_new < 0.7 * cinfo[depth, 2]):
             # The same bound from a greedy colouring of this cell's possible terms alone,
             # kept for its sub-cells (a colouring stays valid in any sub-cell).
