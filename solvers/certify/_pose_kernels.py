@@ -161,9 +161,14 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
     sum_sure v lo^2)`` (``LS``: the least-squares optimum over every pose, closed form) and
     the colouring bound ``out_0 + sum wout - sum_classes max_class (wout - v lo^2)``: a pose's
     inliers are pairwise consistent, so at most one per class of a colouring of the terms'
-    conflict graph. ``ccol[0]`` (a colouring of the consistency graph ``adjbits``) serves the
+    conflict graph. A cell of rotation radius ``sqrt(3) sr`` at most :data:`CONVEX_THETA` that
+    these leave below ``thr`` (or, recording, below ``cap``) is given the joint convex bound
+    (:mod:`solvers.certify._convex_cell`: every possible term at one pose, the rotation's
+    remainder second order in the cell's size, the Newton steps started from the parent's last
+    iterate). ``ccol[0]`` (a colouring of the consistency graph ``adjbits``) serves the
     root; a cell of at most ``recolour_max`` possible terms whose rotation cube or terms shrank
-    since its ancestors' colouring is recoloured greedily, two terms conflicting when
+    since its ancestors' colouring, and that the convex bound was not tried on, is recoloured
+    greedily, two terms conflicting when
     ``adjbits`` joins them and the cell's rotations can align their difference vectors within
     ``pair_tol_i + pair_tol_j`` (translation-free, so wide translation cubes do not loosen it).
     A colouring stays valid in every sub-cell (their poses are among the cell's), so sub-cells
