@@ -18,6 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 MODULES = ["solvers._linalg_kernels", "solvers.registration._kernels",
            "solvers.registration._clique_kernels", "solvers.certify._kernels",
            "solvers.certify._mode_kernels", "solvers.certify._pose_kernels",
+           "solvers.certify._convex_cell",
            "certpose.model._kernels", "certpose.sampling._kernels",
            "certpose.geometry._fpfh_kernels"]
 

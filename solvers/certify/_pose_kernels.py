@@ -11,6 +11,7 @@ import numpy as np
 from numba import njit
 from numba import types as nt
 
+from solvers.certify._convex_cell import ENV_COLS, cell_terms, convex_bound
 from solvers.certify._kernels import _ls_bound, clique_bnb
 from solvers.jit import kernel
 
@@ -25,6 +26,12 @@ f8, i8 = nt.float64, nt.int64
 # terms).
 _BOUND, _POFF, _PLEN, _POUT, _PCOL = 8, 9, 10, 11, 12
 REC_COLS = 15
+
+CONVEX_THETA = 0.05
+"""Largest rotation radius (rad) of a cell given the joint convex bound. In larger cells its
+second-order remainder leaves it below the other bounds, and the cells it is tried on are not
+recoloured: on the 3DMatch pair 0.05 took the fewest CPU seconds to gap 1e-3 of 0.025, 0.05,
+0.1 and 0.2."""
 
 # Columns of a frame (one cell per depth): rotation-vector centre, half-side, translation
 # centre, half-side, which half is split, the next child to visit.
@@ -156,9 +163,14 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
     sum_sure v lo^2)`` (``LS``: the least-squares optimum over every pose, closed form) and
     the colouring bound ``out_0 + sum wout - sum_classes max_class (wout - v lo^2)``: a pose's
     inliers are pairwise consistent, so at most one per class of a colouring of the terms'
-    conflict graph. ``ccol[0]`` (a colouring of the consistency graph ``adjbits``) serves the
+    conflict graph. A cell of rotation radius ``sqrt(3) sr`` at most :data:`CONVEX_THETA` that
+    these leave below ``thr`` (or, recording, below ``cap``) is given the joint convex bound
+    (:mod:`solvers.certify._convex_cell`: every possible term at one pose, the rotation's
+    remainder second order in the cell's size, the Newton steps started from the parent's last
+    iterate). ``ccol[0]`` (a colouring of the consistency graph ``adjbits``) serves the
     root; a cell of at most ``recolour_max`` possible terms whose rotation cube or terms shrank
-    since its ancestors' colouring is recoloured greedily, two terms conflicting when
+    since its ancestors' colouring, and that the convex bound was not tried on, is recoloured
+    greedily, two terms conflicting when
     ``adjbits`` joins them and the cell's rotations can align their difference vectors within
     ``pair_tol_i + pair_tol_j`` (translation-free, so wide translation cubes do not loosen it).
     A colouring stays valid in every sub-cell (their poses are among the cell's), so sub-cells
@@ -180,17 +192,19 @@ def pose_bnb(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolo
                    outc, ints, best, hist, outc[0], np.zeros((0, REC_COLS)),
                    np.zeros(2, dtype=np.int64), np.zeros((0, 2), dtype=np.int64),
                    np.zeros(frames.shape[0], dtype=np.int64), -np.inf, frames.shape[0] + 1,
-                   -np.inf, _scratch(a.shape[0], recolour_max))
+                   -np.inf, _scratch(a.shape[0], recolour_max, frames.shape[0]))
 
 
 @njit(cache=True)
-def _scratch(N, recolour_max):  # pragma: no cover - compiled
+def _scratch(N, recolour_max, D):  # pragma: no cover - compiled
     """Work arrays of :func:`_search` (allocated once per call of a kernel: the recolouring's
-    class table is ``recolour_max`` squared)."""
+    class table is ``recolour_max`` squared; per depth, the convex bound's last iterate in the
+    cell split there and whether there is one)."""
     rmax = min(max(recolour_max, 1), N)
     return (np.empty(N), np.zeros(N, dtype=np.bool_), np.zeros(18), np.zeros(N),
             np.zeros((rmax, rmax), dtype=np.int64), np.zeros(rmax, dtype=np.int64),
-            np.empty((N, 3)))
+            np.empty((N, 3)), np.empty((N, 3)), np.empty((N, 3)), np.empty((N, ENV_COLS)),
+            np.zeros(6), np.zeros((D, 7)))
 
 
 @njit(cache=True)
@@ -210,7 +224,7 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
     N = a.shape[0]
     D = frames.shape[0]
     depth, nodes = ints[0], ints[1]
-    lo, hi_in, s, cmax, members, size, dvec = scratch
+    lo, hi_in, s, cmax, members, size, dvec, cE, cQ, cenv, cz, zpar = scratch
     rmax = size.size
     wtot = 0.0
     for i in range(N):
@@ -353,8 +367,29 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
                     pruned = True
         recoloured = False
         tried = False
+        convexed = False
+        if (not pruned or (recording and bound - allowance < cap)) and theta <= CONVEX_THETA:
+            # The joint convex bound (every term at one pose, second order in the rotation).
+            ncv, ccon = cell_terms(a, b, v, wout, anorm, slack, act[depth + 1, :n_new], R, tc0,
+                                   tc1, tc2, theta, tbox, cE, cQ, cenv)
+            # From the parent's last iterate, moved to this cell's centre (a start only).
+            zp = zpar[depth]
+            for x in range(3):
+                cz[x] = zp[x] - (rc0, rc1, rc2)[x] + fr[_RC + x] if zp[6] > 0.0 else 0.0
+                cz[3 + x] = zp[3 + x] - (tc0, tc1, tc2)[x] + fr[_TC + x] if zp[6] > 0.0 else 0.0
+            convexed = True
+            # Of use only above the cell's bound and the threshold; enough at the cap.
+            useless = max(bound, thr + allowance) - out - ccon
+            enough = (max(cap, thr) if recording else thr) + allowance - out - ccon
+            cvx = out + ccon + convex_bound(cE, cQ, cenv, ncv, theta, tbox, cz, useless, enough)
+            hist[depth, 4] += 1
+            if cvx > bound:
+                bound = cvx
+                if bound - allowance >= thr and not pruned:
+                    pruned = True
+                    hist[depth, 5] += 1
         ncls_new = 0
-        if not pruned and n_new <= recolour_max and (
+        if not pruned and not convexed and n_new <= recolour_max and (
                 rs < cinfo[depth, 1] or n_new < 0.7 * cinfo[depth, 2]):
             # The same bound from a greedy colouring of this cell's possible terms alone,
             # kept for its sub-cells (a colouring stays valid in any sub-cell).
@@ -444,6 +479,9 @@ def _search(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, recolou
         nf[_NEXT] = 0.0
         cnt[depth + 1] = n_new
         outc[depth + 1] = out
+        for x in range(6):
+            zpar[depth + 1, x] = cz[x]
+        zpar[depth + 1, 6] = 1.0 if convexed else 0.0
         poolid[depth + 1] = -1
         if recoloured:
             cinfo[depth + 1, 0], cinfo[depth + 1, 1], cinfo[depth + 1, 2] = ncls_new, rs, n_new
@@ -481,7 +519,7 @@ def pose_frontier(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, r
     pose, 4 records full).
     """
     max_nodes = np.iinfo(np.int64).max // 2
-    scratch = _scratch(a.shape[0], recolour_max)
+    scratch = _scratch(a.shape[0], recolour_max, frames.shape[0])
     while True:
         if ints[4] == 0:
             r = ints[3]
@@ -501,6 +539,7 @@ def pose_frontier(a, b, v, wout, anorm, slack, pair_tol, ccol, cinfo, adjbits, r
                 cinfo[0, x] = roots[r, _PCOL + x]
             fr[_KIND] = 2.0
             fr[_NEXT] = 7.0
+            scratch[-1][0, 6] = 0.0  # no convex iterate at this root yet
             poolid[0] = -1
             ints[0] = 0
             ints[4] = 1

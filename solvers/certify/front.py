@@ -741,8 +741,8 @@ def _pose_search_bound(pn: WeightedTLSProblem, R: NDArray[np.float64], t: NDArra
         backend_status=f"pose_bnb: {stages or 'no stage run'}", eigenvalue_ratio=np.nan,
         method="pose_bnb",
         message=("too many maximal cliques to list; bounded by a branch and bound over poses "
-                 "(rotation x translation cells, per-term and colouring bounds, exact inlier "
-                 "sets in small cells)" + (f": gap {min(proved):g} proved" if proved else
+                 "(rotation x translation cells, per-term, colouring and joint convex bounds, exact "
+                 "inlier sets in small cells)" + (f": gap {min(proved):g} proved" if proved else
                                            ": no stage completed within the time limit")
                  + ("" if res.complete else f", gap {tol:g} not reached within the time limit")),
         rotation=res.rotation, translation=res.translation)

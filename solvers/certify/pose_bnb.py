@@ -5,9 +5,11 @@ Why it is sound
 Every pose ``(R, t)`` lies in a cell of rotation vectors (a cube inside ``[-pi, pi]^3``: the ball
 of radius ``pi`` covers SO(3)) times translations (a cube), and a cell bounds the cost of each
 of its poses from below (:func:`solvers.certify._pose_kernels.pose_bnb`: per-term residual
-intervals, the least squares of the terms that are inliers throughout the cell, and the
+intervals, the least squares of the terms that are inliers throughout the cell, the
 colouring bound of the pairwise-consistency graph: a pose's inliers are pairwise consistent, so
-it keeps at most one term per colour class). A depth-first search splits every cell whose bound
+it keeps at most one term per colour class; and in small cells a convex relaxation of the cost
+over the cell, every term at one pose, its rotation error second order in the cell's size:
+:mod:`solvers.certify._convex_cell`). A depth-first search splits every cell whose bound
 is below a threshold ``thr`` until its bound reaches ``thr`` or it has so few undecided terms
 that its inlier sets are enumerated exactly (closed-form least squares per set, every pose of
 the cell keeping its sure inliers). A complete search proves that no pose costs less than
@@ -19,8 +21,9 @@ constant outlier cost (:func:`solvers.certify.cliques._core`).
 
 What it costs
 -------------
-The cells are six-dimensional and the bound is per term, so the search grows quickly as ``thr``
-approaches the optimum. :func:`pose_lower_bound` therefore raises ``thr`` in stages, from a
+The cells are six-dimensional and the interval bound is per term (first order in the cell's
+size), so the search grows quickly as ``thr`` approaches the optimum; near it the convex bound,
+second order and joint, prunes most cells. :func:`pose_lower_bound` therefore raises ``thr`` in stages, from a
 loose one (a large gap, a quick proof) towards the certificate's tolerance, without starting
 again: the cells a stage leaves (pruned, or solved exactly) are kept with their bounds
 (:class:`solvers.certify.pose_frontier.Frontier`), the next stage searches below only those still
@@ -101,9 +104,10 @@ class PoseBound:
         The stage at the certificate's tolerance completed.
     stages : list of (float, bool, int, float)
         Per stage tried: target gap, completed, cells visited, seconds.
-    depth_profile : (D, 4) ndarray of int
+    depth_profile : (D, 6) ndarray of int
         Per depth below the cell a search started from (all stages): cells visited, pruned
-        by bounds, pruned by recolouring, solved exactly.
+        by bounds, pruned by recolouring, solved exactly, given the convex bound, pruned by it
+        (and not by the others).
     curve : list of (float, float)
         The lower bound after each pass over the kept cells: (seconds since the start, bound).
     """
@@ -177,7 +181,7 @@ def _fresh(m: int, half_t: float, base: float, colour: NDArray[np.int64]) -> _Se
     cinfo = np.zeros((MAX_DEPTH, 3))
     cinfo[0] = (colour.max(initial=-1) + 1, np.inf, m)
     return _Search(frames, act, cnt, outc, ccol, cinfo, np.zeros(3, dtype=np.int64), best,
-                   np.zeros((MAX_DEPTH, 4), dtype=np.int64))
+                   np.zeros((MAX_DEPTH, 6), dtype=np.int64))
 
 
 @dataclass

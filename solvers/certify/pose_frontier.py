@@ -181,7 +181,7 @@ class Frontier:
         self.cap = self.u if cap is None else max(float(cap), self.u)
         self.cap_used = self.cap  # the least cap a cell was dropped at
         self.cells = 0
-        self.hist = np.zeros((max_depth, 4), dtype=np.int64)
+        self.hist = np.zeros((max_depth, 6), dtype=np.int64)
         self.failed = False
         self.t0 = time.perf_counter()
         self.merge_time = 0.0  # seconds the last pass took to merge its cells
@@ -223,7 +223,7 @@ class Frontier:
         return _Worker(np.zeros((MAX_DEPTH, FRAME_COLS)),
                        np.zeros((MAX_DEPTH, m), dtype=np.int64),
                        np.zeros(MAX_DEPTH, dtype=np.int64), np.zeros(MAX_DEPTH), ccol,
-                       np.zeros((MAX_DEPTH, 3)), np.zeros((MAX_DEPTH, 4), dtype=np.int64),
+                       np.zeros((MAX_DEPTH, 3)), np.zeros((MAX_DEPTH, 6), dtype=np.int64),
                        np.empty((FIRST_ROWS, REC_COLS)),
                        np.empty((FIRST_ROWS * 8, 2), dtype=np.int64),
                        poolid=np.full(MAX_DEPTH, -1, dtype=np.int64))
