@@ -97,7 +97,9 @@ def register(
         bounded; the other problem's certificate is in ``info``. In what time is left, the full
         problem is then bounded for the returned pose by a branch and bound over poses
         (:mod:`solvers.certify.pose_bnb`): its certificate replaces the subproblem's when it
-        certifies, else ``info["full_problem_certificate"]`` records the gap it proved.
+        certifies, else ``info["full_problem_certificate"]`` records the gap it proved. When it
+        certifies a cheaper pose than the subproblem's (the solver's, or one it found), that
+        pose is returned with the full problem's certificate, the stronger statement.
     check_significance : bool
         Report a converged pose whose consensus is no larger than random correspondences with
         the same noise bound would give as ``status="not_significant"`` (not a success; see

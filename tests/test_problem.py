@@ -166,3 +166,27 @@ def test_problem_fields_are_read_only_views_the_caller_cannot_reach():
         p.source[0, 0] = 1.0
     with pytest.raises(ValueError, match="read-only"):
         p.weights[0] = 2.0
+
+
+def test_from_unit_scale_scales_the_poses_recorded_in_info() -> None:
+    """A replaced candidate's pose (and one a certificate dictionary records) comes back in the
+    caller's units like the result's own pose; other entries are untouched."""
+    from solvers import RegistrationResult, SolverStatus
+    from solvers.registration import from_unit_scale
+
+    T = np.eye(4)
+    T[:3, 3] = [0.1, -0.2, 0.3]
+    info = {"candidate_T_target_source": T.tolist(), "candidate_cost": 2.5,
+            "rotation_certificate": {"pose_T_target_source": T.tolist(), "gap": 1e-4}}
+    res = RegistrationResult(T_target_source=T, inliers=np.ones(3, bool), cost=1.0,
+                             iterations=1, solve_time=0.0, status=SolverStatus.CONVERGED, message="",
+                             info=info)
+    out = from_unit_scale(res, 10.0)
+    assert np.allclose(out.translation, [1.0, -2.0, 3.0])
+    cand = np.asarray(out.info["candidate_T_target_source"])
+    assert np.allclose(cand[:3, 3], [1.0, -2.0, 3.0]) and np.allclose(cand[:3, :3], np.eye(3))
+    assert isinstance(out.info["candidate_T_target_source"], list)
+    assert np.allclose(np.asarray(out.info["rotation_certificate"]["pose_T_target_source"])[:3, 3],
+                       [1.0, -2.0, 3.0])
+    assert out.info["candidate_cost"] == 2.5 and out.info["rotation_certificate"]["gap"] == 1e-4
+    assert np.allclose(np.asarray(res.info["candidate_T_target_source"])[:3, 3], [0.1, -0.2, 0.3])

@@ -1225,8 +1225,13 @@ def certify_result(
         of those cells) rises until the time limit, even within a stage. With ``rotation_fallback`` it runs after the subproblem's certificate, in what
         that leaves, for the returned pose: its certificate replaces the subproblem's when it
         certifies, else it is recorded as ``info["full_problem_certificate"]`` (a better pose
-        it finds: its cost as ``info["full_problem_better_cost"]``). Without it, a better pose
-        it finds is returned as the certifier's.
+        it finds: its cost as ``info["full_problem_better_cost"]``). When the returned pose is
+        the subproblem's and costs more than the best pose the search holds (the solver's, or
+        one it found) and the search certifies that pose, it is returned instead
+        (``CERTIFIER_POSE``; the subproblem's certificate, pose and cost in ``info`` as
+        ``rotation_certificate``, ``subproblem_T_target_source``, ``subproblem_cost``): a
+        certified optimum of the problem posed. Without it, a better pose it finds is returned
+        as the certifier's.
     """
     t0 = time.perf_counter()
     tol = _check_tol(tol)
@@ -1285,7 +1290,9 @@ def _full_after_fallback(problem: WeightedTLSProblem, out: RegistrationResult,
                                time_limit=POSE_DEFAULT_TIME if remaining is None else remaining)
     better = None
     if bound.rotation is not None and bound.translation is not None:
-        better = problem.cost(bound.rotation, bound.translation)
+        Rs, ts = bound.rotation, bound.translation
+    if Rs is not R:  # the search's best pose: one it found, or the cheaper one it started from
+        better = problem.cost(Rs, ts)
         better = better if better < problem.cost(R, t) else None
     cert = _finish_certificate(problem.cost(R, t), bound, tol=kw["tol"], scoped=scoped, ws=ws,
                                outlier_cost=_outlier_cost(problem, R, t), t0=t1, better=better)
@@ -1305,10 +1312,48 @@ def _full_after_fallback(problem: WeightedTLSProblem, out: RegistrationResult,
         return dataclasses.replace(out, certificate=dataclasses.replace(
             cert, solve_time=time.perf_counter() - t0), info=info,
             message=f"{out.message}; the full problem certified by the pose search")
+    if better is not None:
+        won = _certified_better_pose(problem, out, (Rs, ts), bound, better, info, kw["tol"],
+                                     scoped, ws, t0, t1)
+        if won is not None:
+            return won
     old = info.get("full_problem_certificate")
     if old is None or cert.relative_gap < (old.get("relative_gap") or np.inf):
         info["full_problem_certificate"] = cert.to_dict()
     return dataclasses.replace(out, info=info)
+
+
+def _certified_better_pose(problem: WeightedTLSProblem, out: RegistrationResult,
+                           pose: tuple[NDArray[np.float64], NDArray[np.float64]], bound: _Bound,
+                           better: float, info: dict[str, Any], tol: float, scoped: _Scoped,
+                           ws: float, t0: float, t1: float) -> RegistrationResult | None:
+    """The pose search's best ``pose`` (cost ``better``, below ``out``'s), returned when the
+    search certifies it on the full problem (a global optimum of the problem posed is a
+    stronger statement than the rotation subproblem's certificate of a costlier pose, which is
+    recorded in ``info``); else ``None``."""
+    from solvers.lie import make_transform
+    from solvers.registration.solve import judge_pose
+
+    Rb, tb = np.array(pose[0]), np.array(pose[1])
+    cert = _finish_certificate(better, bound, tol=tol, scoped=scoped, ws=ws,
+                               outlier_cost=_outlier_cost(problem, Rb, tb), t0=t1)
+    if not cert.certified:
+        return None
+    old = problem.cost(out.rotation, out.translation)
+    info = dict(info, rotation_certificate=out.certificate.to_dict(), replaced_candidate=True,
+                subproblem_cost=old, subproblem_T_target_source=out.T_target_source.tolist())
+    info.pop("full_problem_certificate", None)
+    inliers = problem.inliers(Rb, tb)
+    status, message = judge_pose(
+        problem, inliers,
+        f"the full problem's pose search certified a cheaper pose (cost {better:.6g} < "
+        f"{old:.6g}, the rotation subproblem's certified pose) globally optimal; returning it")
+    if status.success:
+        status = SolverStatus.CERTIFIER_POSE
+    return dataclasses.replace(
+        out, status=status, T_target_source=make_transform(Rb, tb), inliers=inliers, cost=better,
+        certificate=dataclasses.replace(cert, solve_time=time.perf_counter() - t0), info=info,
+        message=f"{message}. Before: {out.message}")
 
 
 def _remaining(kw: dict[str, Any], t0: float) -> float | None:

@@ -6,7 +6,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -426,13 +426,39 @@ def unit_scale_problem(
 def from_unit_scale(result: RegistrationResult, scale: float) -> RegistrationResult:
     """A result on :func:`to_unit_scale`'s problem, with its translation back in the original units.
 
-    Inliers, cost and certificate bounds are scale-invariant and carry over unchanged.
+    Inliers, cost and certificate bounds are scale-invariant and carry over unchanged; the poses
+    recorded in ``info`` (keys ending in ``T_target_source``, also one dictionary deep, e.g. a
+    replaced candidate's) are scaled back like the result's own.
     """
     if scale == 1.0:
         return result
     T = np.array(result.T_target_source)
     T[:3, 3] *= scale
-    return result._with_transform(T)
+    out = result._with_transform(T)
+    info = _info_from_unit_scale(result.info, scale)
+    if info is not result.info:
+        object.__setattr__(out, "info", info)
+    return out
+
+
+def _info_from_unit_scale(info: dict[str, Any], scale: float, depth: int = 0) -> dict[str, Any]:
+    """``info`` with its recorded poses' translations multiplied by ``scale`` (a new dict when
+    any is; the lists stay lists)."""
+    new: dict[str, Any] = {}
+    changed = False
+    for key, value in info.items():
+        if isinstance(key, str) and key.endswith("T_target_source") and value is not None:
+            T = np.array(value, dtype=np.float64)
+            if T.shape == (4, 4):
+                T[:3, 3] *= scale
+                value = T.tolist() if isinstance(value, list) else T
+                changed = True
+        elif isinstance(value, dict) and depth == 0:
+            sub = _info_from_unit_scale(value, scale, depth + 1)
+            changed |= sub is not value
+            value = sub
+        new[key] = value
+    return new if changed else info
 
 
 _ALWAYS_AFFORDABLE = 1 << 24
