@@ -138,6 +138,9 @@ def add_parser(subparsers: Any) -> None:
                           "Metropolis on SE(3). The baselines get the same target and number of "
                           "eq. (1) evaluations. calibrated: exact draws of the calibrated "
                           "distribution (eq. (1)'s basins and flips, a model-error kernel; docs/concepts.md)")
+    smp.add_argument("--temperature-scale", type=float, default=None, metavar="S",
+                     help="multiply the importance sampler's default temperature rule (N / n_eff) "
+                          "by S > 0 (default 1; ISParams.temperature_scale)")
     smp.add_argument("--model-error", nargs="+", metavar="DEG MM | fit", default=None,
                      help="the model-error kernel the distribution is convolved with (a Student t "
                           "with 5 degrees of freedom): DEG MM fixes its rotation (degrees) and "
@@ -274,6 +277,11 @@ def run(args: argparse.Namespace) -> int:
         _check_plot_format(args.plot)
     if args.method != "is" and args.samples == 0:
         raise CLIError("--method needs --samples N")
+    if args.temperature_scale is not None:
+        if args.samples == 0:
+            raise CLIError("--temperature-scale needs --samples N")
+        if not (math.isfinite(args.temperature_scale) and args.temperature_scale > 0):
+            raise CLIError(f"--temperature-scale must be a positive number, got {args.temperature_scale}")
     if args.model_error is not None:
         if args.samples == 0:
             raise CLIError("--model-error needs --samples N")
@@ -317,8 +325,9 @@ def run(args: argparse.Namespace) -> int:
     if args.samples:
         from certpose.sampling.sampler import ISParams
 
+        scale = 1.0 if args.temperature_scale is None else args.temperature_scale
         params = replace(params, sampler=ISParams(draws=max(10_000, args.samples),
-                                                  resample=args.samples),
+                                                  resample=args.samples, temperature_scale=scale),
                          sampling_method=args.method)
         if args.model_error == "fit":
             params = replace(params, model_error="fit")
