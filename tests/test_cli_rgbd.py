@@ -154,6 +154,8 @@ def test_run_rgbd_checks_image_sizes_and_the_mask(tmp_path: Path) -> None:
     (["--samples", "10", "--model-error", "wide"], "--model-error must be 'fit' or two non-negative"),
     (["--samples", "10", "--model-error", "fit", "3"], "--model-error must be 'fit' or two non-negative"),
     (["--samples", "10", "--model-error", "2"], "--model-error must be 'fit' or two non-negative"),
+    (["--model-error-tilt", "0.5"], "--model-error-tilt needs --samples N"),
+    (["--samples", "10", "--model-error-tilt", "-1"], "--model-error-tilt must be a non-negative"),
     (["--temperature-scale", "0.5"], "--temperature-scale needs --samples N"),
     (["--samples", "10", "--temperature-scale", "0"], "--temperature-scale must be a positive number"),
     (["--samples", "10", "--temperature-scale", "nan"], "--temperature-scale must be a positive number"),

@@ -154,6 +154,14 @@ class PoseParams:
         ``(a, b)`` of ``model_error="fit"`` (>= 0; default ``(1, 1)``).
     model_error_dof : float
         Degrees of freedom of the model-error kernel (> 0; ``inf``: Gaussian).
+    model_error_tilt : float or None
+        For a model with an axis of revolution (the mug's body, a can, a bowl:
+        :func:`~certpose.estimation.modes.revolution_turns`' axis of the model's points, which
+        must hold 0.6 of them), the kernel's rotation split into a *tilt* of this many radians
+        per axis across the axis and a *spin* of the kernel's rotation scale about it, turned
+        about the axis point (:meth:`~certpose.sampling.PoseDistribution.with_model_error`
+        ``axis``); ``None`` (default): isotropic for every model. Not the default: see
+        ``examples/benchmarks/model_error_revolution.py`` for the held-out figures.
     model_revolution : bool
         Geometry-only models built from model points (:func:`run_ycbv`, :func:`ycbv_setup`):
         sample a surface of revolution with its symmetry
@@ -179,6 +187,7 @@ class PoseParams:
     model_error: tuple[float, float] | str | None = (math.radians(2.0), 0.002)
     model_error_gains: tuple[float, float] = (1.0, 1.0)
     model_error_dof: float = 5.0
+    model_error_tilt: float | None = None
     model_revolution: bool = False
     mode_set: Any = None
 
@@ -206,6 +215,10 @@ class PoseParams:
                 raise ValueError("`model_error` must be 'fit', None or (rotation_sigma, translation_sigma), "
                                  f"two non-negative numbers (radians, metres), got {self.model_error!r}.")
             object.__setattr__(self, "model_error", err)
+        if self.model_error_tilt is not None and not (
+                math.isfinite(self.model_error_tilt) and self.model_error_tilt >= 0):
+            raise ValueError("`model_error_tilt` must be None or a finite number >= 0 (radians), "
+                             f"got {self.model_error_tilt!r}.")
         gains = _two_numbers(self.model_error_gains)
         if gains is None or not all(v >= 0 for v in gains):
             raise ValueError("`model_error_gains` must be (a, b), two non-negative numbers, got "
@@ -759,8 +772,9 @@ def _sample(scene: Any, cls: Any, object_model: Any, mle: Any, T_cw: NDArray[np.
     dist = PoseDistribution(R, t, d.weights, log_weights=d.log_weights)
     kernel = model_error_kernel(scene, object_model, mle.T_scene_object, params)
     if kernel["rotation_sigma"] > 0 or kernel["translation_sigma"] > 0:
-        dist = dist.with_model_error(kernel["rotation_sigma"], kernel["translation_sigma"],
-                                     centre=object_model.points.mean(axis=0), dof=kernel["dof"], rng=gen)
+        split = _kernel_axis(object_model, params, kernel)
+        dist = dist.with_model_error(split.pop("rotation_sigma", kernel["rotation_sigma"]),
+                                     kernel["translation_sigma"], dof=kernel["dof"], rng=gen, **split)
     info = {"method": params.sampling_method, "particles": len(dist), "ess": ess,
             "temperature": float(res.temperature), "evaluations": int(res.num_evaluations),
             "seconds": float(res.seconds), "status": res.status, "message": res.message, **extra,
@@ -770,6 +784,23 @@ def _sample(scene: Any, cls: Any, object_model: Any, mle: Any, T_cw: NDArray[np.
     except ValueError:
         info["pareto_k"] = None
     return dist, info
+
+
+def _kernel_axis(object_model: Any, params: PoseParams, kernel: dict[str, Any]) -> dict[str, Any]:
+    """``with_model_error``'s turning point and, with ``params.model_error_tilt`` and an axis of
+    revolution of the model, its tilt/spin split (noted in ``kernel``)."""
+    centre = object_model.points.mean(axis=0)
+    if params.model_error_tilt is None:
+        return {"centre": centre}
+    from certpose.estimation.modes import _revolution_axis
+
+    axis = _revolution_axis(object_model.points)
+    if axis is None:
+        kernel["axis"] = None
+        return {"centre": centre}
+    kernel.update(axis=[float(v) for v in axis.direction], tilt_sigma=float(params.model_error_tilt))
+    return {"centre": axis.point, "axis": axis.direction, "spin_sigma": kernel["rotation_sigma"],
+            "rotation_sigma": float(params.model_error_tilt)}
 
 
 def model_error_kernel(scene: Any, object_model: Any, T_scene_object: ArrayLike,
