@@ -4,7 +4,9 @@ Reads the bare particle files that ``certpose pose --particles`` wrote for the s
 pairs (``<scene>_<frame>_<object>.npz``, as ``../shared/tools/ycbv_eval.py --samples N --extra
 "--model-error 0 0"`` leaves them in its temporary folder). For every pair whose model has an
 axis of revolution (:func:`certpose.estimation.modes._revolution_axis` on ``points.xyz``: the
-cans, the mug, the bowl, the large marker; symmetric objects included, their axis is defined)
+cans, the mug, the bowl, the large marker, the same objects as the program's
+:func:`certpose.estimation.pipeline.kernel_revolution_axis` on the sampled models; symmetric
+objects included, their axis is defined)
 it prints the truth's axis against the bare distribution's: the angle between the truth's axis
 and the weighted mean axis (``bias``), the weighted RMS angle of the particles' axes about that
 mean (``width``) and the mass within 5 deg of the truth's axis.
