@@ -154,6 +154,11 @@ def test_run_rgbd_checks_image_sizes_and_the_mask(tmp_path: Path) -> None:
     (["--samples", "10", "--model-error", "wide"], "--model-error must be 'fit' or two non-negative"),
     (["--samples", "10", "--model-error", "fit", "3"], "--model-error must be 'fit' or two non-negative"),
     (["--samples", "10", "--model-error", "2"], "--model-error must be 'fit' or two non-negative"),
+    (["--model-error-tilt", "0.5"], "--model-error-tilt needs --samples N"),
+    (["--samples", "10", "--model-error-tilt", "-1"], "--model-error-tilt must be a non-negative"),
+    (["--temperature-scale", "0.5"], "--temperature-scale needs --samples N"),
+    (["--samples", "10", "--temperature-scale", "0"], "--temperature-scale must be a positive number"),
+    (["--samples", "10", "--temperature-scale", "nan"], "--temperature-scale must be a positive number"),
 ])
 def test_axis_option_is_checked(argv: list[str], message: str, capsys) -> None:  # noqa: ANN001
     assert main(["pose", "--demo", *argv]) == 2
@@ -194,6 +199,18 @@ def test_model_error_option_sets_the_kernel(tmp_path: Path) -> None:
         spread[deg] = float(np.sqrt(np.average(np.sum((d.translations - np.average(
             d.translations, axis=0, weights=d.weights)) ** 2, axis=1), weights=d.weights)))
     assert spread["10"] > spread["0"] + 0.005, spread
+
+
+@pytest.mark.slow
+def test_temperature_scale_option_scales_the_sampler_temperature(tmp_path: Path) -> None:
+    """`--temperature-scale S` multiplies the temperature the sampler reports (the demo's mug)."""
+    temps = {}
+    for scale in ("1", "0.5"):
+        js = tmp_path / f"p{scale}.json"
+        assert main(["pose", "--demo", "--samples", "300", "--model-error", "0", "0",
+                     "--temperature-scale", scale, "--json", str(js)]) == 0
+        temps[scale] = json.loads(js.read_text())["sampling"]["temperature"]
+    assert temps["0.5"] == pytest.approx(0.5 * temps["1"], rel=1e-6)
 
 
 @pytest.mark.slow

@@ -365,3 +365,38 @@ def test_model_error_kernel_spreads_each_particle_about_the_centre() -> None:
     for bad in (0.0, -2.0, float("nan")):
         with pytest.raises(ValueError, match="dof"):
             d.with_model_error(0.1, 0.0, dof=bad)
+
+
+def test_model_error_kernel_splits_tilt_and_spin_about_an_axis_of_revolution() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from certpose.sampling import PoseDistribution
+
+    R0 = Rotation.from_euler("xyz", [10, -20, 30], degrees=True).as_matrix()
+    t0 = np.array([0.1, -0.05, 0.8])
+    d = PoseDistribution(R0[None], t0[None], np.ones(1))
+    axis = np.array([1.0, 2.0, 2.0]) / 3.0  # object frame, not a coordinate axis
+    c = np.array([0.01, -0.02, 0.03])
+    e = d.with_model_error(np.radians(1.0), 0.0, centre=c, copies=20000, axis=3.0 * axis,
+                           spin_sigma=np.radians(5.0), rng=0)
+    w = Rotation.from_matrix(np.einsum("ji,njk->nik", R0, e.rotations)).as_rotvec()
+    spin = w @ axis
+    tilt_part = w - np.outer(spin, axis)
+    assert spin.std() == pytest.approx(np.radians(5.0), rel=0.05)
+    # Two tilt components of 1 deg each: E|tilt|^2 = 2 sigma^2.
+    assert np.sqrt(np.mean(np.sum(tilt_part**2, axis=1))) == pytest.approx(np.sqrt(2) * np.radians(1.0), rel=0.05)
+    # The axis itself tilts by the tilt part only (the spin leaves it in place).
+    tilt = np.arccos(np.clip((e.rotations @ axis) @ (R0 @ axis), -1.0, 1.0))
+    assert np.quantile(tilt, 0.99) < np.radians(3.5)
+    # Without an axis the same call is isotropic: the spin would tilt it.
+    f = d.with_model_error(np.radians(5.0), 0.0, centre=c, copies=20000, rng=0)
+    assert np.quantile(np.arccos(np.clip((f.rotations @ axis) @ (R0 @ axis), -1.0, 1.0)), 0.5) > np.radians(5.0)
+    np.testing.assert_allclose(e.rotations @ c + e.translations, np.tile(R0 @ c + t0, (20000, 1)), atol=1e-12)
+    with pytest.raises(ValueError, match="spin_sigma` needs `axis"):
+        d.with_model_error(0.1, 0.0, spin_sigma=0.1)
+    with pytest.raises(ValueError, match="spin_sigma"):
+        d.with_model_error(0.1, 0.0, axis=axis, spin_sigma=-0.1)
+    with pytest.raises(ValueError, match=r"`axis` to have shape \(3,\)"):
+        d.with_model_error(0.1, 0.0, axis=[1.0, 0.0])
+    with pytest.raises(ValueError, match="non-zero"):
+        d.with_model_error(0.1, 0.0, axis=[0.0, 0.0, 0.0])

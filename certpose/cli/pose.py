@@ -138,6 +138,13 @@ def add_parser(subparsers: Any) -> None:
                           "Metropolis on SE(3). The baselines get the same target and number of "
                           "eq. (1) evaluations. calibrated: exact draws of the calibrated "
                           "distribution (eq. (1)'s basins and flips, a model-error kernel; docs/concepts.md)")
+    smp.add_argument("--model-error-tilt", type=float, default=None, metavar="DEG",
+                     help="for a model with an axis of revolution, split the kernel's rotation "
+                          "into a tilt of DEG degrees across the axis and a spin of the kernel's "
+                          "rotation about it (PoseParams.model_error_tilt; default: isotropic)")
+    smp.add_argument("--temperature-scale", type=float, default=None, metavar="S",
+                     help="multiply the importance sampler's default temperature rule (N / n_eff) "
+                          "by S > 0 (default 1; ISParams.temperature_scale)")
     smp.add_argument("--model-error", nargs="+", metavar="DEG MM | fit", default=None,
                      help="the model-error kernel the distribution is convolved with (a Student t "
                           "with 5 degrees of freedom): DEG MM fixes its rotation (degrees) and "
@@ -274,6 +281,16 @@ def run(args: argparse.Namespace) -> int:
         _check_plot_format(args.plot)
     if args.method != "is" and args.samples == 0:
         raise CLIError("--method needs --samples N")
+    if args.model_error_tilt is not None:
+        if args.samples == 0:
+            raise CLIError("--model-error-tilt needs --samples N")
+        if not (math.isfinite(args.model_error_tilt) and args.model_error_tilt >= 0):
+            raise CLIError(f"--model-error-tilt must be a non-negative number of degrees, got {args.model_error_tilt}")
+    if args.temperature_scale is not None:
+        if args.samples == 0:
+            raise CLIError("--temperature-scale needs --samples N")
+        if not (math.isfinite(args.temperature_scale) and args.temperature_scale > 0):
+            raise CLIError(f"--temperature-scale must be a positive number, got {args.temperature_scale}")
     if args.model_error is not None:
         if args.samples == 0:
             raise CLIError("--model-error needs --samples N")
@@ -317,14 +334,17 @@ def run(args: argparse.Namespace) -> int:
     if args.samples:
         from certpose.sampling.sampler import ISParams
 
+        scale = 1.0 if args.temperature_scale is None else args.temperature_scale
         params = replace(params, sampler=ISParams(draws=max(10_000, args.samples),
-                                                  resample=args.samples),
+                                                  resample=args.samples, temperature_scale=scale),
                          sampling_method=args.method)
         if args.model_error == "fit":
             params = replace(params, model_error="fit")
         elif args.model_error is not None:
             deg, mm = args.model_error
             params = replace(params, model_error=None if deg == mm == 0 else (math.radians(deg), mm / 1000.0))
+        if args.model_error_tilt is not None:
+            params = replace(params, model_error_tilt=math.radians(args.model_error_tilt))
     if args.rgbd is not None:
         return _run_rgbd(argparse.Namespace(**{**vars(args), "object": rgbd_name}), params)
     if args.demo:
@@ -633,7 +653,10 @@ def _print_distribution(result: object, args: argparse.Namespace) -> None:
         say(args, f"  model-error kernel ({kern['rule']}"
               + (f", depth misfit {1000 * kern['misfit']:.2f} mm over {kern['misfit_points']} points, "
                  f"lever arm {100 * kern['lever_arm']:.1f} cm" if "misfit" in kern else "")
-              + f"): {math.degrees(kern['rotation_sigma']):.2f} deg, {1000 * kern['translation_sigma']:.2f} mm"
+              + "): "
+              + (f"tilt {math.degrees(kern['tilt_sigma']):.2f} deg across the axis of revolution, spin "
+                 if "tilt_sigma" in kern else "")
+              + f"{math.degrees(kern['rotation_sigma']):.2f} deg, {1000 * kern['translation_sigma']:.2f} mm"
               f" per axis, Student t {kern['dof']:g} dof")
     from certpose.estimation.pipeline import YCBV_SYMMETRY_AXES
 

@@ -52,6 +52,20 @@ def _check_query(R: ArrayLike, t: ArrayLike) -> tuple[NDArray[np.float64], NDArr
     return R, t.reshape(3)
 
 
+def _axis_basis(axis: ArrayLike) -> NDArray[np.float64]:
+    """(3, 3) orthonormal rows: two unit vectors perpendicular to ``axis``, then ``axis``."""
+    a = np.asarray(axis, dtype=np.float64)
+    if a.shape != (3,):
+        raise ValueError(f"Expected `axis` to have shape (3,), got {a.shape}.")
+    n = float(np.linalg.norm(a))
+    if not (np.isfinite(n) and n > 0):
+        raise ValueError(f"Expected `axis` to be a finite non-zero vector, got {a}.")
+    a = a / n
+    e1 = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(a, e1), a])
+
+
 #: A mode with fewer distinct particles has no covariance of its own for the kernel density.
 _MIN_MODE_PARTICLES = 12
 
@@ -244,6 +258,7 @@ class PoseDistribution:
 
     def with_model_error(self, rotation_sigma: float, translation_sigma: float, *,
                          centre: ArrayLike = (0.0, 0.0, 0.0), copies: int = 1, dof: float = math.inf,
+                         axis: ArrayLike | None = None, spin_sigma: float | None = None,
                          rng: np.random.Generator | int | None = None) -> PoseDistribution:
         """This distribution convolved with a model-error kernel: each particle turned by a
         random rotation about ``centre`` (object frame, metres) and shifted.
@@ -257,10 +272,15 @@ class PoseDistribution:
         multivariate Student t kernel, whose core is as narrow as the Gaussian's and whose tails
         are heavier (a model that is right for most poses and off by more for a few).
 
+        With ``axis`` (an object's axis of revolution) the rotation splits into a *tilt* (the
+        components of ``w`` perpendicular to ``axis``, ``rotation_sigma`` each) and a *spin*
+        (its component along ``axis``, ``spin_sigma``): a body of revolution's error about its
+        own axis need not be that about the axes across it.
+
         Parameters
         ----------
         rotation_sigma : float
-            Radians per axis (>= 0).
+            Radians per axis (>= 0); with ``axis``, per tilt axis.
         translation_sigma : float
             Metres per axis (>= 0).
         centre : (3,) array_like
@@ -269,6 +289,11 @@ class PoseDistribution:
             Perturbed copies of each particle (>= 1); weights are shared among them.
         dof : float
             Degrees of freedom of the Student t kernel (> 0; ``inf``, the default: Gaussian).
+        axis : (3,) array_like or None
+            Object-frame direction of the axis of revolution (normalised here; not zero). Turns
+            are still about ``centre``: pass a point on the axis.
+        spin_sigma : float or None
+            Radians about ``axis`` (>= 0; ``None``: ``rotation_sigma``). Only with ``axis``.
         rng : numpy Generator, int or None
 
         Returns
@@ -283,6 +308,16 @@ class PoseDistribution:
                 raise ValueError(f"Expected `{name}` to be finite and >= 0, got {v}.")
         if int(copies) != copies or copies < 1:
             raise ValueError(f"Expected `copies` to be a positive integer, got {copies!r}.")
+        scales = np.full(3, float(rotation_sigma))
+        basis = np.eye(3)
+        if axis is not None:
+            basis = _axis_basis(axis)
+            if spin_sigma is not None:
+                if not (np.isfinite(spin_sigma) and spin_sigma >= 0):
+                    raise ValueError(f"Expected `spin_sigma` to be finite and >= 0, got {spin_sigma}.")
+                scales[2] = float(spin_sigma)
+        elif spin_sigma is not None:
+            raise ValueError("`spin_sigma` needs `axis`.")
         c = np.asarray(centre, dtype=np.float64).reshape(3)
         gen = np.random.default_rng(rng)
         R = np.repeat(self.rotations, int(copies), axis=0)
@@ -291,7 +326,8 @@ class PoseDistribution:
         k = np.ones((len(w), 1))
         if math.isfinite(dof):
             k = np.sqrt(float(dof) / gen.chisquare(float(dof), size=(len(w), 1)))
-        E = Rotation.from_rotvec(k * gen.normal(scale=float(rotation_sigma), size=(len(w), 3))).as_matrix()
+        # Rows of `basis`: two tilt directions, then the axis (the identity without an axis).
+        E = Rotation.from_rotvec(k * (gen.normal(size=(len(w), 3)) * scales) @ basis).as_matrix()
         R2 = R @ E
         t2 = t + R @ c - R2 @ c + k * gen.normal(scale=float(translation_sigma), size=(len(w), 3))
         return PoseDistribution(R2, t2, w)

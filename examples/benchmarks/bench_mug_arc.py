@@ -19,12 +19,15 @@ Targets: ``in arc`` >= 0.9, ``> 20 out`` <= 0.05, every bin covered, ``axis ok``
 
 ``--model-error DEG MM`` sets the model-error kernel as ``certpose pose --model-error`` does
 (``0 0``: the bare importance-sampler distribution), to tell the sampler's spread from the
-kernel's.
+kernel's; ``--model-error-tilt DEG`` splits it into a tilt across the mug's axis and a spin
+about it (``PoseParams.model_error_tilt``). ``--temperature-scale S`` multiplies the importance sampler's default temperature
+rule (``ISParams.temperature_scale``), to see how much of the bare distribution's width the
+tempering sets.
 
 usage::
 
     python examples/benchmarks/bench_mug_arc.py [--ycbv ../shared/data/ycbv] [--samples 2000]
-        [--model-error DEG MM]
+        [--model-error DEG MM] [--model-error-tilt DEG] [--temperature-scale S]
 """
 
 from __future__ import annotations
@@ -148,21 +151,32 @@ def main() -> int:
     ap.add_argument("--model-error", nargs="+", metavar="DEG MM | fit", default=None,
                     help="model-error kernel: degrees, millimetres per axis (0 0: none) or fit "
                          "(scaled by the depth misfit)")
+    ap.add_argument("--model-error-tilt", type=float, default=None, metavar="DEG",
+                    help="the kernel's tilt across the mug's axis of revolution, degrees "
+                         "(PoseParams.model_error_tilt; the spin keeps the kernel's rotation scale)")
+    ap.add_argument("--temperature-scale", type=float, default=1.0,
+                    help="multiplies the importance sampler's default temperature rule")
     args = ap.parse_args()
-    params = replace(PoseParams(), sampler=ISParams(draws=max(10_000, args.samples), resample=args.samples))
+    params = replace(PoseParams(), sampler=ISParams(draws=max(10_000, args.samples), resample=args.samples,
+                                                    temperature_scale=args.temperature_scale))
     if args.model_error == ["fit"]:
         params = replace(params, model_error="fit")
     elif args.model_error is not None:
         deg, mm = (float(v) for v in args.model_error)
         params = replace(params, model_error=(math.radians(deg), mm / 1000.0) if deg or mm else None)
-    print(f"model-error kernel: {params.model_error} (radians, metres), dof {params.model_error_dof}")
+    if args.model_error_tilt is not None:
+        params = replace(params, model_error_tilt=math.radians(args.model_error_tilt))
+    print(f"model-error kernel: {params.model_error} (radians, metres), dof {params.model_error_dof}, "
+          f"tilt {args.model_error_tilt} deg; "
+          f"temperature scale {args.temperature_scale:g}")
     print(f"load {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     rows = []
 
     def kernel(res) -> str:  # noqa: ANN001
         k = res.sampling.get("model_error") or {}
         r = f"r {1000 * k['misfit']:.2f} mm: " if "misfit" in k else ""
-        return (f"kernel {k.get('rule')} {r}{math.degrees(k.get('rotation_sigma', 0.0)):.2f} deg, "
+        tilt = f"tilt {math.degrees(k['tilt_sigma']):.2f} deg, spin " if "tilt_sigma" in k else ""
+        return (f"kernel {k.get('rule')} {r}{tilt}{math.degrees(k.get('rotation_sigma', 0.0)):.2f} deg, "
                 f"{1000 * k.get('translation_sigma', 0.0):.2f} mm")
 
     for seed in args.seeds:

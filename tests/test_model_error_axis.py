@@ -1,0 +1,85 @@
+"""The model-error kernel split into tilt and spin about a model's axis of revolution
+(PoseParams.model_error_tilt): the demo's mug keeps its axis, a box has no axis to split about."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from certpose.estimation.pipeline import PoseParams, _kernel_axis
+from certpose.geometry.objects import ObjectModel
+
+
+def box_model() -> ObjectModel:
+    """Points on the faces of a 16 x 8 x 4 cm box, 4 mm apart."""
+    rng = np.random.default_rng(0)
+    half = np.array([0.08, 0.04, 0.02])
+    faces = []
+    for k in range(3):
+        for s in (-1.0, 1.0):
+            n = int(4 * half[(k + 1) % 3] * half[(k + 2) % 3] / 0.004**2)
+            p = rng.uniform(-half, half, size=(n, 3))
+            p[:, k] = s * half[k]
+            faces.append(p)
+    pts = np.concatenate(faces)
+    return ObjectModel(pts, np.zeros((len(pts), 1)))
+
+
+def test_model_error_tilt_is_validated() -> None:
+    for bad in (-0.01, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="model_error_tilt"):
+            PoseParams(model_error_tilt=bad)
+    assert PoseParams().model_error_tilt is None
+
+
+def test_a_box_keeps_the_isotropic_kernel() -> None:
+    obj = box_model()
+    kernel = {"rotation_sigma": 0.03, "translation_sigma": 0.002}
+    split = _kernel_axis(obj, PoseParams(model_error_tilt=0.005), kernel)
+    assert set(split) == {"centre"} and kernel["axis"] is None
+    np.testing.assert_allclose(split["centre"], obj.points.mean(axis=0))
+    assert set(_kernel_axis(obj, PoseParams(), {})) == {"centre"}
+
+
+@pytest.mark.slow
+def test_demo_mug_spins_about_its_axis_without_tilting() -> None:
+    """A 10-deg kernel tilts the demo mug's axis by several degrees when isotropic; split with
+    no tilt, the same spin leaves the axis as the bare distribution has it."""
+    from certpose.estimation.pipeline import run_demo
+    from certpose.sampling.sampler import ISParams
+
+    base = replace(PoseParams(), sampler=ISParams(draws=2000, resample=500), model_error=(math.radians(10.0), 0.0))
+    median_tilt = {}
+    for name, params in (("bare", replace(base, model_error=None)), ("iso", base),
+                         ("split", replace(base, model_error_tilt=0.0))):
+        res = run_demo(params=params, rng=0)
+        d = res.distribution
+        T = res.T_world_camera @ res.T_camera_object_gt
+        tilt = np.degrees(np.arccos(np.clip((d.rotations @ [0.0, 0.0, 1.0]) @ T[:3, 2], -1.0, 1.0)))
+        order = np.argsort(tilt)
+        median_tilt[name] = float(tilt[order][np.searchsorted(np.cumsum(d.weights[order]), 0.5)])
+        if name == "split":
+            k = res.sampling["model_error"]
+            assert k["tilt_sigma"] == 0.0 and abs(abs(k["axis"][2]) - 1.0) < 1e-3, k
+    assert median_tilt["iso"] > median_tilt["bare"] + 4.0, median_tilt
+    assert median_tilt["split"] < median_tilt["bare"] + 1.0, median_tilt
+
+
+def test_the_kernel_axis_is_found_on_bodies_of_revolution_only() -> None:
+    """On YCB-Video's surface-sampled models: the mug and the cans have an axis (their z axis),
+    the small boxes and the banana do not (at 2.5 sample gaps they passed as bodies of
+    revolution, 0.56-0.88 of their points)."""
+    from certpose.estimation.pipeline import kernel_revolution_axis, ycbv_setup
+    from tests.conftest import require_data
+
+    root = require_data("ycbv")
+    for scene, name, has_axis in (("0000", "025_mug", True), ("0050", "005_tomato_soup_can", True),
+                                  ("0000", "009_gelatin_box", False), ("0000", "061_foam_brick", False),
+                                  ("0002", "011_banana", False)):
+        axis = kernel_revolution_axis(ycbv_setup(root, f"{scene}/000001", name).object_model.points)
+        assert (axis is not None) == has_axis, (name, axis)
+        if has_axis:
+            assert abs(axis.direction[2]) > 0.999 and axis.fraction > 0.85, (name, axis)
