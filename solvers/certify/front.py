@@ -1299,7 +1299,13 @@ def _full_after_fallback(problem: WeightedTLSProblem, out: RegistrationResult,
     info = dict(out.info)
     if better is not None:
         info["full_problem_better_cost"] = better
-    if out.certificate.problem == BoundedProblem.FULL.value:
+    full = out.certificate.problem == BoundedProblem.FULL.value
+    if better is not None:
+        won = _cheaper_pose(problem, out, (Rs, ts), bound, better, info, tol=kw["tol"],
+                            scoped=scoped, ws=ws, t0=t0, t1=t1, need_certificate=not full)
+        if won is not None:
+            return won
+    if full:
         if not (cert.certified or cert.relative_gap < out.certificate.relative_gap):
             return dataclasses.replace(out, info=info)
         return dataclasses.replace(out, certificate=dataclasses.replace(
@@ -1312,42 +1318,52 @@ def _full_after_fallback(problem: WeightedTLSProblem, out: RegistrationResult,
         return dataclasses.replace(out, certificate=dataclasses.replace(
             cert, solve_time=time.perf_counter() - t0), info=info,
             message=f"{out.message}; the full problem certified by the pose search")
-    if better is not None:
-        won = _certified_better_pose(problem, out, (Rs, ts), bound, better, info, kw["tol"],
-                                     scoped, ws, t0, t1)
-        if won is not None:
-            return won
     old = info.get("full_problem_certificate")
     if old is None or cert.relative_gap < (old.get("relative_gap") or np.inf):
         info["full_problem_certificate"] = cert.to_dict()
     return dataclasses.replace(out, info=info)
 
 
-def _certified_better_pose(problem: WeightedTLSProblem, out: RegistrationResult,
-                           pose: tuple[NDArray[np.float64], NDArray[np.float64]], bound: _Bound,
-                           better: float, info: dict[str, Any], tol: float, scoped: _Scoped,
-                           ws: float, t0: float, t1: float) -> RegistrationResult | None:
-    """The pose search's best ``pose`` (cost ``better``, below ``out``'s), returned when the
-    search certifies it on the full problem (a global optimum of the problem posed is a
-    stronger statement than the rotation subproblem's certificate of a costlier pose, which is
-    recorded in ``info``); else ``None``."""
+def _cheaper_pose(problem: WeightedTLSProblem, out: RegistrationResult,
+                  pose: tuple[NDArray[np.float64], NDArray[np.float64]], bound: _Bound,
+                  better: float, info: dict[str, Any], *, tol: float, scoped: _Scoped,
+                  ws: float, t0: float, t1: float, need_certificate: bool
+                  ) -> RegistrationResult | None:
+    """The pose search's best ``pose`` (cost ``better``, below ``out``'s) with its full-problem
+    certificate, in place of ``out``; ``None`` when ``need_certificate`` and it is not
+    certified.
+
+    ``out`` holding the rotation subproblem's certificate (``need_certificate``): a certified
+    optimum of the problem posed is the stronger statement, and the subproblem's certificate,
+    pose and cost are recorded in ``info``. ``out`` holding the full problem's: the cheaper
+    pose has the smaller gap, certified or not, and ``out`` is recorded as the candidate.
+    """
     from solvers.lie import make_transform
     from solvers.registration.solve import judge_pose
 
     Rb, tb = np.array(pose[0]), np.array(pose[1])
     cert = _finish_certificate(better, bound, tol=tol, scoped=scoped, ws=ws,
                                outlier_cost=_outlier_cost(problem, Rb, tb), t0=t1)
-    if not cert.certified:
+    if need_certificate and not cert.certified:
         return None
     old = problem.cost(out.rotation, out.translation)
-    info = dict(info, rotation_certificate=out.certificate.to_dict(), replaced_candidate=True,
-                subproblem_cost=old, subproblem_T_target_source=out.T_target_source.tolist())
+    info = dict(info, replaced_candidate=True)
     info.pop("full_problem_certificate", None)
+    if need_certificate:
+        info.update(rotation_certificate=out.certificate.to_dict(), subproblem_cost=old,
+                    subproblem_T_target_source=out.T_target_source.tolist())
+        what = (f"the full problem's pose search certified a cheaper pose (cost {better:.6g} < "
+                f"{old:.6g}, the rotation subproblem's certified pose) globally optimal; "
+                "returning it")
+    else:
+        for key, value in (("candidate_cost", old), ("candidate_status", out.status.value),
+                           ("candidate_certificate", out.certificate.to_dict()),
+                           ("candidate_T_target_source", out.T_target_source.tolist())):
+            info.setdefault(key, value)
+        what = (f"the full problem's pose search found a cheaper pose (cost {better:.6g} < "
+                f"{old:.6g}); returning it with its certificate")
     inliers = problem.inliers(Rb, tb)
-    status, message = judge_pose(
-        problem, inliers,
-        f"the full problem's pose search certified a cheaper pose (cost {better:.6g} < "
-        f"{old:.6g}, the rotation subproblem's certified pose) globally optimal; returning it")
+    status, message = judge_pose(problem, inliers, what)
     if status.success:
         status = SolverStatus.CERTIFIER_POSE
     return dataclasses.replace(
