@@ -3,10 +3,9 @@
 Reads the bare particle files that ``certpose pose --particles`` wrote for the shared YCB-Video
 pairs (``<scene>_<frame>_<object>.npz``, as ``../shared/tools/ycbv_eval.py --samples N --extra
 "--model-error 0 0"`` leaves them in its temporary folder). For every pair whose model has an
-axis of revolution (:func:`certpose.estimation.modes._revolution_axis` on ``points.xyz``: the
-cans, the mug, the bowl, the large marker, the same objects as the program's
-:func:`certpose.estimation.pipeline.kernel_revolution_axis` on the sampled models; symmetric
-objects included, their axis is defined)
+axis of revolution (:func:`certpose.estimation.modes.revolution_axis` on the object model
+``certpose pose --ycbv`` samples from ``points.xyz``: the cans, the mug, the bowl, the large
+marker; symmetric objects included, their axis is defined)
 it prints the truth's axis against the bare distribution's: the angle between the truth's axis
 and the weighted mean axis (``bias``), the weighted RMS angle of the particles' axes about that
 mean (``width``) and the mass within 5 deg of the truth's axis.
@@ -112,7 +111,10 @@ MIN_BASIN = 0.05
 
 
 def rows_for(root: Path, folder: Path, seed: int) -> list[dict]:
-    from certpose.estimation.modes import _revolution_axis
+    from certpose.estimation.modes import revolution_axis
+    from certpose.estimation.pipeline import PoseParams
+    from certpose.geometry.features import FPFHBackbone
+    from certpose.geometry.objects import object_from_points
     from certpose.io.ycbv import load_model_points, load_ycbv_frame
     from certpose.sampling import PoseDistribution
 
@@ -122,7 +124,8 @@ def rows_for(root: Path, folder: Path, seed: int) -> list[dict]:
         scene, frame, name = f.stem.split("_", 2)
         pts = load_model_points(root / "models" / name / "points.xyz")
         if name not in axes:
-            axes[name] = _revolution_axis(pts)
+            model = object_from_points(pts, FPFHBackbone(), voxel_size=PoseParams().voxel_size, name=name)
+            axes[name] = revolution_axis(model.points)
         axis = axes[name]
         sym = name in SYMMETRIC
         if axis is None and sym:
