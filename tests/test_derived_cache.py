@@ -77,3 +77,33 @@ def test_the_visibility_table_from_the_cache_equals_a_fresh_one(cache):
             np.testing.assert_array_equal(t.table, fresh.table)
         np.testing.assert_array_equal(t.normals, fresh.normals)
         assert t.faces == fresh.faces and t.grazing == fresh.grazing
+
+
+def test_an_axis_cached_at_another_tolerance_is_not_read(cache, monkeypatch):
+    """The cached axis of revolution is keyed by the tolerance too: an axis found at 2.5 sample
+    gaps (a box's faces pass then) is not read back once the tolerance is one gap."""
+    from scipy.spatial import cKDTree
+
+    from certpose.estimation import modes
+
+    # A 16 x 8 x 4 cm box's faces on a 3 mm grid.
+    g = np.arange(-0.08, 0.0801, 0.003)
+    faces = []
+    half = np.array([0.08, 0.04, 0.02])
+    for k in range(3):
+        a, b = [i for i in range(3) if i != k]
+        u, v = np.meshgrid(g[np.abs(g) <= half[a]], g[np.abs(g) <= half[b]], indexing="ij")
+        for s in (-1.0, 1.0):
+            f = np.zeros((u.size, 3))
+            f[:, a], f[:, b], f[:, k] = u.ravel(), v.ravel(), s * half[k]
+            faces.append(f)
+    box = np.vstack(faces)
+    gap = float(np.median(cKDTree(box).query(box, k=2)[0][:, 1]))
+    wide = 8.0  # gaps: wide enough for the box's faces to pass as a surface of revolution
+    monkeypatch.setattr(modes, "AXIS_TOLERANCE_GAPS", wide)
+    monkeypatch.setattr(modes, "_AXES", {})
+    assert modes.revolution_axis(box) is not None, gap
+    monkeypatch.setattr(modes, "AXIS_TOLERANCE_GAPS", 1.0)
+    monkeypatch.setattr(modes, "_AXES", {})
+    assert modes.revolution_axis(box) is None
+    assert len(list((cache / "derived").glob("revolution-axis-*.npz"))) == 2

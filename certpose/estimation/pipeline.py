@@ -156,11 +156,11 @@ class PoseParams:
         Degrees of freedom of the model-error kernel (> 0; ``inf``: Gaussian).
     model_error_tilt : float or None
         For a model with an axis of revolution (the mug's body, a can, a bowl:
-        :func:`kernel_revolution_axis`), the kernel's rotation split into a *tilt* of this many radians
-        per axis across the axis and a *spin* of the kernel's rotation scale about it, turned
-        about the axis point (:meth:`~certpose.sampling.PoseDistribution.with_model_error`
-        ``axis``); ``None`` (default): isotropic for every model. Why: an isotropic Student t
-        of 2 deg and 5 dof tilts an axis by more than 5 deg with 0.13 of its mass, and on the
+        :func:`~certpose.estimation.modes.revolution_axis`), the kernel's rotation split into a
+        *tilt* of this many radians per axis across the axis and a *spin* of the kernel's
+        rotation scale about it, turned about the axis point
+        (:meth:`~certpose.sampling.PoseDistribution.with_model_error` ``axis``); ``None``
+        (default): isotropic for every model. Why: an isotropic Student t of 2 deg and 5 dof tilts an axis by more than 5 deg with 0.13 of its mass, and on the
         shared YCB-Video scenes the bare distribution's axis is already wider than the truth's
         tilt from it (``examples/benchmarks/model_error_revolution.py``: over the 11 pairs of
         the mug, the tuna can and the bowl whose truth has a basin, the truth's axis lies 0.3-4.0
@@ -801,47 +801,16 @@ def _sample(scene: Any, cls: Any, object_model: Any, mle: Any, T_cw: NDArray[np.
     return dist, info
 
 
-_KERNEL_AXES: dict[bytes, Any] = {}
-
-
-def kernel_revolution_axis(points: ArrayLike) -> Any:
-    """The axis of revolution the model-error kernel splits about
-    (:func:`~certpose.geometry.revolution.find_revolution_axis`, at least 0.6 of the points),
-    or None.
-
-    The tolerance is one median neighbour gap of the object model's own samples (about 3 mm
-    for the surface-sampled models), not the 2.5 gaps used on raw model points: at 2.5 gaps
-    (7.4 mm) the sampled models of YCB-Video's gelatin box, foam brick, banana and wood block
-    pass as bodies of revolution (0.56-0.88 of their points); at one gap they hold 0.29-0.48
-    and the mug, the cans, the bowl, the marker and the demo's mug 0.91-1.00.
-    """
-    import hashlib
-
-    from scipy.spatial import cKDTree
-
-    from certpose.geometry.revolution import find_revolution_axis
-
-    pts = np.ascontiguousarray(points, dtype=np.float64)
-    key = hashlib.sha1(pts.tobytes()).digest()
-    if key not in _KERNEL_AXES:
-        gap = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
-        axis = None
-        if gap > 0:
-            axis = find_revolution_axis(pts, tolerance=gap, min_fraction=0.6, max_points=400, search_points=250)
-        if len(_KERNEL_AXES) > 64:
-            _KERNEL_AXES.clear()
-        _KERNEL_AXES[key] = axis
-    return _KERNEL_AXES[key]
-
-
 def _kernel_axis(object_model: Any, params: PoseParams, kernel: dict[str, Any]) -> dict[str, Any]:
     """``with_model_error``'s turning point and, with ``params.model_error_tilt`` and an axis of
-    revolution of the model (:func:`kernel_revolution_axis`), its tilt/spin split (noted in
-    ``kernel``)."""
+    revolution of the model (:func:`~certpose.estimation.modes.revolution_axis`), its tilt/spin
+    split (noted in ``kernel``)."""
     centre = object_model.points.mean(axis=0)
     if params.model_error_tilt is None:
         return {"centre": centre}
-    axis = kernel_revolution_axis(object_model.points)
+    from certpose.estimation.modes import revolution_axis
+
+    axis = revolution_axis(object_model.points)
     if axis is None:
         kernel["axis"] = None
         return {"centre": centre}
