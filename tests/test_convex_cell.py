@@ -25,9 +25,9 @@ CORNERS = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3)).reshape(3, -1).T
 
 def _terms(p: WeightedTLSProblem) -> tuple[np.ndarray, ...]:
     """The kernel's per-term arrays of ``p``: points, weights ``v``, outlier costs, norms, a
-    rounding slack."""
-    a = np.ascontiguousarray(p.source)
-    b = np.ascontiguousarray(p.target)
+    rounding slack (writable copies: the search's own arrays, so no second compilation)."""
+    a = np.array(p.source, dtype=np.float64, order="C")
+    b = np.array(p.target, dtype=np.float64, order="C")
     v = np.ascontiguousarray(p.weights / p.noise_bound**2)
     wout = np.ascontiguousarray(p.cbar2 * p.weights)
     anorm = np.linalg.norm(a, axis=1)
