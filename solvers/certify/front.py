@@ -1338,9 +1338,6 @@ def _cheaper_pose(problem: WeightedTLSProblem, out: RegistrationResult,
     pose and cost are recorded in ``info``. ``out`` holding the full problem's: the cheaper
     pose has the smaller gap, certified or not, and ``out`` is recorded as the candidate.
     """
-    from solvers.lie import make_transform
-    from solvers.registration.solve import judge_pose
-
     Rb, tb = np.array(pose[0]), np.array(pose[1])
     cert = _finish_certificate(better, bound, tol=tol, scoped=scoped, ws=ws,
                                outlier_cost=_outlier_cost(problem, Rb, tb), t0=t1)
@@ -1362,14 +1359,7 @@ def _cheaper_pose(problem: WeightedTLSProblem, out: RegistrationResult,
             info.setdefault(key, value)
         what = (f"the full problem's pose search found a cheaper pose (cost {better:.6g} < "
                 f"{old:.6g}); returning it with its certificate")
-    inliers = problem.inliers(Rb, tb)
-    status, message = judge_pose(problem, inliers, what)
-    if status.success:
-        status = SolverStatus.CERTIFIER_POSE
-    return dataclasses.replace(
-        out, status=status, T_target_source=make_transform(Rb, tb), inliers=inliers, cost=better,
-        certificate=dataclasses.replace(cert, solve_time=time.perf_counter() - t0), info=info,
-        message=f"{message}. Before: {out.message}")
+    return _with_pose(problem, out, Rb, tb, better, cert, info, what, t0, before="Before")
 
 
 def _remaining(kw: dict[str, Any], t0: float) -> float | None:
@@ -1486,9 +1476,6 @@ def _certify_once(problem: WeightedTLSProblem, result: RegistrationResult, kw: d
     # A rotation subproblem's bound holds for every rotation: reused, not searched again.
     rot = scoped.label is BoundedProblem.ROTATION_TIM
     cert_new, _, _ = _certify(problem, Rb, tb, **kw, known=bound if rot else None)
-    from solvers.lie import make_transform
-    from solvers.registration.solve import judge_pose
-
     if not new <= old and not cert_new.certified:  # accept_worse: only for a certificate
         info["better_subproblem_pose_full_cost"] = new
         return dataclasses.replace(result, certificate=cert, info=info)
@@ -1498,23 +1485,27 @@ def _certify_once(problem: WeightedTLSProblem, result: RegistrationResult, kw: d
         info["candidate_T_target_source"] = result.T_target_source.tolist()
     info.update(replaced_candidate=True, candidate_cost=old, candidate_status=result.status.value,
                 candidate_certificate=cert.to_dict())
-    inliers = problem.inliers(Rb, tb)
-    # The status describes the returned pose, not the candidate it replaced: the certifier's
-    # pose when it is a success, else what is wrong with it.
-    status, message = judge_pose(
-        problem, inliers,
-        f"certification found a better pose than the candidate on the {scoped.label.value} "
-        f"(cost {cert.better_upper_bound:.6g} < {cert.upper_bound:.6g}; full-problem cost "
-        f"{new:.6g} vs {old:.6g}){worse}; returning it, certified anew")
+    what = (f"certification found a better pose than the candidate on the {scoped.label.value} "
+            f"(cost {cert.better_upper_bound:.6g} < {cert.upper_bound:.6g}; full-problem cost "
+            f"{new:.6g} vs {old:.6g}){worse}; returning it, certified anew")
+    return _with_pose(problem, result, Rb, tb, new, cert_new, info, what, t0,
+                      before=f"Candidate ({result.status.value})")
+
+
+def _with_pose(problem: WeightedTLSProblem, result: RegistrationResult, R: NDArray[np.float64],
+               t: NDArray[np.float64], cost: float, cert: Certificate, info: dict[str, Any],
+               what: str, t0: float, *, before: str) -> RegistrationResult:
+    """``result`` with the certifier's pose ``(R, t)`` of ``cost`` in place of its own. The
+    status describes the returned pose, not the one it replaced: ``CERTIFIER_POSE`` when it is
+    a success, else what is wrong with it."""
+    from solvers.lie import make_transform
+    from solvers.registration.solve import judge_pose
+
+    inliers = problem.inliers(R, t)
+    status, message = judge_pose(problem, inliers, what)
     if status.success:
         status = SolverStatus.CERTIFIER_POSE
     return dataclasses.replace(
-        result,
-        status=status,
-        T_target_source=make_transform(Rb, tb),
-        inliers=inliers,
-        cost=new,
-        certificate=dataclasses.replace(cert_new, solve_time=time.perf_counter() - t0),
-        info=info,
-        message=f"{message}. Candidate ({result.status.value}): {result.message}",
-    )
+        result, status=status, T_target_source=make_transform(R, t), inliers=inliers, cost=cost,
+        certificate=dataclasses.replace(cert, solve_time=time.perf_counter() - t0), info=info,
+        message=f"{message}. {before}: {result.message}")
