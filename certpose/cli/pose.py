@@ -142,6 +142,10 @@ def add_parser(subparsers: Any) -> None:
                      help="for a model with an axis of revolution, split the kernel's rotation "
                           "into a tilt of DEG degrees across the axis and a spin of the kernel's "
                           "rotation about it (PoseParams.model_error_tilt; default: isotropic)")
+    smp.add_argument("--axis-tilt-scale", type=float, default=None, metavar="S",
+                     help="for a model with an axis of revolution, scale the sampled tilt across "
+                          "the axis by S >= 0 about each basin's mean axis (PoseParams."
+                          "axis_tilt_scale; 1: as sampled)")
     smp.add_argument("--temperature-scale", type=float, default=None, metavar="S",
                      help="multiply the importance sampler's default temperature rule (N / n_eff) "
                           "by S > 0 (default 1; ISParams.temperature_scale)")
@@ -286,6 +290,11 @@ def run(args: argparse.Namespace) -> int:
             raise CLIError("--model-error-tilt needs --samples N")
         if not (math.isfinite(args.model_error_tilt) and args.model_error_tilt >= 0):
             raise CLIError(f"--model-error-tilt must be a non-negative number of degrees, got {args.model_error_tilt}")
+    if args.axis_tilt_scale is not None:
+        if args.samples == 0:
+            raise CLIError("--axis-tilt-scale needs --samples N")
+        if not (math.isfinite(args.axis_tilt_scale) and args.axis_tilt_scale >= 0):
+            raise CLIError(f"--axis-tilt-scale must be a non-negative number, got {args.axis_tilt_scale}")
     if args.temperature_scale is not None:
         if args.samples == 0:
             raise CLIError("--temperature-scale needs --samples N")
@@ -345,6 +354,8 @@ def run(args: argparse.Namespace) -> int:
             params = replace(params, model_error=None if deg == mm == 0 else (math.radians(deg), mm / 1000.0))
         if args.model_error_tilt is not None:
             params = replace(params, model_error_tilt=math.radians(args.model_error_tilt))
+        if args.axis_tilt_scale is not None:
+            params = replace(params, axis_tilt_scale=args.axis_tilt_scale)
     if args.rgbd is not None:
         return _run_rgbd(argparse.Namespace(**{**vars(args), "object": rgbd_name}), params)
     if args.demo:

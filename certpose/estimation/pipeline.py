@@ -177,6 +177,11 @@ class PoseParams:
         distribution stands it upside down (level 0.85 isotropic, 0.90 split); in the program
         (``../shared/tools/ycbv_eval.py`` with ``--model-error-tilt 0``) 0.91 / 0.61 against
         0.93 / 0.59, the same can leaving the 90% region.
+    axis_tilt_scale : float
+        For a model with an axis of revolution, the sampled distribution's tilt across the axis
+        scaled by this factor about each basin's mean axis before the model-error kernel
+        (:meth:`~certpose.sampling.PoseDistribution.with_tilt_scale`; 1: as sampled; noted in
+        ``PoseResult.sampling["tilt_scale"]``).
     model_revolution : bool
         Geometry-only models built from model points (:func:`run_ycbv`, :func:`ycbv_setup`):
         sample a surface of revolution with its symmetry
@@ -203,6 +208,7 @@ class PoseParams:
     model_error_gains: tuple[float, float] = (1.0, 1.0)
     model_error_dof: float = 5.0
     model_error_tilt: float | None = None
+    axis_tilt_scale: float = 1.0
     model_revolution: bool = False
     mode_set: Any = None
 
@@ -234,6 +240,9 @@ class PoseParams:
                 math.isfinite(self.model_error_tilt) and self.model_error_tilt >= 0):
             raise ValueError("`model_error_tilt` must be None or a finite number >= 0 (radians), "
                              f"got {self.model_error_tilt!r}.")
+        if not (math.isfinite(self.axis_tilt_scale) and self.axis_tilt_scale >= 0):
+            raise ValueError("`axis_tilt_scale` must be a finite number >= 0, "
+                             f"got {self.axis_tilt_scale!r}.")
         gains = _two_numbers(self.model_error_gains)
         if gains is None or not all(v >= 0 for v in gains):
             raise ValueError("`model_error_gains` must be (a, b), two non-negative numbers, got "
@@ -785,6 +794,14 @@ def _sample(scene: Any, cls: Any, object_model: Any, mle: Any, T_cw: NDArray[np.
     R = np.einsum("ij,njk->nik", T_cw[:3, :3], d.rotations)
     t = d.translations @ T_cw[:3, :3].T + T_cw[:3, 3]
     dist = PoseDistribution(R, t, d.weights, log_weights=d.log_weights)
+    tilt_scale = None
+    if params.axis_tilt_scale != 1.0:
+        from certpose.estimation.modes import revolution_axis
+
+        axis = revolution_axis(object_model.points)
+        if axis is not None:
+            dist = dist.with_tilt_scale(params.axis_tilt_scale, axis=axis.direction, centre=axis.point)
+            tilt_scale = float(params.axis_tilt_scale)
     kernel = model_error_kernel(scene, object_model, mle.T_scene_object, params)
     if kernel["rotation_sigma"] > 0 or kernel["translation_sigma"] > 0:
         split = _kernel_axis(object_model, params, kernel)
@@ -793,7 +810,7 @@ def _sample(scene: Any, cls: Any, object_model: Any, mle: Any, T_cw: NDArray[np.
     info = {"method": params.sampling_method, "particles": len(dist), "ess": ess,
             "temperature": float(res.temperature), "evaluations": int(res.num_evaluations),
             "seconds": float(res.seconds), "status": res.status, "message": res.message, **extra,
-            "model_error": kernel}
+            "model_error": kernel, "tilt_scale": tilt_scale}
     try:
         info["pareto_k"] = float(weighted.pareto_k())
     except ValueError:

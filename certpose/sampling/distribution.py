@@ -66,6 +66,31 @@ def _axis_basis(axis: ArrayLike) -> NDArray[np.float64]:
     return np.stack([e1, np.cross(a, e1), a])
 
 
+def _basin_means(A: NDArray[np.float64], w: NDArray[np.float64], cos_radius: float) -> NDArray[np.float64]:
+    """(k, 3) unit mean axes of the basins of the unit axes ``A`` (weights ``w``): from the
+    heaviest axis left, the weighted mean of the axes within the radius, refined twice; its
+    members leave; until none is left."""
+    left = np.ones(len(A), dtype=bool)
+    means = []
+    while left.any():
+        idx = np.flatnonzero(left)
+        m = A[idx[np.argmax(w[idx])]]
+        for _ in range(3):
+            near = left & (A @ m >= cos_radius)
+            s = w[near] @ A[near]
+            n = float(np.linalg.norm(s))
+            if n == 0.0:
+                break
+            m = s / n
+        near = left & (A @ m >= cos_radius)
+        if not near.any():  # the refined mean moved off every member: take the seed alone
+            near = np.zeros(len(A), dtype=bool)
+            near[idx[np.argmax(w[idx])]] = True
+        left &= ~near
+        means.append(m)
+    return np.asarray(means)
+
+
 #: A mode with fewer distinct particles has no covariance of its own for the kernel density.
 _MIN_MODE_PARTICLES = 12
 
@@ -331,6 +356,59 @@ class PoseDistribution:
         R2 = R @ E
         t2 = t + R @ c - R2 @ c + k * gen.normal(scale=float(translation_sigma), size=(len(w), 3))
         return PoseDistribution(R2, t2, w)
+
+    def with_tilt_scale(self, scale: float, *, axis: ArrayLike, centre: ArrayLike = (0.0, 0.0, 0.0),
+                        basin_deg: float = 30.0) -> PoseDistribution:
+        """This distribution with its tilt across an axis of revolution scaled by ``scale``.
+
+        The particles' axes (``R @ axis``) are grouped into basins (a basin: the axes within
+        ``basin_deg`` of its weighted mean axis, taken greedily from the heaviest particle left;
+        an upright and an upside-down basin are two). Each particle is then turned, about its own
+        point ``centre`` and by the least rotation, so that its axis's angle to its basin's mean
+        axis is ``scale`` times what it was. Spin about the axis, the point's position and the
+        weights are kept. For a basin whose tilt is Gaussian this is the tilt marginal tempered
+        by ``scale**2`` (a variance ``scale**2`` times as large), the other coordinates left as
+        they were.
+
+        Parameters
+        ----------
+        scale : float
+            Factor on every particle's tilt from its basin's mean axis (>= 0; 1 returns the same
+            particles; 0 puts every axis on its basin's mean).
+        axis : (3,) array_like
+            Object-frame direction of the axis of revolution (not zero).
+        centre : (3,) array_like
+            Object-frame point on the axis that each particle turns about (metres).
+        basin_deg : float
+            Radius of a basin about its mean axis (degrees, in (0, 90)).
+
+        Returns
+        -------
+        PoseDistribution
+            As many particles, the same weights, without ``log_weights``.
+        """
+        if not (np.isfinite(scale) and scale >= 0):
+            raise ValueError(f"Expected `scale` to be finite and >= 0, got {scale}.")
+        if not (0 < basin_deg < 90):
+            raise ValueError(f"Expected `basin_deg` in (0, 90), got {basin_deg}.")
+        a = _axis_basis(axis)[2]
+        c = np.asarray(centre, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(c)):
+            raise ValueError(f"Expected `centre` to be finite, got {c}.")
+        if scale == 1.0:
+            return PoseDistribution(self.rotations, self.translations, self.weights)
+        A = self.rotations @ a
+        means = _basin_means(A, self.weights, math.cos(math.radians(basin_deg)))
+        m = means[np.argmax(A @ means.T, axis=1)]
+        # The least rotation taking each axis to `scale` of its angle from the basin's mean.
+        cross = np.cross(A, m)
+        sin = np.linalg.norm(cross, axis=1)
+        theta = np.arctan2(sin, np.einsum("ij,ij->i", A, m))
+        u = np.divide(cross, sin[:, None], out=np.zeros_like(cross), where=sin[:, None] > 1e-12)
+        E = Rotation.from_rotvec(u * ((1.0 - float(scale)) * theta)[:, None]).as_matrix()
+        R2 = E @ self.rotations
+        p = self.rotations @ c + self.translations
+        return PoseDistribution(R2, p - R2 @ c, self.weights)
 
     def tangent(self, R0: ArrayLike, t0: ArrayLike) -> NDArray[np.float64]:
         """(n, 6) chart coordinates ``(log(R0^T R), t - t0)`` around ``(R0, t0)``."""

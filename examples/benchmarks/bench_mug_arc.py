@@ -154,6 +154,8 @@ def main() -> int:
     ap.add_argument("--model-error-tilt", type=float, default=None, metavar="DEG",
                     help="the kernel's tilt across the mug's axis of revolution, degrees "
                          "(PoseParams.model_error_tilt; the spin keeps the kernel's rotation scale)")
+    ap.add_argument("--axis-tilt-scale", type=float, default=None, metavar="S",
+                    help="scale the sampled tilt across the mug's axis by S (PoseParams.axis_tilt_scale)")
     ap.add_argument("--temperature-scale", type=float, default=1.0,
                     help="multiplies the importance sampler's default temperature rule")
     args = ap.parse_args()
@@ -166,8 +168,10 @@ def main() -> int:
         params = replace(params, model_error=(math.radians(deg), mm / 1000.0) if deg or mm else None)
     if args.model_error_tilt is not None:
         params = replace(params, model_error_tilt=math.radians(args.model_error_tilt))
+    if args.axis_tilt_scale is not None:
+        params = replace(params, axis_tilt_scale=args.axis_tilt_scale)
     print(f"model-error kernel: {params.model_error} (radians, metres), dof {params.model_error_dof}, "
-          f"tilt {args.model_error_tilt} deg; "
+          f"tilt {params.model_error_tilt} rad; axis tilt scale {params.axis_tilt_scale:g}; "
           f"temperature scale {args.temperature_scale:g}")
     print(f"load {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     rows = []
