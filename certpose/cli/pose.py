@@ -138,10 +138,11 @@ def add_parser(subparsers: Any) -> None:
                           "Metropolis on SE(3). The baselines get the same target and number of "
                           "eq. (1) evaluations. calibrated: exact draws of the calibrated "
                           "distribution (eq. (1)'s basins and flips, a model-error kernel; docs/concepts.md)")
-    smp.add_argument("--model-error-tilt", type=float, default=None, metavar="DEG",
+    smp.add_argument("--model-error-tilt", default=None, metavar="DEG | iso",
                      help="for a model with an axis of revolution, split the kernel's rotation "
                           "into a tilt of DEG degrees across the axis and a spin of the kernel's "
-                          "rotation about it (PoseParams.model_error_tilt; default: isotropic)")
+                          "rotation about it; iso: the same kernel for every model "
+                          "(PoseParams.model_error_tilt; default 0)")
     smp.add_argument("--axis-tilt-scale", type=float, default=None, metavar="S",
                      help="for a model with an axis of revolution, scale the sampled tilt across "
                           "the axis by S >= 0 about each basin's mean axis (PoseParams."
@@ -157,6 +158,21 @@ def add_parser(subparsers: Any) -> None:
                           "misfit of the posed model (PoseParams.model_error)")
     add_common(p, seed_help="random seed (default: 0)")
     p.set_defaults(func=run)
+
+
+def _model_error_tilt_arg(value: str) -> float | str:
+    """``--model-error-tilt``: ``iso`` or a non-negative number of degrees."""
+    from certpose.cli import CLIError
+
+    if value.strip().lower() == "iso":
+        return "iso"
+    try:
+        deg = float(value)
+    except ValueError:
+        raise CLIError(f"--model-error-tilt must be a number of degrees or iso, got {value!r}") from None
+    if not (math.isfinite(deg) and deg >= 0):
+        raise CLIError(f"--model-error-tilt must be a non-negative number of degrees, got {value}")
+    return deg
 
 
 def _model_error_arg(values: list[str]) -> str | tuple[float, float]:
@@ -288,8 +304,7 @@ def run(args: argparse.Namespace) -> int:
     if args.model_error_tilt is not None:
         if args.samples == 0:
             raise CLIError("--model-error-tilt needs --samples N")
-        if not (math.isfinite(args.model_error_tilt) and args.model_error_tilt >= 0):
-            raise CLIError(f"--model-error-tilt must be a non-negative number of degrees, got {args.model_error_tilt}")
+        args.model_error_tilt = _model_error_tilt_arg(args.model_error_tilt)
     if args.axis_tilt_scale is not None:
         if args.samples == 0:
             raise CLIError("--axis-tilt-scale needs --samples N")
@@ -352,7 +367,9 @@ def run(args: argparse.Namespace) -> int:
         elif args.model_error is not None:
             deg, mm = args.model_error
             params = replace(params, model_error=None if deg == mm == 0 else (math.radians(deg), mm / 1000.0))
-        if args.model_error_tilt is not None:
+        if args.model_error_tilt == "iso":
+            params = replace(params, model_error_tilt=None)
+        elif args.model_error_tilt is not None:
             params = replace(params, model_error_tilt=math.radians(args.model_error_tilt))
         if args.axis_tilt_scale is not None:
             params = replace(params, axis_tilt_scale=args.axis_tilt_scale)
