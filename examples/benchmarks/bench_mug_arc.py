@@ -19,15 +19,16 @@ Targets: ``in arc`` >= 0.9, ``> 20 out`` <= 0.05, every bin covered, ``axis ok``
 
 ``--model-error DEG MM`` sets the model-error kernel as ``certpose pose --model-error`` does
 (``0 0``: the bare importance-sampler distribution), to tell the sampler's spread from the
-kernel's; ``--model-error-tilt DEG`` splits it into a tilt across the mug's axis and a spin
-about it (``PoseParams.model_error_tilt``). ``--temperature-scale S`` multiplies the importance sampler's default temperature
+kernel's; ``--model-error-tilt DEG`` sets its tilt across the mug's axis (default 0: only a spin
+about it; ``iso``: the isotropic kernel; ``PoseParams.model_error_tilt``) and
+``--axis-tilt-scale S`` the scale of the sampled tilt (default 0.5; ``PoseParams.axis_tilt_scale``). ``--temperature-scale S`` multiplies the importance sampler's default temperature
 rule (``ISParams.temperature_scale``), to see how much of the bare distribution's width the
 tempering sets.
 
 usage::
 
     python examples/benchmarks/bench_mug_arc.py [--ycbv ../shared/data/ycbv] [--samples 2000]
-        [--model-error DEG MM] [--model-error-tilt DEG] [--temperature-scale S]
+        [--model-error DEG MM] [--model-error-tilt DEG|iso] [--axis-tilt-scale S] [--temperature-scale S]
 """
 
 from __future__ import annotations
@@ -151,8 +152,8 @@ def main() -> int:
     ap.add_argument("--model-error", nargs="+", metavar="DEG MM | fit", default=None,
                     help="model-error kernel: degrees, millimetres per axis (0 0: none) or fit "
                          "(scaled by the depth misfit)")
-    ap.add_argument("--model-error-tilt", type=float, default=None, metavar="DEG",
-                    help="the kernel's tilt across the mug's axis of revolution, degrees "
+    ap.add_argument("--model-error-tilt", default=None, metavar="DEG | iso",
+                    help="the kernel's tilt across the mug's axis of revolution, degrees, or iso "
                          "(PoseParams.model_error_tilt; the spin keeps the kernel's rotation scale)")
     ap.add_argument("--axis-tilt-scale", type=float, default=None, metavar="S",
                     help="scale the sampled tilt across the mug's axis by S (PoseParams.axis_tilt_scale)")
@@ -166,8 +167,10 @@ def main() -> int:
     elif args.model_error is not None:
         deg, mm = (float(v) for v in args.model_error)
         params = replace(params, model_error=(math.radians(deg), mm / 1000.0) if deg or mm else None)
-    if args.model_error_tilt is not None:
-        params = replace(params, model_error_tilt=math.radians(args.model_error_tilt))
+    if args.model_error_tilt == "iso":
+        params = replace(params, model_error_tilt=None)
+    elif args.model_error_tilt is not None:
+        params = replace(params, model_error_tilt=math.radians(float(args.model_error_tilt)))
     if args.axis_tilt_scale is not None:
         params = replace(params, axis_tilt_scale=args.axis_tilt_scale)
     print(f"model-error kernel: {params.model_error} (radians, metres), dof {params.model_error_dof}, "
