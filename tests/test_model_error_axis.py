@@ -56,9 +56,10 @@ def test_demo_mug_spins_about_its_axis_without_tilting() -> None:
     from certpose.estimation.pipeline import run_demo
     from certpose.sampling.sampler import ISParams
 
-    base = replace(PoseParams(), sampler=ISParams(draws=2000, resample=500), model_error=(math.radians(10.0), 0.0))
+    base = replace(PoseParams(), sampler=ISParams(draws=2000, resample=500), model_error=(math.radians(10.0), 0.0),
+                   axis_tilt_scale=1.0)
     median_tilt = {}
-    for name, params in (("bare", replace(base, model_error=None)), ("iso", base),
+    for name, params in (("bare", replace(base, model_error=None)), ("iso", replace(base, model_error_tilt=None)),
                          ("split", replace(base, model_error_tilt=0.0))):
         res = run_demo(params=params, rng=0)
         d = res.distribution
