@@ -234,3 +234,23 @@ def test_model_error_fit_records_the_measured_misfit_and_kernel(tmp_path: Path, 
     assert main(["pose", "--demo", "--samples", "300", "--json", str(fixed)]) == 0
     k = json.loads(fixed.read_text())["sampling"]["model_error"]
     assert k["rule"] == "fixed" and k["rotation_sigma"] == pytest.approx(np.radians(2.0))
+
+
+@pytest.mark.slow
+def test_the_tilt_scale_and_the_split_kernel_are_said_and_written(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    """The demo mug has an axis of revolution: by default the JSON records the tilt scale and a
+    kernel with no tilt about the mug's axis, and the text says both; `--model-error-tilt iso
+    --axis-tilt-scale 1` gives the isotropic kernel and no scale."""
+    js = tmp_path / "p.json"
+    assert main(["pose", "--demo", "--samples", "300", "--json", str(js)]) == 0
+    s = json.loads(js.read_text())["sampling"]
+    assert s["tilt_scale"] == 0.5
+    assert s["model_error"]["tilt_sigma"] == 0.0 and abs(abs(s["model_error"]["axis"][2]) - 1.0) < 1e-3
+    out = capsys.readouterr().out
+    assert "tilt 0.00 deg across the axis of revolution" in out and "scaled by 0.5" in out
+    iso = tmp_path / "i.json"
+    assert main(["pose", "--demo", "--samples", "300", "--model-error-tilt", "iso", "--axis-tilt-scale", "1",
+                 "--json", str(iso)]) == 0
+    s = json.loads(iso.read_text())["sampling"]
+    assert s["tilt_scale"] is None and "tilt_sigma" not in s["model_error"]
+    assert "across the axis of revolution" not in capsys.readouterr().out

@@ -686,6 +686,9 @@ def _print_distribution(result: object, args: argparse.Namespace) -> None:
                  if "tilt_sigma" in kern else "")
               + f"{math.degrees(kern['rotation_sigma']):.2f} deg, {1000 * kern['translation_sigma']:.2f} mm"
               f" per axis, Student t {kern['dof']:g} dof")
+    if info.get("tilt_scale") is not None:
+        say(args, f"  tilt across the axis of revolution scaled by {info['tilt_scale']:g} about each "
+                  "basin's mean axis (PoseParams.axis_tilt_scale)")
     from certpose.estimation.pipeline import YCBV_SYMMETRY_AXES
 
     axis = (tuple(args.axis) if args.axis is not None else (0.0, 0.0, 1.0) if args.demo
