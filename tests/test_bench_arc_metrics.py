@@ -83,3 +83,31 @@ def test_depth_axis_recovers_the_mug_body_axis_from_a_tilted_start():
     assert angle(a, b) < 0.3
     assert angle(a, G[:3, 2]) < 1.0
     assert angle(b, tilted[:3, 2]) > 2.0
+
+
+def test_the_colour_judge_holds_the_truth_and_sees_a_handle_turned_into_the_sensor_shadow():
+    """bench_arc_judge.colour_arc on YCB-Video 0000/000001: no handle point contradicts the colour
+    image at the truth; turned 90 deg (into the sensor's shadow, which the depth image leaves
+    empty) dozens do, and the arc about the truth ends between those; the colour test it uses
+    tells the mug's pixels from the background's."""
+    from bench_arc import body_axis_offset
+    from bench_arc_judge import colour_arc, mug_coloured
+
+    from certpose.io.ycbv import load_model_points, load_ycbv_frame
+    from tests.conftest import require_data
+
+    root = require_data("ycbv")
+    yf = load_ycbv_frame(root, "0000/000001")
+    pts = load_model_points(root / "models" / "025_mug" / "points.xyz")
+    centre = body_axis_offset(pts)
+    _, on_mug, on_background = mug_coloured(yf)
+    assert on_mug > 0.8 and on_background < 0.1
+    arc = colour_arc(yf, pts, yf.poses["025_mug"], centre, step=2.0)
+    at = dict(zip(arc.angles.tolist(), arc.violations.tolist()))
+    assert at[0.0] == 0 and at[90.0] > 30
+    lo, hi = arc.arc
+    assert -20.0 < lo < 0.0 < 50.0 < hi < 90.0
+    # The turn that points the handle straight away from the camera (behind the body) is inside.
+    cam = np.linalg.inv(yf.poses["025_mug"])[:3, 3] - centre
+    away = np.degrees(np.arctan2(-cam[1], -cam[0]))
+    assert lo + 10.0 < away < hi - 10.0, (away, arc.arc)
