@@ -103,7 +103,7 @@ def test_the_colour_judge_holds_the_truth_and_sees_a_handle_turned_into_the_sens
     _, on_mug, on_background = mug_coloured(yf)
     assert on_mug > 0.8 and on_background < 0.1
     arc = colour_arc(yf, pts, yf.poses["025_mug"], centre, step=2.0)
-    at = dict(zip(arc.angles.tolist(), arc.violations.tolist()))
+    at = dict(zip(arc.angles.tolist(), arc.violations.tolist(), strict=True))
     assert at[0.0] == 0 and at[90.0] > 30
     lo, hi = arc.arc
     assert -20.0 < lo < 0.0 < 50.0 < hi < 90.0
