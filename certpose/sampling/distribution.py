@@ -66,15 +66,16 @@ def _axis_basis(axis: ArrayLike) -> NDArray[np.float64]:
     return np.stack([e1, np.cross(a, e1), a])
 
 
-def _basin_means(A: NDArray[np.float64], w: NDArray[np.float64], cos_radius: float) -> NDArray[np.float64]:
-    """(k, 3) unit mean axes of the basins of the unit axes ``A`` (weights ``w``): from the
-    heaviest axis left, the weighted mean of the axes within the radius, refined twice; its
-    members leave; until none is left."""
+def _basins(A: NDArray[np.float64], w: NDArray[np.float64], cos_radius: float) -> NDArray[np.float64]:
+    """Each unit axis's basin mean (n, 3): from the heaviest axis left, the weighted mean of the
+    axes within the radius, refined twice; those within the radius of it join the basin and leave;
+    until none is left. Every axis lies within the radius of its basin's mean."""
     left = np.ones(len(A), dtype=bool)
-    means = []
+    out = np.empty_like(A)
     while left.any():
         idx = np.flatnonzero(left)
-        m = A[idx[np.argmax(w[idx])]]
+        seed = idx[np.argmax(w[idx])]
+        m = A[seed]
         for _ in range(3):
             near = left & (A @ m >= cos_radius)
             s = w[near] @ A[near]
@@ -83,12 +84,13 @@ def _basin_means(A: NDArray[np.float64], w: NDArray[np.float64], cos_radius: flo
                 break
             m = s / n
         near = left & (A @ m >= cos_radius)
-        if not near.any():  # the refined mean moved off every member: take the seed alone
+        if not near.any():  # the refined mean moved off every member: the seed alone
+            m = A[seed]
             near = np.zeros(len(A), dtype=bool)
-            near[idx[np.argmax(w[idx])]] = True
+            near[seed] = True
+        out[near] = m
         left &= ~near
-        means.append(m)
-    return np.asarray(means)
+    return out
 
 
 #: A mode with fewer distinct particles has no covariance of its own for the kernel density.
@@ -398,8 +400,7 @@ class PoseDistribution:
         if scale == 1.0:
             return PoseDistribution(self.rotations, self.translations, self.weights)
         A = self.rotations @ a
-        means = _basin_means(A, self.weights, math.cos(math.radians(basin_deg)))
-        m = means[np.argmax(A @ means.T, axis=1)]
+        m = _basins(A, self.weights, math.cos(math.radians(basin_deg)))
         # The least rotation taking each axis to `scale` of its angle from the basin's mean.
         cross = np.cross(A, m)
         sin = np.linalg.norm(cross, axis=1)
