@@ -301,23 +301,17 @@ def run(args: argparse.Namespace) -> int:
         _check_plot_format(args.plot)
     if args.method != "is" and args.samples == 0:
         raise CLIError("--method needs --samples N")
+    for flag in ("--model-error-tilt", "--axis-tilt-scale", "--temperature-scale", "--model-error"):
+        if getattr(args, flag[2:].replace("-", "_")) is not None and args.samples == 0:
+            raise CLIError(f"{flag} needs --samples N")
     if args.model_error_tilt is not None:
-        if args.samples == 0:
-            raise CLIError("--model-error-tilt needs --samples N")
         args.model_error_tilt = _model_error_tilt_arg(args.model_error_tilt)
-    if args.axis_tilt_scale is not None:
-        if args.samples == 0:
-            raise CLIError("--axis-tilt-scale needs --samples N")
-        if not (math.isfinite(args.axis_tilt_scale) and args.axis_tilt_scale >= 0):
-            raise CLIError(f"--axis-tilt-scale must be a non-negative number, got {args.axis_tilt_scale}")
-    if args.temperature_scale is not None:
-        if args.samples == 0:
-            raise CLIError("--temperature-scale needs --samples N")
-        if not (math.isfinite(args.temperature_scale) and args.temperature_scale > 0):
-            raise CLIError(f"--temperature-scale must be a positive number, got {args.temperature_scale}")
+    if args.axis_tilt_scale is not None and not (math.isfinite(args.axis_tilt_scale) and args.axis_tilt_scale >= 0):
+        raise CLIError(f"--axis-tilt-scale must be a non-negative number, got {args.axis_tilt_scale}")
+    if args.temperature_scale is not None and not (math.isfinite(args.temperature_scale)
+                                                   and args.temperature_scale > 0):
+        raise CLIError(f"--temperature-scale must be a positive number, got {args.temperature_scale}")
     if args.model_error is not None:
-        if args.samples == 0:
-            raise CLIError("--model-error needs --samples N")
         args.model_error = _model_error_arg(args.model_error)
     if args.axis is not None:
         if args.samples == 0:
